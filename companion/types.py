@@ -1,0 +1,115 @@
+"""The small typed values that flow one way through the pipeline.
+
+    Frame -> [Detection] -> PoseMeasurement -> Estimate -> MAVLink message
+
+Conventions stated once, here, for every stage:
+
+* Pixel coordinates: x right, y down, in pixels, with the centre of the
+  top-left pixel at (0, 0) (OpenCV's convention).
+* Marker corners: the four corners of the marker's *inner black square*
+  (the ArUco border's outer edge), in the marker's upright order
+  top-left, top-right, bottom-right, bottom-left, as an array of shape (4, 2).
+* Times: integer nanoseconds on the monotonic clock (``time.monotonic_ns()``)
+  of the frame's capture, in fields named ``t_ns``.
+* Frames of reference and axes (camera, body, map, NED) are defined in
+  ``companion.frames``; rigid transforms are 4x4 homogeneous matrices named
+  ``T_to_from`` (``T_map_body`` maps body coordinates into the map frame).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+DetectionPath = Literal["square", "circles"]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One grayscale camera image and when it was captured.
+
+    image: (H, W) uint8 grayscale.
+    t_ns: capture time on the monotonic clock, nanoseconds.
+    index: sequence number from the source (0, 1, 2, ...).
+    """
+
+    image: np.ndarray
+    t_ns: int
+    index: int
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One RS marker found and decoded in one frame.
+
+    symbol: printable name from the dictionary ("A", "7", "ARROW_UP", ...).
+    id: the symbol's stable integer id in the dictionary.
+    corners_px: (4, 2) float64, inner black square corners TL, TR, BR, BL
+        in the marker's upright orientation, sub-pixel image coordinates.
+    path: "square" (found by its black border) or "circles" (found by its
+        corner circles when the border is broken).
+    corrected: number of RS symbols that were corrected or recovered from
+        erasures to decode this marker (0 for a clean read).
+    quality: in [0, 1]; the fraction of the marker's cells that were read
+        and agree with the decoded marker.
+    circles_px: (K, 2) float64 image centres of the corner circles that
+        were used (empty for the square path).
+    circle_ids: (K,) int, the index of each of those circles in the
+        marker layout's circle table (``companion.marker.MarkerLayout.circles``).
+    """
+
+    symbol: str
+    id: int
+    corners_px: np.ndarray
+    path: DetectionPath
+    corrected: int
+    quality: float
+    circles_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    circle_ids: np.ndarray = field(default_factory=lambda: np.zeros((0,), dtype=int))
+
+
+@dataclass(frozen=True)
+class PoseMeasurement:
+    """The vehicle pose computed from the markers of one frame (no filtering).
+
+    t_ns: capture time of the frame it was computed from.
+    T_map_body: (4, 4) body FRD -> map frame.
+    T_ned_body: (4, 4) body FRD -> local NED frame (the flight controller's).
+    covariance_ned: (6, 6) over [north_m, east_m, down_m, roll_rad,
+        pitch_rad, yaw_rad] (rotation errors as small angles about the NED
+        axes), derived from the reprojection residuals and geometry.
+    marker_ids: ids of the map markers used.
+    reprojection_rms_px: RMS reprojection error of the accepted fit.
+    """
+
+    t_ns: int
+    T_map_body: np.ndarray
+    T_ned_body: np.ndarray
+    covariance_ned: np.ndarray
+    marker_ids: tuple[int, ...]
+    reprojection_rms_px: float
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The fused vehicle state sent to the flight controller.
+
+    t_ns: capture time of the newest frame that went into it.
+    position_ned_m: (3,) north, east, down from the map's NED origin.
+    velocity_ned_m_s: (3,).
+    roll_rad, pitch_rad, yaw_rad: body FRD -> NED attitude, Z-Y-X (3-2-1) Euler.
+    covariance_ned: (6, 6) over [north, east, down, roll, pitch, yaw].
+    reset_counter: incremented when the estimate jumps (re-acquisition).
+    tracking: True while recent markers support the estimate.
+    """
+
+    t_ns: int
+    position_ned_m: np.ndarray
+    velocity_ned_m_s: np.ndarray
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    covariance_ned: np.ndarray
+    reset_counter: int
+    tracking: bool
