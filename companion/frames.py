@@ -1,0 +1,271 @@
+"""Every frame of reference, axis convention and fixed transform, in one place.
+
+No other module swaps axes: they call the functions and constants here.
+
+Frames (all right-handed, metres, see ``docs/frames.md`` for the figure):
+
+* **camera** (OpenCV): origin at the optical centre, x right in the image,
+  y down in the image, z forward along the optical axis.
+* **camera FRD**: the same origin, x forward along the optical axis, y right,
+  z down in the image. Only used to state a camera's mounting as
+  roll/pitch/yaw like any other body (``R_CAMFRD_CAMERA``).
+* **body** (FRD): the vehicle's body frame, x forward, y right, z down,
+  origin at the vehicle's reference point (the flight controller's).
+* **map**: the facility's frame, z up; its x axis points at a stated bearing
+  from true north (``x_bearing_deg``, clockwise as on a compass), so its
+  y axis points at ``x_bearing_deg - 90``.
+* **NED**: MAVLink local NED (north, east, down), origin at the map origin
+  (the EKF origin set with SET_GPS_GLOBAL_ORIGIN).
+* **marker**: origin at the centre of the marker's inner black square,
+  x toward the marker's right (TL -> TR), y toward its top (BL -> TL),
+  z out of the printed face toward the viewer.
+
+Rigid transforms are 4x4 homogeneous matrices named ``T_to_from``:
+``p_to = T_to_from @ p_from``; rotations are 3x3 ``R_to_from``; the columns of
+``R_to_from`` are the ``from`` axes written in the ``to`` frame.
+
+Euler angles are Z-Y-X (3-2-1, "yaw, pitch, roll", intrinsic) as MAVLink uses
+them: ``R_to_from = Rz(yaw) @ Ry(pitch) @ Rx(roll)``. Quaternions are
+Hamilton ``(w, x, y, z)``, scalar first, with ``w >= 0`` on output.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# Columns are the OpenCV camera axes (x right, y down, z forward) in camera FRD.
+R_CAMFRD_CAMERA = np.array(
+    [[0.0, 0.0, 1.0],
+     [1.0, 0.0, 0.0],
+     [0.0, 1.0, 0.0]]
+)
+
+# Map's z is up, NED's is down: the map's "up" is NED (0, 0, -1).
+MAP_UP_IN_NED = np.array([0.0, 0.0, -1.0])
+
+
+# ---------------------------------------------------------------- rotations
+
+def rot_x(angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle_rad`` about +x (right-hand rule)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle_rad`` about +y (right-hand rule)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle_rad`` about +z (right-hand rule)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rotation_from_euler_321(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """(3, 3) ``R_to_from`` from Z-Y-X Euler angles (radians).
+
+    The ``from`` frame is reached by yawing about z, then pitching about the
+    new y, then rolling about the newest x (MAVLink's body -> NED attitude).
+    """
+    # R = Rz(yaw) Ry(pitch) Rx(roll)
+    return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+
+
+def euler_321_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll_rad, pitch_rad, yaw_rad) of a (3, 3) rotation, Z-Y-X order.
+
+    pitch is in [-pi/2, pi/2], roll and yaw in (-pi, pi]. At gimbal lock
+    (|pitch| = pi/2) roll is reported as 0 and yaw carries the rotation.
+    """
+    # R[2,0] = -sin(pitch)
+    sin_pitch = float(np.clip(-R[2, 0], -1.0, 1.0))
+    pitch = math.asin(sin_pitch)
+    if abs(sin_pitch) > 1.0 - 1e-12:
+        # Only yaw -/+ roll is observable; put it all in yaw.
+        yaw = math.atan2(-R[0, 1], R[1, 1])
+        return 0.0, pitch, yaw
+    # R[2,1] = cos(pitch) sin(roll), R[2,2] = cos(pitch) cos(roll)
+    roll = math.atan2(R[2, 1], R[2, 2])
+    # R[1,0] = cos(pitch) sin(yaw), R[0,0] = cos(pitch) cos(yaw)
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    return roll, pitch, yaw
+
+
+def rotation_from_quaternion(q_wxyz) -> np.ndarray:
+    """(3, 3) rotation from a quaternion (w, x, y, z); normalised first.
+
+    Raises ValueError for a zero or non-finite quaternion.
+    """
+    q = np.asarray(q_wxyz, dtype=float).reshape(4)
+    norm = float(np.linalg.norm(q))
+    if not math.isfinite(norm) or norm < 1e-12:
+        raise ValueError(f"quaternion {q.tolist()} has no direction (norm {norm})")
+    w, x, y, z = q / norm
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
+    """(4,) unit quaternion (w, x, y, z), w >= 0, of a (3, 3) rotation."""
+    # Shepperd's method: divide by the largest of the four diagonal combinations.
+    R = np.asarray(R, dtype=float)
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    candidates = [trace, R[0, 0], R[1, 1], R[2, 2]]
+    k = int(np.argmax(candidates))
+    if k == 0:
+        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif k == 1:
+        s = 2.0 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif k == 2:
+        s = 2.0 * math.sqrt(max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 0.0))
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 0.0))
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def rotation_from_rotvec(rotvec) -> np.ndarray:
+    """(3, 3) rotation from a (3,) axis-angle vector (radians), as cv2.Rodrigues."""
+    r = np.asarray(rotvec, dtype=float).reshape(3)
+    angle = float(np.linalg.norm(r))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = skew(r / angle)
+    # Rodrigues: R = I + sin(a) K + (1 - cos(a)) K^2
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+def rotvec_from_rotation(R: np.ndarray) -> np.ndarray:
+    """(3,) axis-angle vector (radians, angle in [0, pi]) of a (3, 3) rotation."""
+    q = quaternion_from_rotation(R)
+    sin_half = float(np.linalg.norm(q[1:]))
+    if sin_half < 1e-15:
+        return np.zeros(3)
+    angle = 2.0 * math.atan2(sin_half, q[0])
+    return q[1:] / sin_half * angle
+
+
+def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle (radians, [0, pi]) of the rotation taking R_b to R_a."""
+    # cos(angle) = (trace(R_a R_b^T) - 1) / 2
+    cos_angle = (float(np.trace(R_a @ R_b.T)) - 1.0) / 2.0
+    return math.acos(max(-1.0, min(1.0, cos_angle)))
+
+
+def skew(v) -> np.ndarray:
+    """(3, 3) cross-product matrix: ``skew(a) @ b == np.cross(a, b)``."""
+    x, y, z = np.asarray(v, dtype=float).reshape(3)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+# --------------------------------------------------------------- transforms
+
+def make_transform(R: np.ndarray, t_m) -> np.ndarray:
+    """(4, 4) homogeneous transform from a (3, 3) rotation and (3,) translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t_m, dtype=float).reshape(3)
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """(4, 4) inverse of a rigid transform: ``T_b_a`` from ``T_a_b``."""
+    R = T[:3, :3]
+    # T^-1 = [R^T, -R^T t]
+    return make_transform(R.T, -R.T @ T[:3, 3])
+
+
+def transform_points(T: np.ndarray, points) -> np.ndarray:
+    """(N, 3) points mapped by a (4, 4) transform; ``points`` is (N, 3) or (3,)."""
+    p = np.asarray(points, dtype=float)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def transform_from_rotvec(rvec, tvec) -> np.ndarray:
+    """(4, 4) transform from OpenCV's (rvec, tvec) pair (any shapes of 3)."""
+    return make_transform(rotation_from_rotvec(rvec), np.asarray(tvec, dtype=float).reshape(3))
+
+
+# -------------------------------------------------------- named transforms
+
+def R_ned_map(x_bearing_deg: float) -> np.ndarray:
+    """(3, 3) rotation map -> NED for a map whose x axis points at ``x_bearing_deg``.
+
+    The bearing is measured from true north, clockwise seen from above
+    (a compass bearing: 90 = east). The map's y axis is 90 degrees
+    counter-clockwise from x seen from above (bearing - 90), its z is up.
+    """
+    b = math.radians(x_bearing_deg)
+    x_axis = [math.cos(b), math.sin(b), 0.0]
+    # bearing - 90: (cos(b - 90), sin(b - 90)) = (sin b, -cos b)
+    y_axis = [math.sin(b), -math.cos(b), 0.0]
+    return np.column_stack([x_axis, y_axis, MAP_UP_IN_NED])
+
+
+def T_ned_map(x_bearing_deg: float) -> np.ndarray:
+    """(4, 4) map -> NED; both frames share the map origin (the EKF origin)."""
+    return make_transform(R_ned_map(x_bearing_deg), np.zeros(3))
+
+
+def R_body_camera_from_mount(roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
+    """(3, 3) camera (OpenCV) -> body FRD for a camera mounted at these angles.
+
+    The angles are the camera FRD frame's Z-Y-X Euler angles relative to the
+    body: all zero is a camera looking forward with its image upright;
+    ``pitch_deg = -20`` looks forward and 20 degrees down; ``pitch_deg = -90``
+    looks straight down with the image top toward the vehicle's front.
+    """
+    R_body_camfrd = rotation_from_euler_321(
+        math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg)
+    )
+    return R_body_camfrd @ R_CAMFRD_CAMERA
+
+
+def R_map_marker_on_wall(facing_deg: float) -> np.ndarray:
+    """(3, 3) marker -> map for an upright marker on a vertical wall.
+
+    ``facing_deg``: direction the printed face looks toward (the wall's
+    outward normal), counter-clockwise from map +x about map +z
+    (0 faces +x, 90 faces +y). The marker's top points to map +z.
+    """
+    h = math.radians(facing_deg)
+    z_axis = np.array([math.cos(h), math.sin(h), 0.0])
+    y_axis = np.array([0.0, 0.0, 1.0])
+    # x = y cross z: the viewer's right
+    return np.column_stack([np.cross(y_axis, z_axis), y_axis, z_axis])
+
+
+def R_map_marker_facing_up() -> np.ndarray:
+    """(3, 3) marker -> map for a floor marker (face up), marker x along map +x."""
+    return np.eye(3)
+
+
+def R_map_marker_facing_down() -> np.ndarray:
+    """(3, 3) marker -> map for a ceiling marker (face down), marker x along map +x."""
+    return rot_x(math.pi)
+
+
+# ------------------------------------------------------------- covariance
+
+def rotate_pose_covariance(cov_6x6: np.ndarray, R_new_old: np.ndarray) -> np.ndarray:
+    """(6, 6) covariance over [position (3), small-angle rotation (3)] re-expressed.
+
+    Both blocks are vectors in the ``old`` frame's axes; the result has them
+    in the ``new`` frame's axes: ``C' = B C B^T`` with ``B = diag(R, R)``.
+    """
+    B = np.zeros((6, 6))
+    B[:3, :3] = R_new_old
+    B[3:, 3:] = R_new_old
+    return B @ cov_6x6 @ B.T
