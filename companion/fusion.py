@@ -1,0 +1,303 @@
+"""Kalman fusion of per-frame poses into the estimate sent to the flight controller.
+
+The only module that imports filterpy. State (8,), in the flight controller's
+local NED frame (a fixed rotation of the map frame, ``companion.frames``)::
+
+    x = [north_m, east_m, down_m, yaw_rad, vn_m_s, ve_m_s, vd_m_s, yaw_rate_rad_s]
+
+a constant-velocity model for position and for yaw, driven by white-noise
+acceleration, stepped with the variable dt between capture times. Each
+PoseMeasurement brings its own covariance; measurements whose Mahalanobis
+distance to the prediction exceeds a chi-square gate are rejected and counted.
+
+Losing and re-acquiring the markers:
+
+* TRACKING: the newest frame gave an accepted pose.
+* COASTING: no accepted pose, for at most ``max_coast_s`` since the last one:
+  the prediction is still returned (growing covariance) so single-frame
+  dropouts do not interrupt the stream.
+* ACQUIRING: before the first fix, and once coasting has run out: nothing is
+  returned (the daemon stops sending; the flight controller's own IMU
+  prediction is better than ours). A fix needs ``confirm_frames`` mutually
+  consistent poses, so a lone ambiguous pose (a yaw flip) never gets through.
+  If the re-acquired pose is more than ``reset_distance_m`` or
+  ``reset_yaw_rad`` away from the last estimate returned, ``reset_counter``
+  is incremented so the flight controller snaps to it instead of dragging.
+"""
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from companion import frames
+from companion.types import Estimate, PoseMeasurement
+
+# Indices into the state vector.
+POS = slice(0, 3)
+YAW = 3
+VEL = slice(4, 7)
+YAW_RATE = 7
+STATE_DIM = 8
+# Measurement z = [north, east, down, yaw]: rows/cols of covariance_ned used.
+MEASURED_COV_INDICES = [0, 1, 2, 5]
+MEASUREMENT_DIM = 4
+# H picks position and yaw out of the state.
+H = np.zeros((MEASUREMENT_DIM, STATE_DIM))
+H[0:3, 0:3] = np.eye(3)
+H[3, YAW] = 1.0
+
+
+class FusionError(ValueError):
+    """Invalid fusion parameters."""
+
+
+class TrackState(enum.Enum):
+    ACQUIRING = "acquiring"
+    TRACKING = "tracking"
+    COASTING = "coasting"
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Tuning of the filter and of the lost/re-acquire policy."""
+
+    accel_noise_m_s2: float = 3.0
+    yaw_accel_noise_rad_s2: float = 3.0
+    # Chi-square quantile with 4 degrees of freedom: 99.9 % is 18.47.
+    gate_chi2: float = 18.47
+    max_coast_s: float = 0.25
+    confirm_frames: int = 3
+    reset_distance_m: float = 0.25
+    reset_yaw_rad: float = math.radians(10.0)
+    initial_velocity_std_m_s: float = 2.0
+    initial_yaw_rate_std_rad_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        positive = ("accel_noise_m_s2", "yaw_accel_noise_rad_s2", "gate_chi2",
+                    "reset_distance_m", "reset_yaw_rad",
+                    "initial_velocity_std_m_s", "initial_yaw_rate_std_rad_s")
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise FusionError(f"fusion parameter {name} must be a positive number, got {value!r}")
+        if not (isinstance(self.max_coast_s, (int, float)) and 0 <= self.max_coast_s <= 5):
+            raise FusionError(f"fusion parameter max_coast_s must be in [0, 5] s, got {self.max_coast_s!r}")
+        if not (isinstance(self.confirm_frames, int) and self.confirm_frames >= 1):
+            raise FusionError(f"fusion parameter confirm_frames must be an integer >= 1, got {self.confirm_frames!r}")
+
+
+@dataclass
+class FusionCounters:
+    """What the filter did with the measurements it was given."""
+
+    accepted: int = 0
+    rejected: int = 0          # failed the Mahalanobis gate
+    coasted: int = 0           # frames answered with a prediction only
+    out_of_order: int = 0      # capture time not after the previous one
+    lost: int = 0              # times coasting ran out
+    acquisitions: int = 0      # fixes after ACQUIRING (first one included)
+    resets: int = 0            # reset_counter increments
+
+
+def wrap_angle_rad(angle_rad: float) -> float:
+    """Angle wrapped to [-pi, pi)."""
+    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def measurement_vector(measurement: PoseMeasurement) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """z (4,), R (4, 4), roll_rad, pitch_rad of one pose measurement."""
+    T = measurement.T_ned_body
+    roll, pitch, yaw = frames.euler_321_from_rotation(T[:3, :3])
+    z = np.array([T[0, 3], T[1, 3], T[2, 3], yaw])
+    R = measurement.covariance_ned[np.ix_(MEASURED_COV_INDICES, MEASURED_COV_INDICES)]
+    return z, R, roll, pitch
+
+
+class _Track:
+    """One Kalman filter over the 8-state model, started from one measurement."""
+
+    def __init__(self, params: FusionParams, measurement: PoseMeasurement):
+        z, R, self.roll_rad, self.pitch_rad = measurement_vector(measurement)
+        self.params = params
+        self.kf = KalmanFilter(dim_x=STATE_DIM, dim_z=MEASUREMENT_DIM)
+        self.kf.H = H
+        self.kf.x = np.zeros((STATE_DIM, 1))
+        self.kf.x[0:4, 0] = z
+        P = np.zeros((STATE_DIM, STATE_DIM))
+        P[0:4, 0:4] = R
+        P[VEL, VEL] = np.eye(3) * params.initial_velocity_std_m_s ** 2
+        P[YAW_RATE, YAW_RATE] = params.initial_yaw_rate_std_rad_s ** 2
+        self.kf.P = P
+        self.t_ns = measurement.t_ns
+        self.t_last_fix_ns = measurement.t_ns
+        self.rotation_cov = measurement.covariance_ned[3:6, 3:6].copy()
+
+    def predict_to(self, t_ns: int) -> None:
+        dt = (t_ns - self.t_ns) * 1e-9
+        if dt <= 0:
+            return
+        F = np.eye(STATE_DIM)
+        F[0:4, 4:8] = np.eye(4) * dt
+        self.kf.predict(F=F, Q=process_noise(dt, self.params))
+        self.t_ns = t_ns
+
+    def innovation(self, measurement: PoseMeasurement) -> tuple[np.ndarray, np.ndarray, float]:
+        """z (4,) with its yaw unwrapped next to the state's, R (4, 4), Mahalanobis^2."""
+        z, R, _, _ = measurement_vector(measurement)
+        x_yaw = float(self.kf.x[YAW, 0])
+        # Compare yaw modulo 2 pi: the state's yaw is continuous (unwrapped).
+        z[3] = x_yaw + wrap_angle_rad(z[3] - x_yaw)
+        y = z - (H @ self.kf.x)[:, 0]
+        # S = H P H' + R;  d^2 = y' S^-1 y
+        S = H @ self.kf.P @ H.T + R
+        d_sq = float(y @ np.linalg.solve(S, y))
+        return z, R, d_sq
+
+    def update(self, measurement: PoseMeasurement, z: np.ndarray, R: np.ndarray) -> None:
+        self.kf.update(z.reshape(MEASUREMENT_DIM, 1), R=R)
+        _, _, self.roll_rad, self.pitch_rad = measurement_vector(measurement)
+        self.rotation_cov = measurement.covariance_ned[3:6, 3:6].copy()
+        self.t_last_fix_ns = measurement.t_ns
+
+    def position_ned_m(self) -> np.ndarray:
+        return self.kf.x[POS, 0].copy()
+
+    def yaw_rad(self) -> float:
+        return wrap_angle_rad(float(self.kf.x[YAW, 0]))
+
+    def estimate(self, reset_counter: int, tracking: bool) -> Estimate:
+        P = self.kf.P
+        cov = np.zeros((6, 6))
+        cov[0:3, 0:3] = P[POS, POS]
+        cov[0:3, 5] = cov[5, 0:3] = P[POS, YAW]
+        cov[3:5, 3:5] = self.rotation_cov[0:2, 0:2]
+        cov[5, 5] = P[YAW, YAW]
+        return Estimate(
+            t_ns=self.t_ns,
+            position_ned_m=self.position_ned_m(),
+            velocity_ned_m_s=self.kf.x[VEL, 0].copy(),
+            roll_rad=self.roll_rad,
+            pitch_rad=self.pitch_rad,
+            yaw_rad=self.yaw_rad(),
+            covariance_ned=cov,
+            reset_counter=reset_counter,
+            tracking=tracking,
+        )
+
+
+def process_noise(dt: float, params: FusionParams) -> np.ndarray:
+    """(8, 8) discrete white-noise-acceleration Q for one step of dt seconds."""
+    q = np.array([params.accel_noise_m_s2] * 3 + [params.yaw_accel_noise_rad_s2]) ** 2
+    Q = np.zeros((STATE_DIM, STATE_DIM))
+    # Per axis: [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * sigma_a^2
+    Q[0:4, 0:4] = np.diag(q * dt ** 4 / 4)
+    Q[0:4, 4:8] = Q[4:8, 0:4] = np.diag(q * dt ** 3 / 2)
+    Q[4:8, 4:8] = np.diag(q * dt ** 2)
+    return Q
+
+
+class PoseFilter:
+    """Fuses PoseMeasurements (one per frame, or None) into Estimates.
+
+    Call ``step(t_ns, measurement)`` once per frame in capture order; it
+    returns the Estimate to send, or None while nothing should be sent.
+    """
+
+    def __init__(self, params: FusionParams | None = None):
+        self.params = params or FusionParams()
+        self.counters = FusionCounters()
+        self.state = TrackState.ACQUIRING
+        self.reset_counter = 0
+        self._track: _Track | None = None
+        self._candidate: _Track | None = None
+        self._candidate_count = 0
+        self._last_t_ns: int | None = None
+        self._last_sent: Estimate | None = None
+
+    @property
+    def velocity_covariance_ned(self) -> np.ndarray | None:
+        """(3, 3) velocity covariance of the current track, or None."""
+        if self._track is None:
+            return None
+        return self._track.kf.P[VEL, VEL].copy()
+
+    def step(self, t_ns: int, measurement: PoseMeasurement | None) -> Estimate | None:
+        """Advance to capture time ``t_ns`` with this frame's pose (or None)."""
+        if self._last_t_ns is not None and t_ns <= self._last_t_ns:
+            self.counters.out_of_order += 1
+            return None
+        self._last_t_ns = t_ns
+        if self.state is TrackState.ACQUIRING:
+            estimate = self._acquire(measurement)
+        else:
+            estimate = self._track_step(t_ns, measurement)
+        if estimate is not None:
+            self._last_sent = estimate
+        return estimate
+
+    def _track_step(self, t_ns: int, measurement: PoseMeasurement | None) -> Estimate | None:
+        track = self._track
+        track.predict_to(t_ns)
+        if measurement is not None:
+            z, R, d_sq = track.innovation(measurement)
+            if d_sq <= self.params.gate_chi2:
+                track.update(measurement, z, R)
+                self.counters.accepted += 1
+                self.state = TrackState.TRACKING
+                return track.estimate(self.reset_counter, tracking=True)
+            self.counters.rejected += 1
+        if self._is_stale(track, t_ns):
+            self.counters.lost += 1
+            self.state = TrackState.ACQUIRING
+            self._track = None
+            # The pose that ran the track out may be the start of a new fix.
+            return self._acquire(measurement) if measurement is not None else None
+        self.counters.coasted += 1
+        self.state = TrackState.COASTING
+        return track.estimate(self.reset_counter, tracking=False)
+
+    def _acquire(self, measurement: PoseMeasurement | None) -> Estimate | None:
+        if measurement is None:
+            return None
+        candidate = self._candidate
+        if candidate is None or self._is_stale(candidate, measurement.t_ns):
+            self._start_candidate(measurement)
+        else:
+            candidate.predict_to(measurement.t_ns)
+            z, R, d_sq = candidate.innovation(measurement)
+            if d_sq <= self.params.gate_chi2:
+                candidate.update(measurement, z, R)
+                self._candidate_count += 1
+            else:
+                self.counters.rejected += 1
+                self._start_candidate(measurement)
+        if self._candidate_count < self.params.confirm_frames:
+            return None
+        return self._promote_candidate()
+
+    def _is_stale(self, track: _Track, t_ns: int) -> bool:
+        return (t_ns - track.t_last_fix_ns) * 1e-9 > self.params.max_coast_s
+
+    def _start_candidate(self, measurement: PoseMeasurement) -> None:
+        self._candidate = _Track(self.params, measurement)
+        self._candidate_count = 1
+
+    def _promote_candidate(self) -> Estimate:
+        track = self._candidate
+        self._track, self._candidate, self._candidate_count = track, None, 0
+        self.state = TrackState.TRACKING
+        self.counters.accepted += 1
+        self.counters.acquisitions += 1
+        if self._last_sent is not None and self._jumped_from(self._last_sent, track):
+            self.reset_counter += 1
+            self.counters.resets += 1
+        return track.estimate(self.reset_counter, tracking=True)
+
+    def _jumped_from(self, previous: Estimate, track: _Track) -> bool:
+        distance_m = float(np.linalg.norm(track.position_ned_m() - previous.position_ned_m))
+        yaw_change_rad = abs(wrap_angle_rad(track.yaw_rad() - previous.yaw_rad))
+        return distance_m > self.params.reset_distance_m or yaw_change_rad > self.params.reset_yaw_rad
