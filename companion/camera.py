@@ -1,0 +1,369 @@
+"""The camera: pinhole intrinsics, OpenCV distortion, and its mounting on the vehicle.
+
+A ``CameraModel`` comes from the config's ``camera`` section
+(``CameraModel.from_config``), whose intrinsics are either inline or in an
+OpenCV calibration file (``cv2.FileStorage`` YAML as OpenCV's calibration
+tools write it: ``camera_matrix``, ``distortion_coefficients``,
+``image_width``, ``image_height``). The section (see
+``config/camera-example.yaml``)::
+
+    camera:
+      calibration_file: calib.yaml        # or inline: width, height and
+      width: 640                          #   fx_px, fy_px, cx_px, cy_px
+      height: 480                         #   (or hfov_deg for an ideal
+      hfov_deg: 70.0                      #   centred pinhole), distortion
+      distortion: [k1, k2, p1, p2, k3]
+      mount:
+        lever_arm_m: [0.10, 0.0, 0.05]    # optical centre in body FRD
+        facing: forward                   # forward/backward/left/right/down/up
+        tilt_down_deg: 20                 # or roll_deg, pitch_deg, yaw_deg
+
+Axis conventions come from ``companion.frames``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from companion import frames
+
+SECTION_KEYS = {"calibration_file", "width", "height", "fx_px", "fy_px", "cx_px", "cy_px", "hfov_deg", "distortion", "mount"}
+INTRINSIC_KEYS = ("width", "height", "fx_px", "fy_px", "cx_px", "cy_px", "hfov_deg", "distortion")
+MOUNT_KEYS = {"lever_arm_m", "facing", "tilt_down_deg", "roll_deg", "pitch_deg", "yaw_deg"}
+# (yaw_deg, pitch_deg) of the camera FRD frame in the body for each facing word.
+FACINGS = {
+    "forward": (0.0, 0.0),
+    "right": (90.0, 0.0),
+    "backward": (180.0, 0.0),
+    "left": (-90.0, 0.0),
+    "down": (0.0, -90.0),
+    "up": (0.0, 90.0),
+}
+DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+
+
+class CameraError(ValueError):
+    """A camera section or calibration file is invalid; the message says where."""
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A calibrated camera on the vehicle.
+
+    K: (3, 3) intrinsic matrix, pixels (OpenCV convention, pixel centres at integers).
+    dist: (k,) OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]).
+    width, height: image size in pixels.
+    T_body_camera: (4, 4) camera (OpenCV axes) -> body FRD.
+    """
+
+    K: np.ndarray
+    dist: np.ndarray
+    width: int
+    height: int
+    T_body_camera: np.ndarray
+
+    # ----------------------------------------------------------- geometry
+
+    @property
+    def T_camera_body(self) -> np.ndarray:
+        """(4, 4) body FRD -> camera."""
+        return frames.invert_transform(self.T_body_camera)
+
+    @property
+    def hfov_deg(self) -> float:
+        """Horizontal field of view of the undistorted pinhole, degrees."""
+        return math.degrees(2.0 * math.atan2(self.width / 2.0, self.K[0, 0]))
+
+    def project(self, points_camera) -> np.ndarray:
+        """(N, 2) pixel positions of (N, 3) camera-frame points, with distortion.
+
+        Points at or behind the optical centre (z <= 0) give NaN.
+        """
+        p = np.asarray(points_camera, dtype=float).reshape(-1, 3)
+        px, _ = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
+        px = px.reshape(-1, 2)
+        px[p[:, 2] <= 0.0] = np.nan
+        return px
+
+    def project_from(self, T_camera_x: np.ndarray, points_x) -> np.ndarray:
+        """(N, 2) pixel positions of (N, 3) points given in frame x."""
+        return self.project(frames.transform_points(T_camera_x, points_x))
+
+    def normalized(self, points_px) -> np.ndarray:
+        """(N, 2) undistorted normalised image coordinates (x/z, y/z) of (N, 2) pixels."""
+        px = np.asarray(points_px, dtype=float).reshape(-1, 1, 2)
+        return cv2.undistortPoints(px, self.K, self.dist).reshape(-1, 2)
+
+    def undistort_px(self, points_px) -> np.ndarray:
+        """(N, 2) pixel positions the ideal pinhole (same K, no distortion) would see."""
+        px = np.asarray(points_px, dtype=float).reshape(-1, 1, 2)
+        return cv2.undistortPoints(px, self.K, self.dist, P=self.K).reshape(-1, 2)
+
+    def in_image(self, points_px, margin_px: float = 0.0) -> np.ndarray:
+        """(N,) bool: the pixels lie inside the image, ``margin_px`` from its edges."""
+        p = np.asarray(points_px, dtype=float).reshape(-1, 2)
+        with np.errstate(invalid="ignore"):
+            inside_x = (p[:, 0] >= -0.5 + margin_px) & (p[:, 0] <= self.width - 0.5 - margin_px)
+            inside_y = (p[:, 1] >= -0.5 + margin_px) & (p[:, 1] <= self.height - 0.5 - margin_px)
+        return inside_x & inside_y
+
+    # ------------------------------------------------------------ loading
+
+    @classmethod
+    def from_config(cls, section: dict, origin: str) -> "CameraModel":
+        """Build from a config ``camera`` section; ``origin`` (file name) prefixes errors.
+
+        A relative ``calibration_file`` is resolved against the directory of
+        ``origin``.
+        """
+        where = _Where(origin, "camera")
+        if not isinstance(section, dict):
+            raise where.error("must be a mapping (calibration_file or width/height/..., mount)")
+        where.reject_unknown(section, SECTION_KEYS)
+        if "calibration_file" in section:
+            K, dist, width, height = _from_calibration_section(section, origin, where)
+        else:
+            K, dist, width, height = _inline_intrinsics(section, where)
+        T_body_camera = mount_transform(section.get("mount", {}), where.sub("mount"))
+        return cls(K=K, dist=dist, width=width, height=height, T_body_camera=T_body_camera)
+
+    @classmethod
+    def from_calibration_file(cls, path, T_body_camera: np.ndarray | None = None) -> "CameraModel":
+        """Read an OpenCV calibration YAML; the mount defaults to a forward camera at the body origin."""
+        K, dist, width, height = read_opencv_calibration(path)
+        if T_body_camera is None:
+            T_body_camera = mount_transform({}, _Where(str(path), "mount"))
+        return cls(K=K, dist=dist, width=width, height=height, T_body_camera=T_body_camera)
+
+    def to_config(self) -> dict:
+        """A plain-YAML ``camera`` section that ``from_config`` reads back to this model."""
+        roll, pitch, yaw = frames.euler_321_from_rotation(self.T_body_camera[:3, :3] @ frames.R_CAMFRD_CAMERA.T)
+        return {
+            "width": int(self.width),
+            "height": int(self.height),
+            "fx_px": float(self.K[0, 0]),
+            "fy_px": float(self.K[1, 1]),
+            "cx_px": float(self.K[0, 2]),
+            "cy_px": float(self.K[1, 2]),
+            "distortion": [float(d) for d in self.dist],
+            "mount": {
+                "lever_arm_m": [float(v) for v in self.T_body_camera[:3, 3]],
+                "roll_deg": math.degrees(roll),
+                "pitch_deg": math.degrees(pitch),
+                "yaw_deg": math.degrees(yaw),
+            },
+        }
+
+
+def load_camera(path) -> CameraModel:
+    """Read a camera from a file: an OpenCV calibration YAML (forward mount),
+    a config file with a ``camera`` section, or a bare camera section."""
+    path = str(path)
+    try:
+        text = Path(path).read_text()
+    except OSError as error:
+        raise CameraError(f"{path}: cannot read camera file: {error.strerror}") from None
+    if _is_file_storage(text):
+        return CameraModel.from_calibration_file(path)
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise CameraError(f"{path}: not valid YAML: {error}") from None
+    if isinstance(document, dict) and "camera" in document:
+        document = document["camera"]
+    return CameraModel.from_config(document, path)
+
+
+# ------------------------------------------------------------------ pieces
+
+def _is_file_storage(text: str) -> bool:
+    """OpenCV 4 writes "%YAML:1.0", OpenCV 5 "%YAML 1.2"; both tag matrices."""
+    head = text.lstrip()
+    return head.startswith(("%YAML:", "<?xml")) or "!!opencv-matrix" in text
+
+
+class _Where:
+    """Where in which file we are, for error messages."""
+
+    def __init__(self, origin: str, prefix: str):
+        self.origin, self.prefix = origin, prefix
+
+    def sub(self, name: str) -> "_Where":
+        return _Where(self.origin, f"{self.prefix}.{name}")
+
+    def key(self, key: str) -> str:
+        return f"{self.prefix}.{key}" if self.prefix else key
+
+    def error(self, message: str, key: str | None = None) -> CameraError:
+        where = f"key '{self.key(key)}'" if key else f"section '{self.prefix}'"
+        return CameraError(f"{self.origin}: {where}: {message}")
+
+    def reject_unknown(self, mapping: dict, known: set[str]) -> None:
+        unknown = sorted(str(k) for k in mapping if k not in known)
+        if unknown:
+            raise self.error(f"unknown key (known keys: {', '.join(sorted(known))})", unknown[0])
+
+    def number(self, mapping: dict, key: str, default=None) -> float:
+        value = mapping.get(key, default)
+        if value is None:
+            raise self.error("missing", key)
+        if not _is_finite_number(value):
+            raise self.error(f"must be a finite number, got {value!r}", key)
+        return float(value)
+
+    def positive(self, mapping: dict, key: str) -> float:
+        value = self.number(mapping, key)
+        if value <= 0.0:
+            raise self.error(f"must be positive, got {value:g}", key)
+        return value
+
+    def size(self, mapping: dict, key: str) -> int:
+        value = mapping.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise self.error(f"must be a positive integer (pixels), got {value!r}", key)
+        return value
+
+
+def _inline_intrinsics(section: dict, where: _Where):
+    """(K, dist, width, height) from inline keys: fx/fy/cx/cy or hfov_deg."""
+    width, height = where.size(section, "width"), where.size(section, "height")
+    pinhole = [k for k in ("fx_px", "fy_px", "cx_px", "cy_px") if k in section]
+    if "hfov_deg" in section and pinhole:
+        raise where.error("give either hfov_deg or fx_px/fy_px/cx_px/cy_px, not both", "hfov_deg")
+    if "hfov_deg" in section:
+        hfov_deg = where.positive(section, "hfov_deg")
+        if hfov_deg >= 180.0:
+            raise where.error(f"must be below 180 for a pinhole camera, got {hfov_deg:g}", "hfov_deg")
+        # fx = (w / 2) / tan(hfov / 2), principal point at the image centre
+        f_px = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        fx, fy, cx, cy = f_px, f_px, (width - 1) / 2.0, (height - 1) / 2.0
+    else:
+        fx, fy = where.positive(section, "fx_px"), where.positive(section, "fy_px")
+        cx, cy = where.number(section, "cx_px"), where.number(section, "cy_px")
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    dist = _distortion(section.get("distortion", [0.0] * 5), where)
+    _check_intrinsics(K, width, height, where, "cx_px")
+    return K, dist, width, height
+
+
+def _distortion(values, where: _Where) -> np.ndarray:
+    if not isinstance(values, (list, tuple)) or len(values) not in DISTORTION_LENGTHS:
+        raise where.error(f"must be a list of {', '.join(map(str, DISTORTION_LENGTHS))} numbers, got {values!r}", "distortion")
+    for value in values:
+        if not _is_finite_number(value):
+            raise where.error(f"must hold finite numbers, got {value!r}", "distortion")
+    return np.array(values, dtype=float)
+
+
+def _check_intrinsics(K: np.ndarray, width: int, height: int, where: _Where, key: str) -> None:
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise where.error(f"focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}", key)
+    if not (0.0 <= K[0, 2] <= width and 0.0 <= K[1, 2] <= height):
+        raise where.error(f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {width}x{height} image", key)
+
+
+def _from_calibration_section(section: dict, origin: str, where: _Where):
+    inline = [k for k in INTRINSIC_KEYS if k in section]
+    if inline:
+        raise where.error("intrinsics come from calibration_file; remove the inline value", inline[0])
+    name = section["calibration_file"]
+    if not isinstance(name, str) or not name:
+        raise where.error(f"must be a file name, got {name!r}", "calibration_file")
+    path = Path(name)
+    if not path.is_absolute():
+        path = Path(origin).resolve().parent / path
+    return read_opencv_calibration(path)
+
+
+def read_opencv_calibration(path):
+    """(K (3, 3), dist (k,), width, height) from an OpenCV ``cv2.FileStorage`` YAML/XML.
+
+    Needs the nodes ``camera_matrix``, ``distortion_coefficients``,
+    ``image_width`` and ``image_height`` (as OpenCV's calibration samples write).
+    """
+    path = str(path)
+    where = _Where(path, "")
+    if not Path(path).is_file():
+        raise CameraError(f"{path}: cannot read calibration file: no such file")
+    try:
+        storage = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
+    except cv2.error as error:
+        raise CameraError(f"{path}: not an OpenCV FileStorage file: {error.err}") from None
+    try:
+        K = _matrix_node(storage, "camera_matrix", where)
+        dist = _matrix_node(storage, "distortion_coefficients", where).reshape(-1)
+        width = _int_node(storage, "image_width", where)
+        height = _int_node(storage, "image_height", where)
+    finally:
+        storage.release()
+    if K.shape != (3, 3):
+        raise where.error(f"must be 3x3, got {K.shape[0]}x{K.shape[1]}", "camera_matrix")
+    if dist.size not in DISTORTION_LENGTHS:
+        raise where.error(f"must have {', '.join(map(str, DISTORTION_LENGTHS))} values, got {dist.size}", "distortion_coefficients")
+    if not (np.isfinite(K).all() and np.isfinite(dist).all()):
+        raise where.error("holds non-finite values", "camera_matrix")
+    _check_intrinsics(K, width, height, where, "camera_matrix")
+    return K, dist, width, height
+
+
+def _matrix_node(storage, key: str, where: _Where) -> np.ndarray:
+    node = storage.getNode(key)
+    if node.empty():
+        raise where.error("missing", key)
+    matrix = node.mat()
+    if matrix is None:
+        raise where.error("must be an !!opencv-matrix", key)
+    return np.asarray(matrix, dtype=float)
+
+
+def _int_node(storage, key: str, where: _Where) -> int:
+    node = storage.getNode(key)
+    if node.empty() or not (node.isInt() or node.isReal()):
+        raise where.error("missing or not a number", key)
+    value = node.real()
+    if value <= 0 or value != int(value):
+        raise where.error(f"must be a positive integer, got {value:g}", key)
+    return int(value)
+
+
+def mount_transform(mount, where: _Where) -> np.ndarray:
+    """(4, 4) T_body_camera from a ``mount`` section (lever arm + simple rotation)."""
+    if not isinstance(mount, dict):
+        raise where.error("must be a mapping (lever_arm_m, facing, tilt_down_deg or roll/pitch/yaw_deg)")
+    where.reject_unknown(mount, MOUNT_KEYS)
+    lever_arm_m = mount.get("lever_arm_m", [0.0, 0.0, 0.0])
+    valid = isinstance(lever_arm_m, (list, tuple)) and len(lever_arm_m) == 3
+    if not valid or not all(_is_finite_number(v) for v in lever_arm_m):
+        raise where.error(f"must be [forward, right, down] in metres, got {lever_arm_m!r}", "lever_arm_m")
+    roll_deg, pitch_deg, yaw_deg = _mount_angles(mount, where)
+    R_body_camera = frames.R_body_camera_from_mount(roll_deg, pitch_deg, yaw_deg)
+    return frames.make_transform(R_body_camera, [float(v) for v in lever_arm_m])
+
+
+def _is_finite_number(value) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def _mount_angles(mount: dict, where: _Where) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) degrees of the camera FRD frame in the body."""
+    explicit = [k for k in ("roll_deg", "pitch_deg", "yaw_deg") if k in mount]
+    simple = [k for k in ("facing", "tilt_down_deg") if k in mount]
+    if explicit and simple:
+        raise where.error("give either facing/tilt_down_deg or roll/pitch/yaw_deg, not both", explicit[0])
+    if explicit:
+        return tuple(where.number(mount, k, 0.0) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
+    facing = mount.get("facing", "forward")
+    if not isinstance(facing, str) or facing.lower() not in FACINGS:
+        raise where.error(f"must be one of {', '.join(FACINGS)}, got {facing!r}", "facing")
+    yaw_deg, pitch_deg = FACINGS[facing.lower()]
+    tilt_down_deg = where.number(mount, "tilt_down_deg", 0.0)
+    if tilt_down_deg and facing.lower() in ("down", "up"):
+        raise where.error(f"only for horizontal facings, not {facing!r}", "tilt_down_deg")
+    if not -90.0 <= tilt_down_deg <= 90.0:
+        raise where.error(f"must be within [-90, 90], got {tilt_down_deg:g}", "tilt_down_deg")
+    return 0.0, pitch_deg - tilt_down_deg, yaw_deg
