@@ -257,6 +257,24 @@ def R_map_marker_facing_down() -> np.ndarray:
     return rot_x(math.pi)
 
 
+# ----------------------------------------------------------------- marker
+
+def grid_to_marker_m(uv_cells, inner_origin_cells: float, size_m: float) -> np.ndarray:
+    """(N, 3) marker-frame points (metres, z = 0) of (N, 2) grid coordinates.
+
+    Grid coordinates (u, v) are in cells from the grid's outer top-left
+    corner, u right, v down; the inner black square spans
+    [o, o + 8] x [o, o + 8] with o = ``inner_origin_cells`` and side ``size_m``.
+    """
+    uv = np.asarray(uv_cells, dtype=float).reshape(-1, 2)
+    cell_m = size_m / 8.0
+    centre = inner_origin_cells + 4.0
+    # x = (u - (o + 4)) cell_m, y = ((o + 4) - v) cell_m
+    x = (uv[:, 0] - centre) * cell_m
+    y = (centre - uv[:, 1]) * cell_m
+    return np.column_stack([x, y, np.zeros(len(uv))])
+
+
 # ------------------------------------------------------------- covariance
 
 def rotate_pose_covariance(cov_6x6: np.ndarray, R_new_old: np.ndarray) -> np.ndarray:

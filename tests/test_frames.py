@@ -235,3 +235,13 @@ def test_rotate_pose_covariance():
 def test_rotation_angle():
     assert math.isclose(frames.rotation_angle_rad(frames.rot_z(0.3), np.eye(3)), 0.3, abs_tol=1e-12)
     assert math.isclose(frames.rotation_angle_rad(frames.rot_x(math.pi), np.eye(3)), math.pi, abs_tol=1e-7)
+
+
+def test_grid_to_marker_inner_corners():
+    # p = 2, g = 1: o = 3; the inner square spans u, v in [3, 11].
+    uv = [[3, 3], [11, 3], [11, 11], [3, 11], [7, 7]]
+    points = frames.grid_to_marker_m(uv, 3.0, 0.16)
+    expected = [[-0.08, 0.08, 0], [0.08, 0.08, 0], [0.08, -0.08, 0], [-0.08, -0.08, 0], [0, 0, 0]]
+    np.testing.assert_allclose(points, expected, atol=1e-12)
+    # One cell right and one cell down of the centre: +cell_m in x, -cell_m in y.
+    np.testing.assert_allclose(frames.grid_to_marker_m([[8, 8]], 3.0, 0.16), [[0.02, -0.02, 0]], atol=1e-12)
