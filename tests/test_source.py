@@ -1,0 +1,232 @@
+"""Frame sources on real files read by real OpenCV: replay, corrupt frames, a capture that vanishes."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.source import (CaptureSource, LatestFrame, SourceError, open_recording,
+                              replay_source)
+from companion.types import Frame
+
+PERIOD_NS = 20_000_000  # 50 fps keeps the real-time tests short
+
+
+def image_with_number(n: int, size=(48, 64)) -> np.ndarray:
+    """A frame whose mean gray level encodes n (readable back after MJPG too)."""
+    return np.full(size, 10 + 8 * n, dtype=np.uint8)
+
+
+def number_of(image: np.ndarray) -> int:
+    return int(round((float(image.mean()) - 10) / 8))
+
+
+def write_sequence(folder: Path, count: int, period_ns: int = PERIOD_NS, jitter=None) -> Path:
+    (folder / "frames").mkdir(parents=True)
+    t = 0
+    lines = ["frame,t_ns,file"]
+    for n in range(count):
+        name = f"frames/{n:06d}.png"
+        cv2.imwrite(str(folder / name), image_with_number(n))
+        lines.append(f"{n},{t},{name}")
+        t += period_ns + (jitter[n] if jitter is not None else 0)
+    (folder / "timestamps.csv").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def write_video(path: Path, count: int, fps: float = 25.0) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (64, 48), isColor=False)
+    assert writer.isOpened()
+    for n in range(count):
+        writer.write(image_with_number(n))
+    writer.release()
+    return path
+
+
+def drain(source, limit_s: float = 10.0) -> list[Frame]:
+    frames = []
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        frame = source.get(timeout_s=0.1)
+        if frame is not None:
+            frames.append(frame)
+        elif source.finished:
+            break
+    return frames
+
+
+def test_sequence_folder_is_read_with_its_timestamps(tmp_path):
+    jitter = [0, 3_000_000, -2_000_000, 0, 5_000_000, 0]
+    rec = open_recording(write_sequence(tmp_path / "seq", 6, jitter=jitter))
+    assert list(rec.frames) == list(range(6))
+    assert list(np.diff(rec.t_ns)) == [PERIOD_NS + j for j in jitter[:5]]
+    assert rec.files[2].name == "000002.png" and rec.video is None
+
+
+def test_realtime_replay_hands_frames_over_at_their_shifted_capture_time(tmp_path):
+    jitter = [0, 4_000_000, 0, -3_000_000, 0, 0, 2_000_000, 0]
+    source = replay_source(write_sequence(tmp_path / "seq", 8, jitter=jitter), realtime=True)
+    source.start()
+    received = []
+    while len(received) < 8:
+        frame = source.get(timeout_s=2.0)
+        assert frame is not None
+        received.append((frame, time.monotonic_ns()))
+    source.close()
+    rec = source.recording
+    assert [number_of(f.image) for f, _ in received] == list(range(8))
+    assert [f.index for f, _ in received] == list(range(8))
+    # t_ns is the recorded time on the monotonic clock, and no frame arrives before it.
+    assert [f.t_ns - source.clock_offset_ns for f, _ in received] == list(rec.t_ns)
+    assert all(taken_ns >= f.t_ns for f, taken_ns in received)
+    assert source.counters.captured == 8 and source.counters.dropped == 0
+
+
+def test_fast_replay_delivers_every_frame_in_order_without_drops(tmp_path):
+    source = replay_source(write_sequence(tmp_path / "seq", 30), realtime=False)
+    source.start()
+    frames = drain(source)
+    source.close()
+    assert [number_of(f.image) for f in frames] == list(range(30))
+    assert np.all(np.diff([f.t_ns for f in frames]) > 0)
+    assert source.counters.dropped == 0 and source.finished
+
+
+def test_corrupt_missing_and_truncated_frames_are_skipped_and_counted(tmp_path):
+    folder = write_sequence(tmp_path / "seq", 10)
+    (folder / "frames/000002.png").write_bytes(b"not a png at all")
+    data = (folder / "frames/000005.png").read_bytes()
+    (folder / "frames/000005.png").write_bytes(data[: len(data) // 3])
+    (folder / "frames/000007.png").unlink()
+    source = replay_source(folder, realtime=False)
+    source.start()
+    frames = drain(source)
+    source.close()
+    assert [number_of(f.image) for f in frames] == [0, 1, 3, 4, 6, 8, 9]
+    assert source.counters.corrupt == 3
+
+
+def test_newest_frame_wins_when_the_pipeline_is_slow(tmp_path):
+    source = replay_source(write_sequence(tmp_path / "seq", 25), realtime=True)
+    source.start()
+    taken = []
+    while True:
+        frame = source.get(timeout_s=0.5)
+        if frame is None:
+            break
+        taken.append(number_of(frame.image))
+        time.sleep(3 * PERIOD_NS * 1e-9)  # a pipeline three frame periods slow
+    source.close()
+    assert taken == sorted(taken) and taken[-1] == 24
+    assert source.counters.dropped > 0
+    assert source.counters.captured == 25 == len(taken) + source.counters.dropped
+
+
+def test_looping_replay_keeps_time_rising(tmp_path):
+    source = replay_source(write_sequence(tmp_path / "seq", 4), realtime=True, loop=True)
+    source.start()
+    frames = [source.get(timeout_s=1.0) for _ in range(10)]
+    source.close()
+    assert [number_of(f.image) for f in frames] == [0, 1, 2, 3, 0, 1, 2, 3, 0, 1]
+    assert [f.index for f in frames] == list(range(10))
+    assert np.all(np.diff([f.t_ns for f in frames]) == PERIOD_NS)
+
+
+def test_video_file_replay_spaces_frames_by_its_rate(tmp_path):
+    video = write_video(tmp_path / "clip.avi", 12, fps=25.0)
+    rec = open_recording(video)
+    assert len(rec.frames) == 12 and rec.period_ns == 40_000_000
+    source = replay_source(video, realtime=False)
+    source.start()
+    frames = drain(source)
+    source.close()
+    assert [number_of(f.image) for f in frames] == list(range(12))
+    assert frames[0].image.shape == (48, 64) and frames[0].image.dtype == np.uint8
+
+
+def test_sequence_folder_with_a_video_instead_of_frames(tmp_path):
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    write_video(folder / "video.avi", 5)
+    (folder / "timestamps.csv").write_text("frame,t_ns,file\n" + "".join(f"{n},{n * 33_000_000},\n" for n in range(5)))
+    rec = open_recording(folder)
+    assert rec.video == folder / "video.avi" and rec.files is None
+    source = replay_source(folder, realtime=False)
+    source.start()
+    assert [number_of(f.image) for f in drain(source)] == list(range(5))
+    source.close()
+
+
+def test_image_folder_needs_a_frame_rate(tmp_path):
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for n in range(3):
+        cv2.imwrite(str(folder / f"img{n}.png"), image_with_number(n))
+    with pytest.raises(SourceError, match="source.fps"):
+        open_recording(folder)
+    rec = open_recording(folder, fps=10)
+    assert list(rec.t_ns) == [0, 100_000_000, 200_000_000]
+
+
+@pytest.mark.parametrize("content, message", [
+    ("frame,time,file\n0,0,a.png\n", "header lacks t_ns"),
+    ("frame,t_ns,file\n0,0,a.png\n1,0,b.png\n", "must rise"),
+    ("frame,t_ns,file\n0,zero,a.png\n", "integers"),
+    ("frame,t_ns,file\n", "no frames"),
+])
+def test_bad_timestamps_name_the_file(tmp_path, content, message):
+    (tmp_path / "timestamps.csv").write_text(content)
+    with pytest.raises(SourceError, match=message) as error:
+        open_recording(tmp_path)
+    assert "timestamps.csv" in str(error.value)
+
+
+def test_missing_path_is_named(tmp_path):
+    with pytest.raises(SourceError, match="nowhere"):
+        open_recording(tmp_path / "nowhere")
+
+
+def test_latest_frame_mailbox_keeps_only_the_newest():
+    box = LatestFrame()
+    a, b = (Frame(np.zeros((2, 2), np.uint8), t, t) for t in (1, 2))
+    assert box.put(a) is False and box.put(b) is True
+    assert box.take(0.01) is b and box.take(0.01) is None
+    box.close()
+    assert box.take(5.0) is None  # returns at once when closed
+
+
+def test_capture_that_vanishes_is_reopened_with_backoff_and_resumes(tmp_path):
+    """A real cv2.VideoCapture over a file: its end is a camera that stops delivering,
+    its removal a device that vanished; frames resume when it is back."""
+    video = write_video(tmp_path / "cam.avi", 5)
+    hidden = tmp_path / "cam.hidden"
+    source = CaptureSource(lambda: cv2.VideoCapture(str(video)), name="test",
+                           stall_timeout_s=0.15, backoff_initial_s=0.05, backoff_max_s=0.2)
+    source.start()
+    first = drain_until(source, count=5)
+    video.rename(hidden)  # the device goes away after its first 5 frames
+    deadline = time.monotonic() + 5
+    while source.counters.reopens < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    reopens_while_gone = source.counters.reopens
+    hidden.rename(video)  # and comes back
+    second = drain_until(source, count=5)
+    source.close()
+    assert [number_of(f.image) for f in first] == list(range(5))
+    assert [number_of(f.image) for f in second] == list(range(5))
+    assert reopens_while_gone >= 3
+    assert [f.index for f in second] == list(range(5, 10))  # indices keep counting
+    assert not source._thread.is_alive()
+
+
+def drain_until(source, count: int, limit_s: float = 10.0) -> list[Frame]:
+    frames = []
+    deadline = time.monotonic() + limit_s
+    while len(frames) < count and time.monotonic() < deadline:
+        frame = source.get(timeout_s=0.1)
+        if frame is not None:
+            frames.append(frame)
+    return frames
