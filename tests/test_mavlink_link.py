@@ -1,0 +1,223 @@
+"""MavlinkLink against an independent MAVLink peer (libmav, its own process) on loopback."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from companion.mavlink_link import LinkError, LinkParams, LinkState, MavlinkLink, Origin, parse_connection
+from companion.types import Estimate
+from mavlink_peer import PeerProcess, free_port
+
+ORIGIN = Origin(47.3977419, 8.5455938, 488.0)
+
+
+def estimate(t_ns: int, reset_counter: int = 0) -> Estimate:
+    return Estimate(
+        t_ns=t_ns, position_ned_m=np.array([1.0, 2.0, -1.5]), velocity_ned_m_s=np.array([0.1, 0.0, 0.0]),
+        roll_rad=0.01, pitch_rad=-0.02, yaw_rad=0.7, covariance_ned=np.diag([0.01, 0.01, 0.02, 0.001, 0.001, 0.003]),
+        reset_counter=reset_counter, tracking=True,
+    )
+
+
+class Publisher:
+    """Publishes synthetic estimates at ``rate_hz`` capture rate from a thread (like the pipeline)."""
+
+    def __init__(self, link: MavlinkLink, rate_hz: float = 30.0):
+        self.link, self.period_s = link, 1.0 / rate_hz
+        self.sent_t_ns: list[int] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop.wait(self.period_s):
+            t_ns = time.monotonic_ns()
+            if self.link.publish(estimate(t_ns)):
+                self.sent_t_ns.append(t_ns)
+
+    def stop(self):
+        self._stop.set()
+        self._thread.join()
+
+
+@pytest.fixture
+def peers(tmp_path):
+    started = []
+
+    def start(port, *extra, name="peer"):
+        peer = PeerProcess(port, tmp_path / f"{name}{len(started)}.jsonl", *extra)
+        started.append(peer)
+        return peer.wait_listening()
+
+    yield start
+    for peer in started:
+        peer.stop()
+
+
+@pytest.fixture
+def links():
+    opened = []
+
+    def open_link(**kwargs):
+        link = MavlinkLink(LinkParams(**kwargs))
+        link.start()
+        opened.append(link)
+        return link
+
+    yield open_link
+    for link in opened:
+        link.close()
+
+
+def first_time(records, name):
+    return min(r["t_ns"] for r in records if r["name"] == name)
+
+
+def test_origin_is_requested_confirmed_and_sent_before_any_vision(peers, links):
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_request")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_wait_s=10.0,
+                 origin_retry_s=0.3, heartbeat_interval_s=0.2)
+    publisher = Publisher(link)
+    vision = peer.wait_for("VISION_POSITION_ESTIMATE", count=10)
+    publisher.stop()
+    received = peer.records()
+    origin_msgs = peer.records("SET_GPS_GLOBAL_ORIGIN")
+    request = [r for r in peer.records("COMMAND_LONG") if r["fields"]["command"] == 512]
+    reply_t_ns = first_time(peer.records(kind="sent"), "GPS_GLOBAL_ORIGIN")
+    assert origin_msgs[0]["t_ns"] < request[0]["t_ns"] < reply_t_ns < vision[0]["t_ns"]
+    assert origin_msgs[0]["fields"]["latitude"] == 473977419
+    assert origin_msgs[0]["fields"]["longitude"] == 85455938
+    assert origin_msgs[0]["fields"]["altitude"] == 488000
+    assert origin_msgs[0]["fields"]["target_system"] == 1
+    assert request[0]["fields"]["param1"] == 49.0
+    assert link.counters.origin_confirmed == 1 and link.confirmed_origin.latitude_deg == pytest.approx(47.3977419)
+    # Identity of every message: vehicle's system id, component 197.
+    assert {(r["sysid"], r["compid"]) for r in received} == {(1, 197)}
+    heartbeats = peer.records("HEARTBEAT")
+    assert all(h["fields"]["type"] == 18 and h["fields"]["autopilot"] == 8 for h in heartbeats)
+    # What arrived is what was published: capture time in usec, covariance, reset counter.
+    sent_usec = {t // 1000 for t in publisher.sent_t_ns}
+    for row in vision:
+        fields = row["fields"]
+        assert fields["usec"] in sent_usec
+        assert (fields["x"], fields["y"], fields["z"]) == pytest.approx((1.0, 2.0, -1.5))
+        assert fields["yaw"] == pytest.approx(0.7)
+        assert fields["covariance"][0] == pytest.approx(0.01) and fields["covariance"][20] == pytest.approx(0.003)
+        assert fields["reset_counter"] == 0
+
+
+def test_fc_that_never_confirms_does_not_block_the_stream(peers, links):
+    port = free_port()
+    peer = peers(port, "--origin-reply", "never")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_wait_s=1.0,
+                 origin_retry_s=0.2, heartbeat_interval_s=0.2, statustext_interval_s=0.1)
+    publisher = Publisher(link)
+    vision = peer.wait_for("VISION_POSITION_ESTIMATE", count=3)
+    statustexts = peer.wait_for("STATUSTEXT")
+    publisher.stop()
+    assert link.counters.origin_timeouts == 1 and link.counters.origin_confirmed == 0
+    assert len(peer.records("SET_GPS_GLOBAL_ORIGIN")) >= 2  # re-sent while waiting
+    assert first_time(peer.records(), "SET_GPS_GLOBAL_ORIGIN") < first_time(peer.records(), "VISION_POSITION_ESTIMATE")
+    assert "origin unconfirmed" in statustexts[0]["fields"]["text"]
+    assert statustexts[0]["fields"]["severity"] == 4  # MAV_SEVERITY_WARNING
+
+
+def test_timesync_requests_are_answered_on_the_monotonic_clock(peers, links):
+    port = free_port()
+    peer = peers(port, "--timesync-period", "0.2")
+    link = links(connection=f"udpout:127.0.0.1:{port}", heartbeat_interval_s=0.2)
+    replies = peer.wait_for("TIMESYNC", count=3)
+    requests = {r["fields"]["ts1"]: r["t_ns"] for r in peer.records("TIMESYNC", kind="sent")}
+    for reply in replies:
+        ts1, tc1 = reply["fields"]["ts1"], reply["fields"]["tc1"]
+        assert ts1 in requests  # mirrored unchanged
+        # Our time stamp lies between the request leaving and the reply arriving (one shared clock).
+        assert ts1 <= tc1 <= reply["t_ns"]
+    assert link.counters.timesync_replies >= 3
+
+
+def test_vision_never_exceeds_the_rate_limit(peers, links):
+    port = free_port()
+    peer = peers(port)
+    link = links(connection=f"udpout:127.0.0.1:{port}", max_rate_hz=25.0, heartbeat_interval_s=0.2)
+    publisher = Publisher(link, rate_hz=100.0)
+    vision = peer.wait_for("VISION_POSITION_ESTIMATE", count=15)
+    publisher.stop()
+    usec = sorted(r["fields"]["usec"] for r in vision)
+    assert min(np.diff(usec)) >= 40_000  # 1 / 25 Hz
+    assert link.counters.rate_limited > 0
+
+
+def test_statustext_is_rate_limited_and_ordered(peers, links):
+    port = free_port()
+    peer = peers(port)
+    link = links(connection=f"udpout:127.0.0.1:{port}", heartbeat_interval_s=0.2, statustext_interval_s=0.3)
+    peer.wait_for("HEARTBEAT")
+    for text in ("companion: tracking", "companion: markers lost", "companion: re-acquired"):
+        link.statustext(text)
+    rows = peer.wait_for("STATUSTEXT", count=3)
+    assert [r["fields"]["text"] for r in rows] == ["companion: tracking", "companion: markers lost",
+                                                   "companion: re-acquired"]
+    assert min(np.diff([r["t_ns"] for r in rows])) >= 0.25e9
+
+
+def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links):
+    port = free_port()
+    first = peers(port, "--origin-reply", "on_set", name="first")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, fc_timeout_s=0.6,
+                 heartbeat_interval_s=0.2, origin_retry_s=0.2)
+    publisher = Publisher(link)
+    first.wait_for("VISION_POSITION_ESTIMATE", count=5)
+    first.stop()
+    time.sleep(1.0)  # longer than fc_timeout_s: the FC is gone
+    assert not link.fc_seen
+    second = peers(port, "--origin-reply", "on_set", name="second")
+    vision = second.wait_for("VISION_POSITION_ESTIMATE", count=5)
+    publisher.stop()
+    assert first_time(second.records(), "SET_GPS_GLOBAL_ORIGIN") < vision[0]["t_ns"]
+    assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
+
+
+def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):
+    port = free_port("tcp")
+    first = peers(port, "--tcp", name="first")
+    link = links(connection=f"tcp:127.0.0.1:{port}", heartbeat_interval_s=0.2, fc_timeout_s=0.6,
+                 reconnect_initial_s=0.1, reconnect_max_s=0.4)
+    publisher = Publisher(link)
+    first.wait_for("VISION_POSITION_ESTIMATE", count=5)
+    first.stop()
+    deadline = time.monotonic() + 5
+    while link.counters.transport_errors == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    second = peers(port, "--tcp", name="second")
+    second.wait_for("VISION_POSITION_ESTIMATE", count=5)
+    publisher.stop()
+    assert link.counters.transport_errors >= 1 and link.counters.connects >= 2
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("udpout:127.0.0.1:14550", ("udpout:127.0.0.1:14550", None)),
+    ("tcp:127.0.0.1:5760", ("tcp:127.0.0.1:5760", None)),
+    ("udpin:0.0.0.0:14551", ("udpin:0.0.0.0:14551", None)),
+    ("/dev/ttyAMA0,921600", ("/dev/ttyAMA0", 921600)),
+    ("/dev/ttyACM0", ("/dev/ttyACM0", 57600)),
+])
+def test_connection_strings_as_users_write_them(text, expected):
+    assert parse_connection(text) == expected
+
+
+@pytest.mark.parametrize("text", ["udpout:127.0.0.1", "tcp::5760", "udpout:host:99999", "serial0",
+                                  "/dev/ttyAMA0,fast", ""])
+def test_bad_connection_strings_are_rejected_with_the_string(text):
+    with pytest.raises(LinkError, match="connection"):
+        parse_connection(text)
+
+
+@pytest.mark.parametrize("bad", [dict(system_id=255), dict(max_rate_hz=60), dict(origin_wait_s=-1)])
+def test_bad_link_parameters_are_rejected(bad):
+    with pytest.raises(LinkError, match=next(iter(bad))):
+        LinkParams(**bad)
