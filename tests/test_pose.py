@@ -1,0 +1,304 @@
+"""Pose solver on synthetic projections of the example map: accuracy against truth."""
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion import frames
+from companion.camera import CameraModel
+from companion.facility_map import load_map
+from companion.pose import PoseParams, PoseSolver
+from companion.types import Detection
+
+REPO = Path(__file__).resolve().parents[1]
+FACILITY = load_map(REPO / "maps" / "warehouse.yaml")
+CAMERA = CameraModel.from_config(
+    {
+        "width": 640, "height": 480, "hfov_deg": 70.0,
+        "distortion": [-0.08, 0.03, 0.0005, -0.0003, 0.0],
+        "mount": {"lever_arm_m": [0.12, 0.02, 0.05], "facing": "forward", "tilt_down_deg": 10.0},
+    },
+    "test",
+)
+
+
+def body_pose(position_map, look_at_map, pitch_deg=0.0, roll_deg=0.0):
+    """(4, 4) T_map_body at position_map, heading toward look_at_map (horizontal)."""
+    direction_ned = FACILITY.T_ned_map[:3, :3] @ (np.asarray(look_at_map, float) - position_map)
+    yaw = math.atan2(direction_ned[1], direction_ned[0])
+    R_ned_body = frames.rotation_from_euler_321(math.radians(roll_deg), math.radians(pitch_deg), yaw)
+    return frames.make_transform(FACILITY.T_ned_map[:3, :3].T @ R_ned_body, position_map)
+
+
+def detections_for(T_map_body, symbols=None, noise_px=0.0, rng=None, margin_px=3.0):
+    """Detections of every map marker fully visible from T_map_body (corners projected, noise added)."""
+    T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
+    camera_position = frames.invert_transform(T_camera_map)[:3, 3]
+    found = []
+    for marker in FACILITY.markers.values():
+        if symbols is not None and marker.symbol not in symbols:
+            continue
+        if np.dot(camera_position - marker.T_map_marker[:3, 3], marker.normal_map) <= 0:
+            continue  # seen from behind
+        corners = CAMERA.project_from(T_camera_map, marker.corners_map())
+        if not CAMERA.in_image(corners, margin_px).all():
+            continue
+        if noise_px:
+            corners = corners + rng.normal(0.0, noise_px, corners.shape)
+        found.append(Detection(marker.symbol, marker.id, corners, "square", 0, 1.0))
+    return found
+
+
+def position_error_m(measurement, T_map_body):
+    return float(np.linalg.norm(measurement.T_map_body[:3, 3] - T_map_body[:3, 3]))
+
+
+def yaw_error_deg(measurement, T_map_body):
+    truth_yaw = frames.euler_321_from_rotation(FACILITY.T_ned_map[:3, :3] @ T_map_body[:3, :3])[2]
+    yaw = frames.euler_321_from_rotation(measurement.T_ned_body[:3, :3])[2]
+    return abs(math.degrees(math.remainder(yaw - truth_yaw, 2 * math.pi)))
+
+
+# A view down aisle 1 (y = 5) toward the office wall: several markers at 2-8 m.
+AISLE_VIEW = body_pose(np.array([9.0, 5.0, 1.5]), [18.0, 5.0, 1.3])
+# A close, oblique view of marker B (R1, x = 7, z = 1.4, facing +y) alone:
+# 1.5 m, 30 degrees off its normal, so the flipped IPPE branch fits clearly worse.
+B_VIEW = body_pose(np.array([6.25, 3.5 + 1.5 * math.cos(math.radians(30)), 1.5]), [7.0, 3.5, 1.4])
+
+
+def test_views_see_what_the_tests_need():
+    assert len(detections_for(AISLE_VIEW)) >= 3
+    assert [d.symbol for d in detections_for(B_VIEW)] == ["B"]
+
+
+# -------------------------------------------------------------------- exact
+
+def test_single_marker_exact():
+    solver = PoseSolver(FACILITY, CAMERA)
+    solution = solver.solve_detailed(detections_for(B_VIEW), t_ns=5)
+    assert solution.status == "ok" and not solution.ambiguous
+    m = solution.measurement
+    assert m.t_ns == 5 and m.marker_ids == (FACILITY.marker_by_symbol("B").id,)
+    assert position_error_m(m, B_VIEW) < 1e-6
+    assert frames.rotation_angle_rad(m.T_map_body[:3, :3], B_VIEW[:3, :3]) < 1e-7
+    assert m.reprojection_rms_px < 1e-6
+
+
+def test_several_markers_exact_and_ned_output():
+    m = PoseSolver(FACILITY, CAMERA).solve(detections_for(AISLE_VIEW), t_ns=0)
+    assert len(m.marker_ids) >= 3
+    assert position_error_m(m, AISLE_VIEW) < 1e-6
+    np.testing.assert_allclose(m.T_ned_body, FACILITY.T_ned_map @ m.T_map_body, atol=1e-12)
+    np.testing.assert_allclose(m.T_ned_body[:3, 3], FACILITY.T_ned_map[:3, :3] @ AISLE_VIEW[:3, 3], atol=1e-6)
+
+
+# -------------------------------------------------------------------- noisy
+
+@pytest.mark.parametrize("seed", range(5))
+def test_noisy_views_at_1_to_6_m(seed):
+    rng = np.random.default_rng(seed)
+    solver = PoseSolver(FACILITY, CAMERA)
+    x = rng.uniform(5.0, 12.0)
+    T = body_pose(np.array([x, rng.uniform(4.5, 5.5), rng.uniform(1.0, 2.0)]), [x + 3.0, rng.choice([3.5, 6.5]), 1.4], pitch_deg=rng.uniform(-5, 5), roll_deg=rng.uniform(-5, 5))
+    detections = detections_for(T, noise_px=0.3, rng=rng)
+    m = solver.solve(detections, t_ns=0)
+    if len(detections) >= 2:
+        assert m is not None
+    if m is not None:
+        assert position_error_m(m, T) < 0.10
+        assert yaw_error_deg(m, T) < 1.5
+
+
+def test_noisy_aisle_view_is_accurate():
+    rng = np.random.default_rng(7)
+    solver = PoseSolver(FACILITY, CAMERA)
+    errors, yaw_errors = [], []
+    for _ in range(20):
+        m = solver.solve(detections_for(AISLE_VIEW, noise_px=0.3, rng=rng), t_ns=0)
+        errors.append(position_error_m(m, AISLE_VIEW))
+        yaw_errors.append(yaw_error_deg(m, AISLE_VIEW))
+    assert np.median(errors) < 0.03
+    assert np.median(yaw_errors) < 0.3
+
+
+def test_joint_beats_single_marker():
+    rng = np.random.default_rng(11)
+    joint = PoseSolver(FACILITY, CAMERA)
+    single = PoseSolver(FACILITY, CAMERA, PoseParams(max_markers=1))
+    # The single marker's IPPE branches are ambiguous at this range: a prior near
+    # the truth picks the branch, so only accuracy is compared.
+    prior = AISLE_VIEW @ frames.make_transform(frames.rot_z(0.05), [0.1, 0.1, 0.0])
+    joint_errors, single_errors = [], []
+    for i in range(30):
+        detections = detections_for(AISLE_VIEW, noise_px=0.5, rng=rng)
+        joint_errors.append(position_error_m(joint.solve(detections, t_ns=i), AISLE_VIEW))
+        m = single.solve(detections, t_ns=i, prior_T_map_body=prior)
+        assert len(m.marker_ids) == 1
+        single_errors.append(position_error_m(m, AISLE_VIEW))
+    assert 3 * np.median(joint_errors) < np.median(single_errors)
+
+
+# ----------------------------------------------------------------- outliers
+
+def moved(detection, shift_px):
+    return Detection(detection.symbol, detection.id, detection.corners_px + shift_px, "square", 0, 1.0)
+
+
+def test_one_moved_marker_among_several_is_left_out():
+    detections = detections_for(AISLE_VIEW)
+    assert len(detections) >= 3
+    detections[1] = moved(detections[1], [25.0, -10.0])
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    assert solution.status == "ok"
+    assert solution.rejected_ids == (detections[1].id,)
+    assert detections[1].id not in solution.measurement.marker_ids
+    assert position_error_m(solution.measurement, AISLE_VIEW) < 1e-5
+
+
+def test_two_disagreeing_markers_give_no_pose():
+    detections = detections_for(AISLE_VIEW)[:2]
+    detections[1] = moved(detections[1], [30.0, 0.0])
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    assert solution.measurement is None
+    assert solution.status == "inconsistent markers"
+
+
+def test_distorted_corners_fail_reprojection():
+    d = detections_for(B_VIEW)[0]
+    corners = d.corners_px.copy()
+    corners[0] += [6.0, 6.0]  # a corner off by 8.5 px: no rigid pose fits
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed([Detection(d.symbol, d.id, corners, "square", 0, 1.0)], t_ns=0)
+    assert solution.measurement is None and solution.status == "reprojection"
+
+
+def test_unmapped_and_duplicate_detections_are_ignored():
+    detections = detections_for(AISLE_VIEW)
+    unmapped = Detection("STAR", 49, detections[0].corners_px + 50.0, "square", 0, 1.0)
+    twice = [detections[0], moved(detections[0], [40.0, 0.0])]
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections[1:] + [unmapped] + twice, t_ns=0)
+    assert solution.status == "ok"
+    assert set(solution.unmapped_ids) == {49, detections[0].id}
+    assert position_error_m(solution.measurement, AISLE_VIEW) < 1e-5
+
+
+def test_no_markers():
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed([], t_ns=0)
+    assert solution.measurement is None and solution.status == "no mapped markers"
+
+
+def test_upside_down_body_is_implausible():
+    T = B_VIEW.copy()
+    # Roll the body 180 degrees about its forward axis, keeping the camera's view of B by
+    # rotating the camera mount to match: the same image, an impossible vehicle attitude.
+    flipped_camera = CameraModel(CAMERA.K, CAMERA.dist, 640, 480, frames.make_transform(frames.rot_x(math.pi), [0, 0, 0]) @ CAMERA.T_body_camera)
+    T_flipped = T @ frames.make_transform(frames.rot_x(math.pi), [0, 0, 0])
+    solution = PoseSolver(FACILITY, flipped_camera).solve_detailed(detections_for(B_VIEW), t_ns=0)
+    assert solution.measurement is None and solution.status == "implausible attitude"
+    assert np.allclose(T_flipped @ flipped_camera.T_body_camera, T @ CAMERA.T_body_camera)
+
+
+# ---------------------------------------------------------------- ambiguity
+
+# Marker N (north wall, 0.20 m) seen nearly head-on from 5 m: IPPE's two poses
+# reproject within a fraction of a pixel of each other.
+FAR_N_VIEW = body_pose(np.array([9.0, 5.5, 1.3]), [9.5, 10.5, 1.5])
+
+
+def test_far_single_marker_is_ambiguous_without_prior():
+    detections = detections_for(FAR_N_VIEW, symbols={"N"})
+    assert len(detections) == 1
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    assert solution.status == "ambiguous" and solution.ambiguous
+    assert solution.measurement is None
+    assert len(solution.fits) >= 2
+
+
+def test_ambiguity_resolved_by_prior():
+    detections = detections_for(FAR_N_VIEW, symbols={"N"})
+    wrong_fit_positions = []
+    for prior_offset in ([0.1, -0.1, 0.05], [-0.1, 0.05, 0.0]):
+        prior = FAR_N_VIEW @ frames.make_transform(frames.rot_z(math.radians(3)), prior_offset)
+        solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0, prior_T_map_body=prior)
+        assert solution.status == "ok" and solution.ambiguous and solution.used_prior
+        assert position_error_m(solution.measurement, FAR_N_VIEW) < 1e-3
+    # The rejected branch really is far away: choosing it would have been a gross error.
+    for fit in solution.fits:
+        T_map_body = frames.invert_transform(fit.T_camera_map) @ CAMERA.T_camera_body
+        wrong_fit_positions.append(np.linalg.norm(T_map_body[:3, 3] - FAR_N_VIEW[:3, 3]))
+    assert max(wrong_fit_positions) > 0.1
+
+
+def test_last_accepted_pose_is_the_prior():
+    solver = PoseSolver(FACILITY, CAMERA)
+    close = body_pose(np.array([8.75, 9.2, 1.4]), [9.5, 10.5, 1.5])  # N at 1.5 m, 30 degrees: unambiguous
+    assert solver.solve(detections_for(close, symbols={"N"}), t_ns=0) is not None
+    # Half a second later, the vehicle (having moved) sees only the far ambiguous view.
+    m = solver.solve(detections_for(FAR_N_VIEW, symbols={"N"}), t_ns=500_000_000)
+    assert m is not None and position_error_m(m, FAR_N_VIEW) < 1e-3
+    # Too old a prior is not used.
+    assert solver.solve(detections_for(FAR_N_VIEW, symbols={"N"}), t_ns=5_000_000_000) is None
+
+
+# --------------------------------------------------------------- covariance
+
+def test_noise_beyond_the_expected_corner_noise_is_rejected():
+    rng = np.random.default_rng(3)
+    detections = detections_for(AISLE_VIEW, noise_px=2.0, rng=rng)
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    assert solution.measurement is None and solution.status in ("reprojection", "inconsistent markers")
+    assert PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=2.0, max_rms_px=10.0)).solve(detections, t_ns=0) is not None
+
+
+def test_covariance_grows_with_noise_and_range():
+    rng = np.random.default_rng(3)
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=3.0, max_rms_px=10.0))
+    quiet = solver.solve(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), t_ns=0)
+    loud = solver.solve(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), t_ns=0)
+    assert np.trace(loud.covariance_ned[:3, :3]) > 10 * np.trace(quiet.covariance_ned[:3, :3])
+    near = solver.solve(detections_for(body_pose(np.array([6.0, 5.0, 1.4]), [7.0, 3.5, 1.4]), symbols={"B"}), t_ns=0)
+    far = solver.solve(detections_for(body_pose(np.array([7.0, 6.3, 1.4]), [7.0, 3.5, 1.4]), symbols={"B"}), t_ns=0)
+    assert near is not None and far is not None
+    assert np.trace(far.covariance_ned[:3, :3]) > np.trace(near.covariance_ned[:3, :3])
+    for m in (quiet, loud, near, far):
+        np.testing.assert_allclose(m.covariance_ned, m.covariance_ned.T, atol=1e-15)
+        assert np.linalg.eigvalsh(m.covariance_ned).min() > 0
+
+
+def test_covariance_matches_the_scatter_of_errors():
+    """Normalised errors e^T C^-1 e over many noisy solves average about 6 (chi-square, 6 dof)."""
+    rng = np.random.default_rng(21)
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0))
+    truth_ned = FACILITY.T_ned_map @ AISLE_VIEW
+    scores = []
+    for _ in range(150):
+        m = solver.solve(detections_for(AISLE_VIEW, noise_px=1.0, rng=rng), t_ns=0)
+        dp = m.T_ned_body[:3, 3] - truth_ned[:3, 3]
+        # Small rotation error about the NED axes: R_est = exp(dtheta) R_true
+        dtheta = frames.rotvec_from_rotation(m.T_ned_body[:3, :3] @ truth_ned[:3, :3].T)
+        error = np.concatenate([dp, dtheta])
+        scores.append(error @ np.linalg.solve(m.covariance_ned, error))
+    assert 3.0 < np.mean(scores) < 12.0
+
+
+def test_position_covariance_matches_scatter_in_ned_axes():
+    """One close marker: a strongly anisotropic covariance; whitened by it, the scatter is isotropic.
+
+    The same covariance on map axes instead of NED ones fails by a factor of ten.
+    """
+    rng = np.random.default_rng(5)
+    solver = PoseSolver(FACILITY, CAMERA)
+    truth_ned = FACILITY.T_ned_map @ B_VIEW
+    errors, covariances = [], []
+    for _ in range(150):
+        m = solver.solve(detections_for(B_VIEW, noise_px=0.5, rng=rng), t_ns=0, prior_T_map_body=B_VIEW)
+        if m is not None:
+            errors.append(m.T_ned_body[:3, 3] - truth_ned[:3, 3])
+            covariances.append(m.covariance_ned[:3, :3])
+    assert len(errors) > 140
+    scatter = np.cov(np.array(errors).T)
+    predicted = np.mean(covariances, axis=0)
+    eigenvalues = np.linalg.eigvalsh(predicted)
+    assert eigenvalues[-1] > 5 * eigenvalues[0]  # anisotropic, so the axes matter
+    ratios = np.linalg.eigvals(np.linalg.solve(predicted, scatter)).real
+    assert ratios.min() > 0.4 and ratios.max() < 2.0
