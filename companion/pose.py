@@ -246,7 +246,7 @@ class PoseSolver:
         if self._layout is None:
             from companion.marker import MarkerLayout
 
-            self._layout = MarkerLayout(parity=self.facility_map.parity)
+            self._layout = MarkerLayout(parity=self.facility_map.parity, dictionary=self.facility_map.dictionary)
         return self._layout
 
     def _circles_uv(self) -> np.ndarray:

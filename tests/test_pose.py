@@ -302,3 +302,44 @@ def test_position_covariance_matches_scatter_in_ned_axes():
     assert eigenvalues[-1] > 5 * eigenvalues[0]  # anisotropic, so the axes matter
     ratios = np.linalg.eigvals(np.linalg.solve(predicted, scatter)).real
     assert ratios.min() > 0.4 and ratios.max() < 2.0
+
+
+# ------------------------------------------------------------------ circles
+
+def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
+    """The detection as the circles path reports it: the corner circles' centres added."""
+    from companion.marker import MarkerLayout
+
+    layout = MarkerLayout(parity=FACILITY.parity)
+    marker = FACILITY.markers[detection.id]
+    ids = np.arange(len(layout.circles)) if circle_ids is None else np.asarray(circle_ids)
+    points_marker = frames.grid_to_marker_m(layout.circles[ids, :2], layout.inner_origin, marker.size_m)
+    T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
+    circles_px = CAMERA.project_from(T_camera_map, frames.transform_points(marker.T_map_marker, points_marker))
+    circles_px = circles_px + rng.normal(0.0, noise_px, circles_px.shape)
+    return Detection(detection.symbol, detection.id, detection.corners_px, "circles", 2, 0.8, circles_px, ids)
+
+
+def test_circle_centres_join_the_fit():
+    rng = np.random.default_rng(17)
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0))
+    plain_errors, circle_errors = [], []
+    for _ in range(20):
+        detections = detections_for(B_VIEW, noise_px=1.0, rng=rng)
+        plain = solver.solve(detections, t_ns=0, prior_T_map_body=B_VIEW)
+        circled = solver.solve([with_circles(detections[0], B_VIEW, 0.2, rng)], t_ns=0, prior_T_map_body=B_VIEW)
+        plain_errors.append(position_error_m(plain, B_VIEW))
+        circle_errors.append(position_error_m(circled, B_VIEW))
+    assert np.median(circle_errors) < 0.5 * np.median(plain_errors)
+
+
+def test_circle_ids_select_the_circles():
+    rng = np.random.default_rng(2)
+    detection = detections_for(B_VIEW)[0]
+    some = [0, 3, 4, 7, 9]
+    good = with_circles(detection, B_VIEW, 0.0, rng, circle_ids=some)
+    m = PoseSolver(FACILITY, CAMERA).solve([good], t_ns=0)
+    assert position_error_m(m, B_VIEW) < 1e-5
+    # The same centres labelled as other circles cannot be fitted.
+    wrong = Detection(good.symbol, good.id, good.corners_px, "circles", 0, 1.0, good.circles_px, np.array([1, 2, 5, 6, 8]))
+    assert PoseSolver(FACILITY, CAMERA).solve([wrong], t_ns=0) is None
