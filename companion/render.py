@@ -417,22 +417,19 @@ class MarkerTexture:
 
 
 def rs_marker_texture(layout, marker_id: int, px_per_cell: int = 16, quiet_zone_cells: int = 1) -> MarkerTexture:
-    """MarkerTexture of an RS marker from ``companion.marker.marker_image``.
+    """MarkerTexture of an RS marker, drawn by ``companion.marker.marker_image``.
 
-    Grid point (u, v) (cells) is at texture pixel ((u + q) c - 0.5, (v + q) c - 0.5)
-    with q the quiet zone and c = px_per_cell.
+    Its reference points come from the layout (inner corners, circle centres in
+    grid cells) through ``companion.marker.cell_point_to_px``, the same mapping
+    the image was drawn with.
     """
     from companion import marker as marker_module
 
     image = marker_module.marker_image(layout, marker_id, px_per_cell, quiet_zone_cells=quiet_zone_cells)
-    o = layout.inner_origin
-    grid_corners = np.array([[o, o], [o + 8, o], [o + 8, o + 8], [o, o + 8]], dtype=float)
-    circles_uv = np.asarray(layout.circles, dtype=float)[:, :2]
-
-    def to_px(uv):
-        return (uv + quiet_zone_cells) * px_per_cell - 0.5
-
-    return MarkerTexture(image, to_px(grid_corners), to_px(circles_uv), int(marker_id), "rs")
+    corners = marker_module.cell_point_to_px(layout.inner_corners_cells, px_per_cell, quiet_zone_cells)
+    circles = marker_module.cell_point_to_px(np.asarray(layout.circles, dtype=float)[:, :2].reshape(-1, 2),
+                                             px_per_cell, quiet_zone_cells)
+    return MarkerTexture(image, corners, circles, int(marker_id), "rs")
 
 
 def aruco_marker_texture(dictionary, marker_id: int, px_per_cell: int = 16, quiet_zone_cells: int = 2,

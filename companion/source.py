@@ -371,6 +371,8 @@ def read_sequence_info(folder) -> dict:
 class ReplaySource(_ThreadedSource):
     """Plays a Recording, paced in real time or as fast as the pipeline takes frames.
 
+    ``Frame.index`` is the recording's frame number (plus the frame count of
+    the recording for each completed loop), so skipped frames leave gaps.
     ``clock_offset_ns``: in real time, ``Frame.t_ns = t_recorded + clock_offset_ns``
     (set when the replay starts; the next loop adds the recording's length).
     """
@@ -396,15 +398,17 @@ class ReplaySource(_ThreadedSource):
         self.clock_offset_ns = time.monotonic_ns() + rec.period_ns - int(rec.t_ns[0])
         self._started.set()
         offset_ns = self.clock_offset_ns
-        index = 0
+        frames_per_loop = int(rec.frames[-1]) + 1
+        loop_count = 0
         while not self._stop.is_set():
-            for image, recorded_t_ns, where in self._images():
+            for image, number, recorded_t_ns, where in self._images():
                 if self._stop.is_set():
                     return
                 if image is None:
                     self.counters.corrupt += 1
                     log.warning("replay: %s is unreadable; skipped (%d so far)", where, self.counters.corrupt)
                     continue
+                index = int(number) + loop_count * frames_per_loop
                 if self.realtime:
                     t_ns = int(recorded_t_ns) + offset_ns
                     # Sleep until the frame's capture time, interruptibly.
@@ -414,23 +418,23 @@ class ReplaySource(_ThreadedSource):
                 else:
                     self._publish(Frame(image=image, t_ns=time.monotonic_ns(), index=index),
                                   wait_for_taker=True)
-                index += 1
             if not self.loop:
                 return
             offset_ns += loop_length_ns
+            loop_count += 1
 
     def _images(self):
-        """Yields (gray image or None if unreadable, recorded t_ns, what it was) in order."""
+        """Yields (gray image or None if unreadable, frame number, recorded t_ns, what it was)."""
         rec = self.recording
         if rec.files is not None:
-            for file, t_ns in zip(rec.files, rec.t_ns):
-                yield to_gray(cv2.imread(str(file), cv2.IMREAD_GRAYSCALE)), t_ns, file
+            for file, number, t_ns in zip(rec.files, rec.frames, rec.t_ns):
+                yield to_gray(cv2.imread(str(file), cv2.IMREAD_GRAYSCALE)), number, t_ns, file
             return
         capture = cv2.VideoCapture(str(rec.video))
         try:
             for number, t_ns in zip(rec.frames, rec.t_ns):
                 ok, image = capture.read()
-                yield (to_gray(image) if ok else None), t_ns, f"{rec.video} frame {number}"
+                yield (to_gray(image) if ok else None), number, t_ns, f"{rec.video} frame {number}"
         finally:
             capture.release()
 

@@ -1,0 +1,344 @@
+"""``companion run``: the positioning daemon.
+
+Threads::
+
+    capture/replay --(newest frame)--> pipeline --(publish)--> link ---> flight controller
+                                        detect, solve, fuse        heartbeat, handshake, TIMESYNC
+
+* the source's thread (``companion.source``) captures frames and hands over
+  only the newest one;
+* ``pipeline`` detects markers, solves the pose, fuses it and sends the
+  estimate from the same thread (no queue between fusion and the socket);
+* ``link`` and ``heartbeat`` (``companion.mavlink_link``) keep the MAVLink
+  connection, the origin handshake and TIMESYNC answers;
+* the main thread prints the one-line status, feeds systemd's watchdog and
+  waits for SIGTERM/SIGINT or the end of a replay, then stops everything in
+  order: pipeline, source (camera released), link (socket closed).
+
+With no ``--config`` it runs the embedded default: the bundled recorded
+sequence and ``maps/warehouse.yaml``, MAVLink to ``udpout:127.0.0.1:14550``.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion import frames
+from companion.config import Config, ConfigError, ReplayConfig, default_config_path, load_config
+from companion.fusion import PoseFilter, TrackState
+from companion.mavlink_link import SEVERITY_INFO, SEVERITY_WARNING, MavlinkLink
+from companion.notify import Notifier
+from companion.source import FrameSource, replay_source, v4l2_source
+from companion.types import Estimate, Frame, PoseMeasurement
+
+log = logging.getLogger("companion")
+
+STAGES = ("detect", "pose", "fuse", "send")
+# The pipeline must have looped this recently for the watchdog to be fed.
+PIPELINE_STALL_S = 5.0
+SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What the pipeline did with one frame (times in nanoseconds)."""
+
+    index: int
+    t_ns: int
+    stage_ns: tuple[int, int, int, int]   # detect, pose, fuse, send
+    latency_ns: int | None                 # capture -> sent; None if nothing was sent
+    markers: int
+    measurement: PoseMeasurement | None
+    estimate: Estimate | None
+
+
+@dataclass
+class PipelineStats:
+    """Rolling per-frame records plus totals; read by the status line and benchmarks."""
+
+    records: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))
+    frames: int = 0
+    sent: int = 0
+    last_loop_s: float = field(default_factory=time.monotonic)
+
+    def add(self, record: FrameRecord) -> None:
+        self.records.append(record)
+        self.frames += 1
+        self.sent += record.latency_ns is not None
+        self.last_loop_s = time.monotonic()
+
+    def recent(self, window_s: float) -> list[FrameRecord]:
+        records = list(self.records)
+        if not records:
+            return []
+        newest = records[-1].t_ns
+        return [r for r in records if newest - r.t_ns <= window_s * 1e9]
+
+    def stage_table(self) -> list[tuple[str, float, float]]:
+        """(stage, median ms, p99 ms) for each stage, the total and the capture->send latency."""
+        records = list(self.records)
+        if not records:
+            return []
+        per_stage = np.array([r.stage_ns for r in records], dtype=float) / 1e6
+        rows = [(name, *_median_p99(per_stage[:, i])) for i, name in enumerate(STAGES)]
+        rows.append(("total", *_median_p99(per_stage.sum(axis=1))))
+        latencies = [r.latency_ns / 1e6 for r in records if r.latency_ns is not None]
+        if latencies:
+            rows.append(("capture->send", *_median_p99(np.array(latencies))))
+        return rows
+
+
+def _median_p99(values: np.ndarray) -> tuple[float, float]:
+    return float(np.median(values)), float(np.percentile(values, 99))
+
+
+class Pipeline:
+    """Per frame: detect -> solve -> fuse -> publish, timing each stage."""
+
+    def __init__(self, detector, solver, pose_filter: PoseFilter, link: MavlinkLink | None, T_map_ned: np.ndarray):
+        self.detector = detector
+        self.solver = solver
+        self.pose_filter = pose_filter
+        self.link = link
+        self.T_map_ned = T_map_ned
+        self.stats = PipelineStats()
+        self._previous_state = pose_filter.state
+
+    def process(self, frame: Frame) -> FrameRecord:
+        t0 = time.perf_counter_ns()
+        detections = self.detector.detect(frame.image)
+        t1 = time.perf_counter_ns()
+        measurement = self.solver.solve(detections, frame.t_ns, self._prior()) if detections else None
+        t2 = time.perf_counter_ns()
+        estimate = self.pose_filter.step(frame.t_ns, measurement)
+        t3 = time.perf_counter_ns()
+        sent = False
+        if estimate is not None and self.link is not None:
+            sent = self.link.publish(estimate, self.pose_filter.velocity_covariance_ned)
+        t4 = time.perf_counter_ns()
+        latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
+        self._report_state_change()
+        record = FrameRecord(frame.index, frame.t_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), latency_ns,
+                             len(detections), measurement, estimate)
+        self.stats.add(record)
+        return record
+
+    def _prior(self) -> np.ndarray | None:
+        """The fused pose as T_map_body, to help the solver pick between ambiguous fits."""
+        estimate = self.stats.records[-1].estimate if self.stats.records else None
+        if estimate is None:
+            return None
+        R = frames.rotation_from_euler_321(estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)
+        return self.T_map_ned @ frames.make_transform(R, estimate.position_ned_m)
+
+    def _report_state_change(self) -> None:
+        state, previous = self.pose_filter.state, self._previous_state
+        self._previous_state = state
+        if state is previous:
+            return
+        counters = self.pose_filter.counters
+        if previous is TrackState.ACQUIRING and state is TrackState.TRACKING:
+            if counters.acquisitions == 1:
+                text, severity = "companion: tracking markers", SEVERITY_INFO
+            else:
+                text, severity = f"companion: re-acquired (reset {self.pose_filter.reset_counter})", SEVERITY_INFO
+        elif state is TrackState.ACQUIRING:
+            text, severity = "companion: markers lost", SEVERITY_WARNING
+        else:
+            return  # tracking <-> coasting flickers frame to frame: not worth a message
+        log.info(text)
+        if self.link is not None:
+            self.link.statustext(text, severity)
+
+
+class Daemon:
+    """Builds the stages from a Config and runs the threads until stopped."""
+
+    def __init__(self, config: Config, status_stream=None, record_frames: int = 2000):
+        from companion.detector import Detector, DetectorParams
+        from companion.pose import PoseSolver
+
+        self.config = config
+        self.status_stream = status_stream
+        try:
+            detector_params = DetectorParams(**config.detector)
+        except (TypeError, ValueError) as error:
+            raise ConfigError(f"{config.path}: detector: {error}") from None
+        self.source = make_source(config)
+        self.link = MavlinkLink(config.mavlink)
+        self.pipeline = Pipeline(
+            Detector(detector_params),
+            PoseSolver(config.facility_map, config.camera),
+            PoseFilter(config.fusion),
+            self.link,
+            T_map_ned=frames.invert_transform(config.facility_map.T_ned_map()),
+        )
+        self.pipeline.stats.records = collections.deque(maxlen=record_frames)
+        self.notifier = Notifier()
+        self.stop_event = threading.Event()
+        self._pipeline_thread = threading.Thread(target=self._run_pipeline, name="pipeline", daemon=True)
+
+    def run(self) -> int:
+        """Run until ``stop_event`` is set (signal, end of replay); returns the exit code."""
+        self.link.start()
+        self.source.start()
+        clock_offset_ns = getattr(self.source, "clock_offset_ns", None)
+        if clock_offset_ns is not None:
+            log.info("replay %s: recorded t_ns 0 is monotonic %d ns", self.config.source.path, clock_offset_ns)
+        self._pipeline_thread.start()
+        self.notifier.ready(status="running")
+        log.info("running: source %s, map %s, MAVLink %s", describe_source(self.config),
+                 self.config.facility_map.path, self.config.mavlink.connection)
+        try:
+            self._supervise()
+        finally:
+            self.shutdown()
+        return 0
+
+    def shutdown(self) -> None:
+        self.stop_event.set()
+        self.notifier.stopping()
+        if self._pipeline_thread.is_alive():
+            self._pipeline_thread.join(timeout=5.0)
+        self.source.close()
+        self.link.close()
+        self.notifier.close()
+        self._print_summary()
+
+    def _run_pipeline(self) -> None:
+        try:
+            while not self.stop_event.is_set():
+                frame = self.source.get(timeout_s=0.2)
+                if frame is None:
+                    if self.source.finished:
+                        log.info("source finished")
+                        break
+                    continue
+                self.pipeline.process(frame)
+        except Exception:
+            log.exception("pipeline failed")
+        finally:
+            self.stop_event.set()
+
+    def _supervise(self) -> None:
+        interval_s = self.config.status_interval_s
+        watchdog_s = self.notifier.watchdog_interval_s
+        tty = self.status_stream is not None and self.status_stream.isatty()
+        next_status = next_log = next_watchdog = time.monotonic()
+        while not self.stop_event.wait(0.05):
+            now = time.monotonic()
+            if watchdog_s and now >= next_watchdog and now - self.pipeline.stats.last_loop_s < PIPELINE_STALL_S:
+                self.notifier.watchdog()
+                next_watchdog = now + watchdog_s
+            if self.status_stream is not None and now >= next_status:
+                line = self.status_line()
+                if tty:
+                    self.status_stream.write("\r\x1b[K" + line)
+                    self.status_stream.flush()
+                elif now >= next_log:
+                    self.status_stream.write(line + "\n")
+                    self.status_stream.flush()
+                    next_log = now + max(interval_s, 5.0)
+                self.notifier.status(line)
+                next_status = now + interval_s
+        if tty:
+            self.status_stream.write("\n")
+
+    def status_line(self) -> str:
+        """fps, markers seen, pose, latency, tracking and link state on one line."""
+        recent = self.pipeline.stats.recent(1.0)
+        fps = (len(recent) - 1) / ((recent[-1].t_ns - recent[0].t_ns) * 1e-9) if len(recent) > 1 else 0.0
+        last = recent[-1] if recent else None
+        latencies = [r.latency_ns for r in recent if r.latency_ns is not None]
+        latency = f"{np.median(latencies) / 1e6:.1f} ms" if latencies else "-"
+        estimate = last.estimate if last else None
+        if estimate is not None:
+            n, e, d = estimate.position_ned_m
+            pose = f"N {n:+.2f} E {e:+.2f} D {d:+.2f} m yaw {math.degrees(estimate.yaw_rad):+.1f} deg"
+        else:
+            pose = "no pose"
+        counters = self.pipeline.pose_filter.counters
+        return (f"{fps:5.1f} fps | markers {last.markers if last else 0} | {pose} | latency {latency} | "
+                f"{self.pipeline.pose_filter.state.value} | link {self.link.state.value} | "
+                f"sent {self.pipeline.stats.sent} rejected {counters.rejected} resets {counters.resets}")
+
+    def _print_summary(self) -> None:
+        stats, source = self.pipeline.stats, self.source.counters
+        log.info("frames %d, sent %d, dropped %d, corrupt %d, camera reopens %d, link %s",
+                 stats.frames, stats.sent, source.dropped, source.corrupt, source.reopens,
+                 dict(self.link.counters.sent))
+        for name, median_ms, p99_ms in stats.stage_table():
+            log.info("stage %-14s median %7.2f ms  p99 %7.2f ms", name, median_ms, p99_ms)
+
+
+def make_source(config: Config) -> FrameSource:
+    source = config.source
+    if isinstance(source, ReplayConfig):
+        return replay_source(source.path, realtime=source.realtime, loop=source.loop, fps=source.fps)
+    return v4l2_source(source.device, source.width, source.height, source.fps, source.pixel_format,
+                       source.stall_timeout_s)
+
+
+def describe_source(config: Config) -> str:
+    source = config.source
+    if isinstance(source, ReplayConfig):
+        pace = "real time" if source.realtime else "as fast as possible"
+        return f"replay of {source.path} ({pace}{', looping' if source.loop else ''})"
+    return f"V4L2 camera {source.device}"
+
+
+# ------------------------------------------------------------------- CLI
+
+class _JournalFormatter(logging.Formatter):
+    """``<priority>name: message``: journald reads the level from the prefix."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"<{SYSLOG_PRIORITY.get(record.levelno, 6)}>{record.name}: {record.getMessage()}"
+
+
+def setup_logging() -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    if os.environ.get("JOURNAL_STREAM"):
+        handler.setFormatter(_JournalFormatter())
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.INFO)
+
+
+def configure_parser(parser) -> None:
+    parser.add_argument("--config", metavar="FILE", default=None,
+                        help=f"YAML config (default: the embedded {default_config_path().name}: bundled replay, "
+                             "maps/warehouse.yaml, udpout:127.0.0.1:14550)")
+
+
+def main(args) -> int:
+    setup_logging()
+    try:
+        config = load_config(args.config)
+        daemon = Daemon(config, status_stream=sys.stdout)
+    except (ConfigError, ValueError) as error:
+        log.error("%s", error)
+        return 2
+    previous = {sig: signal.signal(sig, lambda signum, _frame: _on_signal(daemon, signum))
+                for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        return daemon.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _on_signal(daemon: Daemon, signum: int) -> None:
+    log.info("%s: stopping", signal.Signals(signum).name)
+    daemon.stop_event.set()
