@@ -73,8 +73,11 @@ class MarkerDictionary:
         return self.symbols[marker_id]
 
     def aruco(self, max_correction_bits: int | None = None) -> cv2.aruco.Dictionary:
-        """This dictionary as an OpenCV ArUco dictionary (same ids, same orientation)."""
-        byte_list = np.stack([cv2.aruco.Dictionary_getByteListFromBits(b) for b in self.bits])[:, 0]
+        """This dictionary as an OpenCV ArUco dictionary (same ids, same orientation).
+
+        OpenCV's bit 1 is a white cell, ours a black one.
+        """
+        byte_list = np.stack([cv2.aruco.Dictionary_getByteListFromBits(1 - b) for b in self.bits])[:, 0]
         if max_correction_bits is None:
             max_correction_bits = (self.min_distance - 1) // 2
         return cv2.aruco.Dictionary(byte_list, self.size, max_correction_bits)
