@@ -106,6 +106,7 @@ def test_corrupt_missing_and_truncated_frames_are_skipped_and_counted(tmp_path):
     frames = drain(source)
     source.close()
     assert [number_of(f.image) for f in frames] == [0, 1, 3, 4, 6, 8, 9]
+    assert [f.index for f in frames] == [0, 1, 3, 4, 6, 8, 9]  # the recording's frame numbers
     assert source.counters.corrupt == 3
 
 
