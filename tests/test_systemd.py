@@ -1,0 +1,89 @@
+"""The systemd unit (checked by systemd-analyze) and the notify protocol on a real socket."""
+from __future__ import annotations
+
+import configparser
+import os
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from companion.notify import Notifier, watchdog_interval_s
+
+REPO = Path(__file__).resolve().parent.parent
+UNIT = REPO / "systemd" / "companion.service"
+
+
+def unit_sections() -> configparser.ConfigParser:
+    parser = configparser.ConfigParser(strict=False, interpolation=None)
+    parser.optionxform = str  # keys are case-sensitive in systemd
+    parser.read(UNIT)
+    return parser
+
+
+def test_unit_is_a_watched_notify_service_of_an_unprivileged_user():
+    service = unit_sections()["Service"]
+    assert service["Type"] == "notify"
+    assert service["WatchdogSec"].rstrip("s").isdigit() and int(service["WatchdogSec"].rstrip("s")) > 0
+    assert service["Restart"] == "on-failure"
+    assert service["User"] not in ("", "root")
+    assert {"video", "dialout"} <= set(service["SupplementaryGroups"].split())
+    assert " run --config " in service["ExecStart"]
+    assert unit_sections()["Install"]["WantedBy"] == "multi-user.target"
+
+
+def test_systemd_analyze_verify_reports_nothing(tmp_path):
+    analyze = shutil.which("systemd-analyze")
+    assert analyze, "systemd-analyze is needed for this test (apt-get install systemd)"
+    # verify insists that ExecStart's program exists: point it at this Python.
+    text = UNIT.read_text().replace("/opt/companion/venv/bin/companion", sys.executable)
+    unit = tmp_path / "companion.service"
+    unit.write_text(text)
+    result = subprocess.run([analyze, "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "" and result.stderr.strip() == "", result.stderr
+
+
+def receive_all(sock: socket.socket) -> list[str]:
+    messages = []
+    sock.settimeout(0.5)
+    while True:
+        try:
+            messages.append(sock.recv(4096).decode())
+        except socket.timeout:
+            return messages
+
+
+@pytest.mark.parametrize("abstract", [False, True])
+def test_notifier_sends_the_protocol_datagrams(tmp_path, abstract):
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    if abstract:
+        name = f"companion-test-{os.getpid()}"
+        sock.bind("\0" + name)
+        address = "@" + name
+    else:
+        address = str(tmp_path / "notify.sock")
+        sock.bind(address)
+    notifier = Notifier({"NOTIFY_SOCKET": address})
+    assert notifier.enabled
+    assert notifier.ready(status="running")
+    assert notifier.watchdog() and notifier.status("30 fps") and notifier.stopping()
+    notifier.close()
+    assert receive_all(sock) == ["READY=1\nSTATUS=running", "WATCHDOG=1", "STATUS=30 fps", "STOPPING=1"]
+    sock.close()
+
+
+def test_notifier_outside_systemd_does_nothing():
+    notifier = Notifier({})
+    assert not notifier.enabled and not notifier.ready() and not notifier.watchdog()
+    assert notifier.watchdog_interval_s is None
+
+
+def test_watchdog_interval_is_half_the_timeout_and_only_for_our_pid():
+    assert watchdog_interval_s({"WATCHDOG_USEC": "10000000"}) == 5.0
+    assert watchdog_interval_s({"WATCHDOG_USEC": "10000000", "WATCHDOG_PID": str(os.getpid())}) == 5.0
+    assert watchdog_interval_s({"WATCHDOG_USEC": "10000000", "WATCHDOG_PID": "1"}) is None
+    assert watchdog_interval_s({"WATCHDOG_USEC": "soon"}) is None
