@@ -733,7 +733,9 @@ def main(args) -> int:
                           args.jpeg, args.vignette, args.exposure_wander, args.occluders)
         world = build_world(facility_map, args.seed)
         simulator = Simulator(world, camera, traj, realism, args.seed, args.supersample)
-        out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress, codec=args.codec)
+        options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
+        out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
+                             {"options": options}, args.codec)
     except ValueError as error:
         print(f"companion simulate: {error}", file=sys.stderr)
         return 2

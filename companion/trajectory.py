@@ -253,7 +253,7 @@ def _catmull_rom(knots: np.ndarray, values: np.ndarray, u: np.ndarray) -> np.nda
 
 
 def lawnmower(start_m: Sequence[float], end_m: Sequence[float], sweep_m: float, passes: int,
-              heading_deg: float, speed_m_s: float = 1.0) -> PathTrajectory:
+              heading_deg: float, speed_m_s: float = 1.0, max_accel_m_s2: float = 1.0) -> PathTrajectory:
     """Back-and-forth passes parallel to start -> end, stepping ``sweep_m`` sideways between passes.
 
     The side step is toward the left of start -> end (seen from above); a
@@ -269,9 +269,9 @@ def lawnmower(start_m: Sequence[float], end_m: Sequence[float], sweep_m: float, 
         offset = left * (sweep_m * k / max(passes - 1, 1))
         p, q = (a, b) if k % 2 == 0 else (b, a)
         points += [(*(p + offset), heading_deg), (*(q + offset), heading_deg)]
-    return waypoints(points, speed_m_s, 0.3, description={
+    return waypoints(points, speed_m_s, 0.3, max_accel_m_s2, description={
         "pattern": "lawnmower", "start_m": a.tolist(), "end_m": b.tolist(), "sweep_m": sweep_m,
-        "passes": passes, "heading_deg": heading_deg, "speed_m_s": speed_m_s})
+        "passes": passes, "heading_deg": heading_deg, "speed_m_s": speed_m_s, "max_accel_m_s2": max_accel_m_s2})
 
 
 def figure_eight(center_m: Sequence[float], size_m: Sequence[float], period_s: float, heading_deg: float,

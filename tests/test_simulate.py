@@ -1,0 +1,334 @@
+"""The camera simulator: ground truth against detected corners, trajectories, the sequence folder."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from companion import cli, frames, render, simulate, trajectory as tj
+from companion.camera import CameraModel, load_camera
+from companion.dictionary import load_dictionary
+from companion.facility_map import load_map
+
+REPO = Path(__file__).resolve().parents[1]
+MAP = REPO / "maps" / "warehouse.yaml"
+CAMERA = REPO / "config" / "camera-example.yaml"
+SEQUENCES = REPO / "tests" / "data" / "sequences"
+
+
+@pytest.fixture(scope="module")
+def facility_map():
+    return load_map(MAP)
+
+
+@pytest.fixture(scope="module")
+def world(facility_map):
+    return simulate.build_world(facility_map, seed=0)
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return load_camera(CAMERA)  # with lens distortion
+
+
+def inner_square_detector() -> cv2.aruco.ArucoDetector:
+    """OpenCV ArUco on the RS marker's inner 6x6, via our dictionary as a custom ArUco dictionary."""
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.minDistanceToBorder = 0
+    return cv2.aruco.ArucoDetector(load_dictionary("6x6").aruco(), params)
+
+
+def reprojection_errors(sequence: simulate.RecordedSequence, facility_map, max_frames: int | None = None):
+    """|detected - map corners projected with the ground-truth pose|, px: per corner, and per marker
+    for the mean of its four corners (which cancels the detector's inward corner bias, about 0.3 px)."""
+    camera = CameraModel.from_config(sequence.info["camera"], str(sequence.path / "sequence.yaml"))
+    detector = inner_square_detector()
+    errors, centres = [], []
+    for index, image in sequence.images():
+        if max_frames is not None and index >= max_frames:
+            break
+        corners, ids, _ = detector.detectMarkers(image)
+        if ids is None:
+            continue
+        T_camera_map = frames.invert_transform(sequence.T_map_body[index] @ camera.T_body_camera)
+        for marker_id, detected in zip(ids.ravel(), corners):
+            expected = camera.project_from(T_camera_map, facility_map.markers[int(marker_id)].corners_map())
+            errors.append(np.linalg.norm(detected.reshape(4, 2) - expected, axis=1))
+            centres.append(np.linalg.norm(detected.reshape(4, 2).mean(axis=0) - expected.mean(axis=0)))
+    return (np.concatenate(errors) if errors else np.zeros(0)), np.array(centres)
+
+
+def short_flight() -> tj.Trajectory:
+    return tj.smooth_path([(6.0, 5.6, 1.9, -70.0), (7.5, 5.3, 2.0, -95.0)], speed_m_s=1.0, max_accel_m_s2=1.5)
+
+
+# --------------------------------------------------------- ground truth
+
+def test_ground_truth_pose_reprojects_onto_detected_corners(tmp_path, world, camera, facility_map):
+    simulator = simulate.Simulator(world, camera, short_flight(), simulate.Realism(), seed=1)
+    out = simulate.write_sequence(tmp_path / "seq", simulator, fps=5.0, map_path=str(MAP))
+    sequence = simulate.read_sequence(out)
+    errors, centres = reprojection_errors(sequence, facility_map)
+    assert len(errors) >= 4 * len(sequence.t_ns)  # at least one marker per frame
+    assert np.median(errors) < 0.5, np.median(errors)
+    assert errors.max() < 1.5, errors.max()
+    assert np.median(centres) < 0.2, np.median(centres)
+
+
+def test_markers_csv_matches_projection_and_flags_what_is_out_of_view(tmp_path, world, camera, facility_map):
+    simulator = simulate.Simulator(world, camera, short_flight(), simulate.Realism(), seed=1)
+    frame = simulator.render_frame(0, 0)
+    T_camera_map = frames.invert_transform(frame.T_map_body @ camera.T_body_camera)
+    assert frame.truths
+    for truth in frame.truths:
+        expected = camera.project_from(T_camera_map, facility_map.markers[truth.key].corners_map())
+        np.testing.assert_allclose(truth.corners_px, expected, atol=1e-9)
+        np.testing.assert_array_equal(truth.corners_visible & ~camera.in_image(expected),
+                                      np.zeros(4, bool))
+
+
+def test_circle_centres_land_on_the_rendered_circles(world, camera, facility_map):
+    # hover square in front of marker B (7, 3.5, 1.4) at 1.3 m so the circles are large
+    hover = tj.hover((7.0, 4.8, 1.9), -90.0, 0.1, drift_m=0.0)
+    simulator = simulate.Simulator(world, camera, hover, simulate.Realism(read_noise_dn=0, shot_noise_gain=0))
+    frame = simulator.render_frame(0, 0)
+    truth = next(t for t in frame.truths if facility_map.markers[t.key].symbol == "B")
+    assert truth.circles_visible.all()
+    # a circle centre is a local darkness maximum: refine a dark-blob centroid around each
+    image = frame.image.astype(np.float64)
+    for (x, y) in truth.circles_px:
+        xi, yi = int(round(x)), int(round(y))
+        patch = 255.0 - image[yi - 4:yi + 5, xi - 4:xi + 5]
+        patch -= patch.min()
+        ys, xs = np.mgrid[-4:5, -4:5]
+        cx, cy = (patch * xs).sum() / patch.sum() + xi, (patch * ys).sum() / patch.sum() + yi
+        assert math.hypot(cx - x, cy - y) < 0.6
+
+
+# --------------------------------------------------------- realism knobs
+
+def test_simulation_is_deterministic_under_a_seed(world, camera):
+    realism = simulate.Realism(occluders=1, exposure_wander=0.3)
+    a = simulate.Simulator(world, camera, short_flight(), realism, seed=5).render_frame(3, 300_000_000)
+    b = simulate.Simulator(world, camera, short_flight(), realism, seed=5).render_frame(3, 300_000_000)
+    c = simulate.Simulator(world, camera, short_flight(), realism, seed=6).render_frame(3, 300_000_000)
+    np.testing.assert_array_equal(a.image, b.image)
+    assert not np.array_equal(a.image, c.image)
+
+
+def test_motion_blur_follows_the_vehicle_motion(world, camera):
+    # sideways at 3 m/s in front of rack R1: 8 ms exposure smears by many pixels
+    fast = tj.smooth_path([(5.0, 5.5, 1.9, -90.0), (11.0, 5.5, 1.9, -90.0)], speed_m_s=3.0, max_accel_m_s2=6.0)
+    still = simulate.Realism(motion_blur=False, read_noise_dn=0, shot_noise_gain=0, optics_blur_sigma_px=0)
+    moving = simulate.Realism(motion_blur=True, read_noise_dn=0, shot_noise_gain=0, optics_blur_sigma_px=0)
+    t_ns = int(fast.duration_s / 2 * 1e9)
+    sim_blur = simulate.Simulator(world, camera, fast, moving)
+    blurred = sim_blur.render_frame(0, t_ns)
+    sharp = simulate.Simulator(world, camera, fast, still).render_frame(0, t_ns)
+    dx, dy = sim_blur.image_motion_px(t_ns * 1e-9, blurred.truths)
+    assert abs(dx) > 5.0 and abs(dx) > 3 * abs(dy)  # sideways flight: horizontal image motion
+    x_energy = lambda im: float(np.mean(np.diff(im.astype(float), axis=1) ** 2))
+    assert x_energy(blurred.image) < 0.7 * x_energy(sharp.image)
+    hover = tj.hover((7.0, 5.5, 1.9), -90.0, 1.0, drift_m=0.0)
+    assert np.hypot(*simulate.Simulator(world, camera, hover, moving).image_motion_px(0.5, [])) < 0.5
+
+
+def test_exposure_wander_changes_brightness_slowly():
+    gains = [simulate.exposure_gain_at(t, 0.3, seed=2) for t in np.arange(0, 10, 0.1)]
+    assert max(gains) / min(gains) > 1.2
+    assert max(abs(a / b - 1) for a, b in zip(gains[1:], gains[:-1])) < 0.05
+    assert simulate.exposure_gain_at(3.0, 0.0, seed=2) == 1.0
+
+
+def test_passing_occluder_hides_markers_for_a_while(world, camera):
+    hover = tj.hover((7.0, 5.6, 1.9), -90.0, 6.0, drift_m=0.01)
+    simulator = simulate.Simulator(world, camera, hover, simulate.Realism(occluders=1), seed=3)
+    (occluder,) = simulator.occluders
+    times = np.arange(0.0, 6.0, 0.1)
+    hidden = []
+    for t in times:
+        frame = simulator.render_frame(0, int(t * 1e9))
+        b = [x for x in frame.truths if x.key == 1]  # marker B
+        hidden.append(not b or not b[0].corners_visible.all())
+    hidden = np.array(hidden)
+    crossing = (times >= occluder.t_start_s) & (times <= occluder.t_end_s)
+    assert hidden[crossing].any()
+    assert not hidden[~crossing].any()
+
+
+# -------------------------------------------------------------- trajectories
+
+def test_body_tilts_toward_its_acceleration():
+    traj = tj.waypoints([(0.0, 0.0, 1.0, 0.0), (4.0, 0.0, 1.0, 0.0)], speed_m_s=2.0, max_accel_m_s2=2.0)
+    R_ned_map = frames.R_ned_map(0.0)
+    early = R_ned_map @ traj.pose_at(0.2 * traj.duration_s)[:3, :3]
+    late = R_ned_map @ traj.pose_at(0.8 * traj.duration_s)[:3, :3]
+    _, pitch_early, yaw = frames.euler_321_from_rotation(early)
+    _, pitch_late, _ = frames.euler_321_from_rotation(late)
+    assert pitch_early < -math.radians(2)  # nose down to speed up
+    assert pitch_late > math.radians(2)  # nose up to slow down
+    assert abs(yaw) < 1e-9  # heading 0 = map +x = north in a map whose x is north
+    # the body's forward axis points along the flight, map +x
+    assert traj.pose_at(0.0)[:3, 0] == pytest.approx([1.0, 0.0, 0.0], abs=1e-2)
+    # the body's down axis points down the map's z
+    assert traj.pose_at(0.0)[:3, 2] == pytest.approx([0.0, 0.0, -1.0], abs=1e-2)
+
+
+def accelerations(traj: tj.PathTrajectory, dt: float = 0.01) -> np.ndarray:
+    t = np.arange(dt, traj.duration_s - dt, dt)
+    p = np.array([traj.position_m(x) for x in t])
+    return np.linalg.norm(np.diff(p, 2, axis=0), axis=1) / dt**2
+
+
+def test_smooth_path_passes_the_waypoints_within_limits():
+    points = [(0.0, 0.0, 1.0, 0.0), (3.0, 1.0, 1.5, 30.0), (6.0, 0.0, 1.2, -20.0)]
+    traj = tj.smooth_path(points, speed_m_s=1.5, max_accel_m_s2=1.0)
+    samples = np.array([traj.position_m(t) for t in np.linspace(0, traj.duration_s, 4000)])
+    for p in points:
+        assert np.min(np.linalg.norm(samples - p[:3], axis=1)) < 0.01
+    np.testing.assert_allclose(traj.position_m(0.0), points[0][:3], atol=1e-6)
+    np.testing.assert_allclose(traj.position_m(traj.duration_s), points[-1][:3], atol=1e-6)
+    assert traj.heading_deg(traj.duration_s) == pytest.approx(-20.0, abs=1e-6)
+    speeds = np.linalg.norm(np.diff(samples, axis=0), axis=1) / (traj.duration_s / 3999)
+    assert speeds.max() < 1.5 * 1.05
+    # the along-path profile respects max_accel; curvature adds v^2 / r on top
+    assert np.median(accelerations(traj)) < 1.0
+
+
+def test_waypoint_legs_respect_the_acceleration_limit():
+    traj = tj.waypoints([(0, 0, 1, 0), (5, 0, 1, 0), (5, 3, 1, 90)], speed_m_s=2.0, max_accel_m_s2=0.8)
+    assert accelerations(traj).max() < 0.8 * 1.05
+
+
+def test_lawnmower_passes_and_hover_stays_put():
+    traj = tj.lawnmower((0, 0, 1.5), (6, 0, 1.5), sweep_m=2.0, passes=3, heading_deg=90.0)
+    samples = np.array([traj.position_m(t) for t in np.linspace(0, traj.duration_s, 600)])
+    assert samples[:, 1].min() == pytest.approx(0.0, abs=1e-9) and samples[:, 1].max() == pytest.approx(2.0)
+    np.testing.assert_allclose(traj.position_m(traj.duration_s), (6.0, 2.0, 1.5), atol=1e-9)
+    hover = tj.hover((1, 2, 3), 45.0, 10.0, drift_m=0.05)
+    wander = np.array([hover.position_m(t) for t in np.linspace(0, 10, 200)]) - (1, 2, 3)
+    assert np.abs(wander).max() <= 0.05 + 1e-9 and np.abs(wander).max() > 0.01
+
+
+def test_figure_eight_crosses_its_centre():
+    traj = tj.figure_eight((2.0, 3.0, 1.5), (1.5, 0.8), period_s=8.0, heading_deg=30.0, duration_s=17.0)
+    samples = np.array([traj.position_m(t) for t in np.linspace(0, 17, 3000)])
+    assert np.min(np.linalg.norm(samples[1000:] - (2.0, 3.0, 1.5), axis=1)) < 0.02
+    extent = samples - (2.0, 3.0, 1.5)
+    along = extent @ np.array([math.cos(math.radians(30)), math.sin(math.radians(30)), 0.0])
+    assert along.max() == pytest.approx(1.5, abs=0.01)
+
+
+def test_trajectory_csv_round_trip_and_errors(tmp_path):
+    traj = short_flight()
+    path = tmp_path / "traj.csv"
+    tj.write_trajectory_csv(path, traj, fps=20.0)
+    back = tj.read_trajectory_csv(path)
+    for t in (0.0, 0.05, 0.75, back.duration_s):
+        np.testing.assert_allclose(back.pose_at(t), traj.pose_at(t), atol=2e-4)
+    # between samples: slerp and linear position stay close to the smooth path
+    np.testing.assert_allclose(back.pose_at(0.525)[:3, 3], traj.pose_at(0.525)[:3, 3], atol=2e-3)
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_ns,x_m,y_m,z_m,qw,qx,qy\n0,0,0,0,1,0,0\n")
+    with pytest.raises(tj.TrajectoryError, match=r"bad\.csv: missing column\(s\) qz"):
+        tj.read_trajectory_csv(bad)
+    bad.write_text("t_ns,x_m,y_m,z_m,qw,qx,qy,qz\n0,0,0,0,1,0,0,0\n0,1,0,0,1,0,0,0\n")
+    with pytest.raises(tj.TrajectoryError, match="must increase"):
+        tj.read_trajectory_csv(bad)
+
+
+# ------------------------------------------------------ sequence folders
+
+def test_sequence_folder_round_trip(tmp_path, world, camera, facility_map):
+    traj = short_flight()
+    simulator = simulate.Simulator(world, camera, traj, simulate.Realism(), seed=4)
+    out = simulate.write_sequence(tmp_path / "seq", simulator, fps=10.0, map_path=str(MAP))
+    sequence = simulate.read_sequence(out)
+    n = int(math.floor(traj.duration_s * 10.0)) + 1
+    assert len(sequence.t_ns) == n and sequence.t_ns[0] == 0
+    np.testing.assert_array_equal(np.diff(sequence.t_ns), np.round(np.diff(np.arange(n) * 1e8)).astype(np.int64))
+    assert all((out / f).is_file() for f in sequence.files)
+    for i in (0, n // 2, n - 1):
+        T = traj.pose_at(sequence.t_ns[i] * 1e-9)
+        np.testing.assert_allclose(sequence.T_map_body[i], T, atol=1e-6)
+        np.testing.assert_allclose(sequence.T_ned_body[i], facility_map.T_ned_map @ T, atol=1e-6)
+    # the stored camera section rebuilds the same camera
+    stored = CameraModel.from_config(sequence.info["camera"], "sequence.yaml")
+    np.testing.assert_allclose(stored.K, camera.K)
+    np.testing.assert_allclose(stored.dist, camera.dist)
+    np.testing.assert_allclose(stored.T_body_camera, camera.T_body_camera, atol=1e-12)
+    assert sequence.map_path().resolve() == MAP.resolve()
+    assert sequence.info["trajectory"]["pattern"] == "path" and sequence.info["seed"] == 4
+    # groundtruth.csv reads back as a trajectory
+    replay = tj.read_trajectory_csv(out / "groundtruth.csv")
+    np.testing.assert_allclose(replay.pose_at(sequence.t_ns[3] * 1e-9), sequence.T_map_body[3], atol=1e-6)
+    # the frames on disk are the frames rendered
+    again = simulate.Simulator(world, camera, traj, simulate.Realism(), seed=4)
+    _, first = next(sequence.images())
+    np.testing.assert_array_equal(first, again.render_frame(0, 0).image)
+    # and the rebuilt trajectory (from sequence.yaml) is the same flight
+    rebuilt = tj.trajectory_from_description(sequence.info["trajectory"])
+    np.testing.assert_allclose(rebuilt.pose_at(0.3), traj.pose_at(0.3), atol=1e-9)
+
+
+def test_video_output_round_trip(tmp_path, world, camera):
+    traj = tj.hover((7.0, 5.5, 1.9), -90.0, 0.4, drift_m=0.02)
+    simulator = simulate.Simulator(world, camera, traj, simulate.Realism(), seed=1)
+    lossless = simulate.read_sequence(simulate.write_sequence(tmp_path / "ffv1", simulator, 10.0, str(MAP),
+                                                              video=True, codec="ffv1"))
+    small = simulate.read_sequence(simulate.write_sequence(tmp_path / "mp4v", simulator, 10.0, str(MAP),
+                                                           video=True, codec="mp4v"))
+    assert lossless.files == [""] * 5 and (tmp_path / "ffv1" / "video.avi").is_file()
+    for (i, a), (_, b) in zip(lossless.images(), small.images()):
+        np.testing.assert_array_equal(a, simulator.render_frame(i, int(lossless.t_ns[i])).image)
+        assert np.sqrt(np.mean((a.astype(float) - b) ** 2)) < 5.0
+    assert sum(1 for _ in small.images()) == 5
+
+
+def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
+    out = tmp_path / "cli"
+    rc = cli.main(["simulate", str(out), "--map", str(MAP), "--pattern", "hover", "--center", "7,5.5,1.9",
+                   "--heading", "-90", "--duration", "0.2", "--fps", "10", "--seed", "3", "--no-progress"])
+    assert rc == 0
+    sequence = simulate.read_sequence(out)
+    assert len(sequence.t_ns) == 3 and sequence.info["options"]["pattern"] == "hover"
+    assert sequence.info["camera"]["width"] == 640 and sequence.info["fps"] == 10.0
+    hfov = math.degrees(2 * math.atan(320 / sequence.info["camera"]["fx_px"]))
+    assert hfov == pytest.approx(70.0)
+    rc = cli.main(["simulate", str(tmp_path / "x"), "--map", str(MAP), "--pattern", "lawnmower"])
+    assert rc == 2
+    assert "--start" in capsys.readouterr().err
+    rc = cli.main(["simulate", str(tmp_path / "y"), "--map", str(tmp_path / "missing.yaml")])
+    assert rc == 2
+    assert "missing.yaml" in capsys.readouterr().err
+
+
+def test_progress_bar_reaches_the_total():
+    import io
+    stream = io.StringIO()
+    bar = simulate.Progress(50, True, stream)
+    for i in range(1, 51):
+        bar.update(i)
+    text = stream.getvalue()
+    assert "50/50 frames" in text and text.endswith("\n")
+    assert text.count("\r") < 50  # throttled, not one line per frame
+
+
+# ------------------------------------------------------ committed sequences
+
+@pytest.mark.parametrize("name", ["warehouse_hover", "warehouse_aisle"])
+def test_committed_sequences_ground_truth(name, facility_map):
+    sequence = simulate.read_sequence(SEQUENCES / name)
+    assert sequence.map_path().resolve() == MAP.resolve()
+    count = sum(1 for _ in sequence.images())
+    assert count == len(sequence.t_ns) == sequence.info["frames"]
+    errors, centres = reprojection_errors(sequence, facility_map, max_frames=60)
+    assert len(errors) >= 4 * 20
+    # the aisle flight is stored as a lossy video: a little more corner noise
+    assert np.median(errors) < 0.6, np.median(errors)
+    assert np.percentile(errors, 95) < 1.5
+    assert np.median(centres) < 0.25, np.median(centres)
