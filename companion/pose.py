@@ -26,8 +26,13 @@
    rejected (a flipped single-marker pose is typically metres and tens of
    degrees off).
 5. Covariance: ``sigma^2 (J^T J)^-1``, J the Jacobian of the reprojection
-   residuals with respect to the body pose, sigma^2 the residual variance
-   (floored at ``min_sigma_px``), rotated into NED.
+   residuals with respect to the body pose, sigma^2 the residual variance,
+   floored at ``corner_sigma_px^2``: part of a detector's corner error moves
+   the pose instead of showing as residual (with one marker, 8 residuals fit
+   6 parameters), so the residuals alone understate it. Rotated into NED.
+6. Uncertainty: a pose whose position standard deviation (largest axis)
+   exceeds ``max_position_sd_m`` is rejected: a small far marker fits its
+   corners well yet fixes the pose to within metres.
 
 All axis conventions come from ``companion.frames``.
 """
@@ -60,7 +65,8 @@ class PoseParams:
         hypothesis made from one marker.
     ambiguity_chi2: a distinct pose whose sum of squared errors exceeds the
         best by less than this many sigma^2 makes the result ambiguous.
-    min_sigma_px: floor of the residual standard deviation in the covariance.
+    max_position_sd_m: reject a pose whose position standard deviation along
+        its worst axis is above this (metres).
     max_tilt_deg: largest plausible body roll/pitch.
     distinct_rotation_deg, distinct_position_m: two poses closer than both
         are the same solution.
@@ -75,7 +81,7 @@ class PoseParams:
     max_rms_px: float = 2.0
     hypothesis_gate_px: float = 30.0
     ambiguity_chi2: float = 25.0
-    min_sigma_px: float = 0.1
+    max_position_sd_m: float = 0.10
     max_tilt_deg: float = 60.0
     distinct_rotation_deg: float = 3.0
     distinct_position_m: float = 0.05
@@ -139,7 +145,7 @@ class PoseSolution:
     measurement: the accepted pose, or None.
     status: "ok", or why there is no pose: "no mapped markers",
         "reprojection", "inconsistent markers", "implausible attitude",
-        "ambiguous".
+        "ambiguous", "uncertain".
     ambiguous: another pose fitted nearly as well (resolved by the prior if
         ``used_prior``).
     marker_ids: ids of the markers used; rejected_ids: mapped markers seen
@@ -202,6 +208,8 @@ class PoseSolver:
         elif rivals and not self.params.accept_ambiguous_without_prior:
             return PoseSolution(None, "ambiguous", ambiguous=True, marker_ids=ids, unmapped_ids=unmapped, fits=tuple(fits))
         measurement = self._measurement(chosen, observations, t_ns)
+        if position_sd_m(measurement) > self.params.max_position_sd_m:
+            return PoseSolution(None, "uncertain", ambiguous=bool(rivals), marker_ids=ids, unmapped_ids=unmapped, fits=tuple(fits))
         self._last = (t_ns, measurement.T_map_body)
         rejected = tuple(o.marker.id for i, o in enumerate(observations) if i not in chosen.inliers)
         return PoseSolution(
@@ -405,12 +413,12 @@ class PoseSolver:
         """(6, 6) covariance of [body position (3), small rotation (3)], both on map axes.
 
         C = sigma^2 (J^T J)^-1, J = d(residuals)/d(pose), sigma^2 = r.r / (2K - 6)
-        floored at min_sigma_px^2.
+        floored at corner_sigma_px^2.
         """
         J = self._pose_jacobian(T_map_body, observations)
         residuals = self._residuals(self._T_camera_map(T_map_body), observations).reshape(-1)
         dof = max(residuals.size - 6, 1)
-        sigma2 = max(float(residuals @ residuals) / dof, self.params.min_sigma_px ** 2)
+        sigma2 = max(float(residuals @ residuals) / dof, self.params.corner_sigma_px ** 2)
         return sigma2 * np.linalg.pinv(J.T @ J)
 
     def _pose_jacobian(self, T_map_body: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
@@ -437,6 +445,11 @@ class PoseSolver:
 
 
 # ----------------------------------------------------------------- helpers
+
+def position_sd_m(measurement: PoseMeasurement) -> float:
+    """Standard deviation of the position along its worst axis, metres."""
+    return math.sqrt(max(float(np.linalg.eigvalsh(measurement.covariance_ned[:3, :3])[-1]), 0.0))
+
 
 def _best(fits: list[Fit]) -> Fit | None:
     """Most agreeing markers, then the lowest RMS."""

@@ -125,7 +125,7 @@ def test_noisy_aisle_view_is_accurate():
 def test_joint_beats_single_marker():
     rng = np.random.default_rng(11)
     joint = PoseSolver(FACILITY, CAMERA)
-    single = PoseSolver(FACILITY, CAMERA, PoseParams(max_markers=1))
+    single = PoseSolver(FACILITY, CAMERA, PoseParams(max_markers=1, max_position_sd_m=10.0))
     # The single marker's IPPE branches are ambiguous at this range: a prior near
     # the truth picks the branch, so only accuracy is compared.
     prior = AISLE_VIEW @ frames.make_transform(frames.rot_z(0.05), [0.1, 0.1, 0.0])
@@ -203,6 +203,8 @@ def test_upside_down_body_is_implausible():
 # Marker N (north wall, 0.20 m) seen nearly head-on from 5 m: IPPE's two poses
 # reproject within a fraction of a pixel of each other.
 FAR_N_VIEW = body_pose(np.array([9.0, 5.5, 1.3]), [9.5, 10.5, 1.5])
+# Accept uncertain poses, to test the ambiguity logic on its own.
+LENIENT = PoseParams(max_position_sd_m=10.0)
 
 
 def test_far_single_marker_is_ambiguous_without_prior():
@@ -219,7 +221,7 @@ def test_ambiguity_resolved_by_prior():
     wrong_fit_positions = []
     for prior_offset in ([0.1, -0.1, 0.05], [-0.1, 0.05, 0.0]):
         prior = FAR_N_VIEW @ frames.make_transform(frames.rot_z(math.radians(3)), prior_offset)
-        solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0, prior_T_map_body=prior)
+        solution = PoseSolver(FACILITY, CAMERA, LENIENT).solve_detailed(detections, t_ns=0, prior_T_map_body=prior)
         assert solution.status == "ok" and solution.ambiguous and solution.used_prior
         assert position_error_m(solution.measurement, FAR_N_VIEW) < 1e-3
     # The rejected branch really is far away: choosing it would have been a gross error.
@@ -229,8 +231,14 @@ def test_ambiguity_resolved_by_prior():
     assert max(wrong_fit_positions) > 0.1
 
 
+def test_far_single_marker_is_too_uncertain_even_with_a_prior():
+    detections = detections_for(FAR_N_VIEW, symbols={"N"})
+    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0, prior_T_map_body=FAR_N_VIEW)
+    assert solution.measurement is None and solution.status == "uncertain"
+
+
 def test_last_accepted_pose_is_the_prior():
-    solver = PoseSolver(FACILITY, CAMERA)
+    solver = PoseSolver(FACILITY, CAMERA, LENIENT)
     close = body_pose(np.array([8.75, 9.2, 1.4]), [9.5, 10.5, 1.5])  # N at 1.5 m, 30 degrees: unambiguous
     assert solver.solve(detections_for(close, symbols={"N"}), t_ns=0) is not None
     # Half a second later, the vehicle (having moved) sees only the far ambiguous view.
@@ -252,7 +260,8 @@ def test_noise_beyond_the_expected_corner_noise_is_rejected():
 
 def test_covariance_grows_with_noise_and_range():
     rng = np.random.default_rng(3)
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=3.0, max_rms_px=10.0))
+    # Chi-square gates off (huge gate_z): the residual variance alone scales the covariance.
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.2, gate_z=100.0, max_rms_px=10.0, max_position_sd_m=1.0))
     quiet = solver.solve(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), t_ns=0)
     loud = solver.solve(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), t_ns=0)
     assert np.trace(loud.covariance_ned[:3, :3]) > 10 * np.trace(quiet.covariance_ned[:3, :3])
@@ -322,7 +331,7 @@ def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
 
 def test_circle_centres_join_the_fit():
     rng = np.random.default_rng(17)
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0))
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0, max_position_sd_m=1.0))
     plain_errors, circle_errors = [], []
     for _ in range(20):
         detections = detections_for(B_VIEW, noise_px=1.0, rng=rng)
