@@ -148,16 +148,16 @@ class Pipeline:
         counters = self.pose_filter.counters
         if previous is TrackState.ACQUIRING and state is TrackState.TRACKING:
             if counters.acquisitions == 1:
-                text, severity = "companion: tracking markers", SEVERITY_INFO
+                text, severity = "tracking markers", SEVERITY_INFO
             else:
-                text, severity = f"companion: re-acquired (reset {self.pose_filter.reset_counter})", SEVERITY_INFO
+                text, severity = f"re-acquired (reset {self.pose_filter.reset_counter})", SEVERITY_INFO
         elif state is TrackState.ACQUIRING:
-            text, severity = "companion: markers lost", SEVERITY_WARNING
+            text, severity = "markers lost", SEVERITY_WARNING
         else:
             return  # tracking <-> coasting flickers frame to frame: not worth a message
-        log.info(text)
+        log.log(logging.WARNING if severity == SEVERITY_WARNING else logging.INFO, "%s", text)
         if self.link is not None:
-            self.link.statustext(text, severity)
+            self.link.statustext(f"companion: {text}", severity)
 
 
 class Daemon:
@@ -180,7 +180,7 @@ class Daemon:
             PoseSolver(config.facility_map, config.camera),
             PoseFilter(config.fusion),
             self.link,
-            T_map_ned=frames.invert_transform(config.facility_map.T_ned_map()),
+            T_map_ned=frames.invert_transform(config.facility_map.T_ned_map),
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
         self.notifier = Notifier()
@@ -233,7 +233,8 @@ class Daemon:
         interval_s = self.config.status_interval_s
         watchdog_s = self.notifier.watchdog_interval_s
         tty = self.status_stream is not None and self.status_stream.isatty()
-        next_status = next_log = next_watchdog = time.monotonic()
+        next_status = next_watchdog = time.monotonic()
+        next_log = next_status + max(interval_s, 5.0)
         while not self.stop_event.wait(0.05):
             now = time.monotonic()
             if watchdog_s and now >= next_watchdog and now - self.pipeline.stats.last_loop_s < PIPELINE_STALL_S:
@@ -250,8 +251,9 @@ class Daemon:
                     next_log = now + max(interval_s, 5.0)
                 self.notifier.status(line)
                 next_status = now + interval_s
-        if tty:
-            self.status_stream.write("\n")
+        if self.status_stream is not None:
+            self.status_stream.write(("\r\x1b[K" if tty else "") + self.status_line() + "\n")
+            self.status_stream.flush()
 
     def status_line(self) -> str:
         """fps, markers seen, pose, latency, tracking and link state on one line."""

@@ -74,7 +74,6 @@ def main() -> None:
     if connection is None:
         return
     record("event", "connected", {})
-    connection.send(heartbeat)  # at once, not at the runtime's next 1 Hz beat
 
     def on_message(message) -> None:
         fields = message.to_dict()
@@ -90,6 +89,7 @@ def main() -> None:
             reply_origin(connection)
 
     connection.add_message_callback(on_message)
+    connection.send(heartbeat)  # at once, not at the runtime's next 1 Hz beat
     next_timesync = time.monotonic()
     while not stop.is_set() and time.monotonic() < deadline:
         if args.timesync_period and time.monotonic() >= next_timesync:
