@@ -163,6 +163,14 @@ class PoseSolution:
     fits: tuple[Fit, ...] = field(default=(), repr=False)
 
 
+@dataclass(frozen=True)
+class _Choice:
+    status: str
+    fit: Fit | None = None
+    ambiguous: bool = False
+    used_prior: bool = False
+
+
 class PoseSolver:
     """Turns one frame's detections into the vehicle pose in the map and NED.
 
@@ -192,30 +200,36 @@ class PoseSolver:
         if not observations:
             return PoseSolution(None, "no mapped markers", unmapped_ids=unmapped)
         fits = self._hypothesis_fits(observations)
+        choice = self._choose(fits, len(observations), self._prior(t_ns, prior_T_map_body))
+        used = choice.fit.inliers if choice.fit is not None else ()
+        common = dict(ambiguous=choice.ambiguous, marker_ids=tuple(observations[i].marker.id for i in used),
+                      unmapped_ids=unmapped, fits=tuple(fits))
+        if choice.status != "ok":
+            return PoseSolution(None, choice.status, **common)
+        measurement = self._measurement(choice.fit, observations, t_ns)
+        if position_sd_m(measurement) > self.params.max_position_sd_m:
+            return PoseSolution(None, "uncertain", **common)
+        self._last = (t_ns, measurement.T_map_body)
+        rejected = tuple(o.marker.id for i, o in enumerate(observations) if i not in used)
+        return PoseSolution(measurement, "ok", used_prior=choice.used_prior, rejected_ids=rejected, **common)
+
+    def _choose(self, fits: list[Fit], observed: int, prior: np.ndarray | None) -> "_Choice":
+        """The fit to report, or why none: plausibility, consistency, ambiguity."""
         plausible = [f for f in fits if self._plausible(f)]
         if fits and not plausible:
-            return PoseSolution(None, "implausible attitude", unmapped_ids=unmapped, fits=tuple(fits))
+            return _Choice("implausible attitude")
         best = _best(plausible)
-        status = self._check_consistency(best, len(observations))
-        ids = tuple(observations[i].marker.id for i in best.inliers) if best else ()
+        status = self._check_consistency(best, observed)
         if status != "ok":
-            return PoseSolution(None, status, marker_ids=ids, unmapped_ids=unmapped, fits=tuple(fits))
+            return _Choice(status, best)
         rivals = self._rivals(best, plausible)
-        prior = self._prior(t_ns, prior_T_map_body)
-        chosen = best
-        if rivals and prior is not None:
-            chosen = _nearest_to_prior([best] + rivals, prior, self.camera.T_camera_body)
-        elif rivals and not self.params.accept_ambiguous_without_prior:
-            return PoseSolution(None, "ambiguous", ambiguous=True, marker_ids=ids, unmapped_ids=unmapped, fits=tuple(fits))
-        measurement = self._measurement(chosen, observations, t_ns)
-        if position_sd_m(measurement) > self.params.max_position_sd_m:
-            return PoseSolution(None, "uncertain", ambiguous=bool(rivals), marker_ids=ids, unmapped_ids=unmapped, fits=tuple(fits))
-        self._last = (t_ns, measurement.T_map_body)
-        rejected = tuple(o.marker.id for i, o in enumerate(observations) if i not in chosen.inliers)
-        return PoseSolution(
-            measurement, "ok", ambiguous=bool(rivals), used_prior=bool(rivals) and prior is not None,
-            marker_ids=measurement.marker_ids, rejected_ids=rejected, unmapped_ids=unmapped, fits=tuple(fits),
-        )
+        if not rivals:
+            return _Choice("ok", best)
+        if prior is not None:
+            return _Choice("ok", _nearest_to_prior([best] + rivals, prior, self.camera.T_camera_body), True, True)
+        if self.params.accept_ambiguous_without_prior:
+            return _Choice("ok", best, True)
+        return _Choice("ambiguous", best, True)
 
     # ------------------------------------------------------ correspondences
 
@@ -244,9 +258,11 @@ class PoseSolver:
         points_marker = [marker.corners_marker()]
         points_px = [np.asarray(detection.corners_px, dtype=float).reshape(4, 2)]
         if len(detection.circle_ids):
-            circles_uv = self._circles_uv()[np.asarray(detection.circle_ids, dtype=int)]
-            points_marker.append(frames.grid_to_marker_m(circles_uv, self._inner_origin(), marker.size_m))
-            points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2))
+            circles_uv = self._circles_uv()
+            ids = np.asarray(detection.circle_ids, dtype=int).reshape(-1)
+            valid = (ids >= 0) & (ids < len(circles_uv))  # a detector bug must not stop the pipeline
+            points_marker.append(frames.grid_to_marker_m(circles_uv[ids[valid]], self._inner_origin(), marker.size_m))
+            points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid])
         points_map = frames.transform_points(marker.T_map_marker, np.vstack(points_marker))
         return MarkerObservation(marker, detection, points_map, np.vstack(points_px))
 
