@@ -1,0 +1,329 @@
+"""`companion markers`: real PNG/SVG/PDF files, read back by OpenCV, an XML parser and a PDF parser."""
+from __future__ import annotations
+
+import json
+import re
+import struct
+import xml.etree.ElementTree as ET
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion import cli, printing
+from companion.dictionary import load_dictionary
+from companion.marker import MarkerLayout
+from companion.pdf import PT_PER_MM
+
+SYMBOLS = ["A", "B", "7", "HOME"]
+
+
+def run_markers(tmp_path: Path, *options: str) -> int:
+    return cli.main(["markers", "--out", str(tmp_path), *options])
+
+
+def aruco_detect(image: np.ndarray, dictionary: str) -> dict[int, np.ndarray]:
+    params = cv2.aruco.DetectorParameters()
+    params.minDistanceToBorder = 0
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    detector = cv2.aruco.ArucoDetector(load_dictionary(dictionary).aruco(), params)
+    corners, ids, _ = detector.detectMarkers(image)
+    return {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners)}
+
+
+def sample_grid(image: np.ndarray, layout: MarkerLayout, inner_corners_px: np.ndarray) -> np.ndarray:
+    """(N, N) int8 cells read at the cell centres, located through the inner corners' homography."""
+    H = cv2.getPerspectiveTransform(layout.inner_corners_cells.astype(np.float32),
+                                    inner_corners_px.astype(np.float32))
+    n = layout.n_cells
+    v, u = np.mgrid[0:n, 0:n] + 0.5
+    centres = cv2.perspectiveTransform(np.stack([u, v], -1).reshape(-1, 1, 2).astype(np.float32), H)
+    x, y = np.round(centres.reshape(-1, 2)).astype(int).T
+    return (image[y, x] < 128).astype(np.int8).reshape(n, n)
+
+
+def png_chunks(data: bytes) -> list[tuple[bytes, bytes]]:
+    """(type, body) of every chunk; asserts each CRC."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    chunks, pos = [], 8
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos:pos + 4])
+        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + length]
+        (crc,) = struct.unpack(">I", data[pos + 8 + length:pos + 12 + length])
+        assert crc == zlib.crc32(kind + body), kind
+        chunks.append((kind, body))
+        pos += 12 + length
+    return chunks
+
+
+# --------------------------------------------------------------------- PNG
+
+@pytest.mark.parametrize("parity, dictionary", [(2, "6x6"), (4, "6x6"), (2, "5x5"), (4, "8x8")])
+def test_png_markers_are_detected_by_aruco_at_the_sidecar_corners_and_decode(tmp_path, parity, dictionary):
+    assert run_markers(tmp_path, "--symbols", ",".join(SYMBOLS), "--parity", str(parity),
+                       "--dictionary", dictionary) == 0
+    pngs = sorted(tmp_path.glob("*.png"))
+    assert len(pngs) == len(SYMBOLS)
+    for png in pngs:
+        sidecar = json.loads(png.with_suffix(".json").read_text())
+        image = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+        assert sidecar["parity"] == parity and sidecar["dictionary"] == dictionary
+        assert sidecar["id"] == load_dictionary(dictionary).id_of(sidecar["symbol"])
+        corners = np.array(sidecar["inner_corners_px"])
+
+        found = aruco_detect(image, dictionary)
+        assert list(found) == [sidecar["id"]], png.name
+        assert np.linalg.norm(found[sidecar["id"]] - corners, axis=1).max() < 0.5
+
+        layout = MarkerLayout(sidecar["parity"], sidecar["dictionary"])
+        assert sidecar["cells"] == layout.n_cells
+        result = layout.decode(sample_grid(image, layout, corners))
+        assert result is not None, png.name
+        assert (result.id, result.symbol, result.rotation) == (sidecar["id"], sidecar["symbol"], 0)
+        assert result.mismatched_cells == 0 and result.erased_cells == 0
+
+
+def test_png_size_pixels_per_cell_and_phys_print_the_inner_square_at_size(tmp_path):
+    for dpi in ("300", "600", "97"):
+        out = tmp_path / dpi
+        assert run_markers(out, "--symbols", "C", "--size-mm", "42.5", "--dpi", dpi, "--quiet-zone-cells", "2") == 0
+        png = out / "marker-C-p2.png"
+        sidecar = json.loads((out / "marker-C-p2.json").read_text())
+        ppc, q = sidecar["px_per_cell"], sidecar["quiet_zone_cells"]
+        cell_px_at_dpi = 42.5 / 8 / 25.4 * float(dpi)
+        assert isinstance(ppc, int) and abs(ppc - cell_px_at_dpi) <= 0.5
+        side_px = (sidecar["cells"] + 2 * q) * ppc
+        assert cv2.imread(str(png), cv2.IMREAD_GRAYSCALE).shape == (side_px, side_px)
+        assert sidecar["image_px"] == [side_px, side_px]
+
+        phys = [body for kind, body in png_chunks(png.read_bytes()) if kind == b"pHYs"]
+        assert len(phys) == 1
+        ppm_x, ppm_y, unit = struct.unpack(">IIB", phys[0])
+        assert ppm_x == ppm_y and unit == 1
+        printed_inner_mm = 8 * ppc / ppm_x * 1000.0
+        assert printed_inner_mm == pytest.approx(sidecar["size_mm"], abs=1e-9)
+        assert printed_inner_mm == pytest.approx(42.5, abs=0.01)
+        assert sidecar["dpi"] == pytest.approx(ppm_x * 0.0254)
+
+
+def test_png_sidecar_circles_match_the_drawn_circles(tmp_path):
+    for parity in ("2", "4"):
+        assert run_markers(tmp_path, "--symbols", "Z", "--parity", parity) == 0
+        sidecar = json.loads((tmp_path / f"marker-Z-p{parity}.json").read_text())
+        image = cv2.imread(str(tmp_path / f"marker-Z-p{parity}.png"), cv2.IMREAD_GRAYSCALE)
+        circles = np.array(sidecar["circles_px"])
+        assert circles.shape == (12, 3)
+        angles = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+        ring = np.stack([np.cos(angles), np.sin(angles)], 1)
+        for x, y, r in circles:
+            inside = np.round([x, y] + 0.85 * r * ring).astype(int)
+            outside = np.round([x, y] + 1.2 * r * ring).astype(int)
+            assert image[inside[:, 1], inside[:, 0]].max() < 60
+            assert image[outside[:, 1], outside[:, 0]].min() > 195
+
+
+def test_png_with_phys_replaces_an_existing_chunk():
+    ok, encoded = cv2.imencode(".png", np.zeros((3, 5), np.uint8))
+    twice = printing.png_with_phys(printing.png_with_phys(encoded.tobytes(), 1000), 11811)
+    chunks = png_chunks(twice)
+    assert [k for k, _ in chunks].count(b"pHYs") == 1
+    assert struct.unpack(">IIB", dict(chunks)[b"pHYs"]) == (11811, 11811, 1)
+    assert cv2.imdecode(np.frombuffer(twice, np.uint8), cv2.IMREAD_GRAYSCALE).shape == (3, 5)
+
+
+# --------------------------------------------------------------------- SVG
+
+def test_svg_has_mm_size_and_draws_the_layout_cells_and_circles(tmp_path):
+    assert run_markers(tmp_path, "--symbols", "7,STAR", "--format", "svg", "--parity", "4",
+                       "--size-mm", "50") == 0
+    layout = MarkerLayout(4)
+    for symbol in ("7", "STAR"):
+        root = ET.parse(tmp_path / f"marker-{symbol}-p4.svg").getroot()
+        side_cells = layout.n_cells + 2
+        # inner square 50 mm = 8 cells -> side = 20 cells = 125 mm
+        assert root.get("width") == root.get("height") == f"{side_cells * 50 / 8:g}mm"
+        assert root.get("viewBox") == f"0 0 {side_cells} {side_cells}"
+        ns = "{http://www.w3.org/2000/svg}"
+        group = root.find(f"{ns}g")
+        grid = np.zeros((side_cells, side_cells), np.uint8)
+        for rect in group.findall(f"{ns}rect"):
+            x, y, w, h = (float(rect.get(k)) for k in ("x", "y", "width", "height"))
+            assert h == 1 and x == int(x) and y == int(y) and w == int(w)
+            assert not grid[int(y), int(x):int(x + w)].any()  # runs never overlap
+            grid[int(y), int(x):int(x + w)] = 1
+        marker_id = load_dictionary("6x6").id_of(symbol)
+        np.testing.assert_array_equal(grid, np.pad(layout.cells(marker_id), 1))
+        drawn = np.array([[float(c.get(k)) for k in ("cx", "cy", "r")] for c in group.findall(f"{ns}circle")])
+        np.testing.assert_allclose(drawn, layout.circles + [1, 1, 0], atol=1e-6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.lists(st.integers(0, 1), min_size=7, max_size=7), min_size=1, max_size=7))
+def test_cell_runs_rebuild_the_grid_with_maximal_runs(rows):
+    cells = np.array(rows, np.uint8)
+    rebuilt = np.zeros_like(cells)
+    for row, column, length in printing.cell_runs(cells):
+        assert length > 0 and not rebuilt[row, column:column + length].any()
+        rebuilt[row, column:column + length] = 1
+        assert column == 0 or cells[row, column - 1] == 0  # maximal: white before and after
+        assert column + length == cells.shape[1] or cells[row, column + length] == 0
+    np.testing.assert_array_equal(rebuilt, cells)
+
+
+# --------------------------------------------------------------------- PDF
+
+def pdf_objects(data: bytes) -> dict[int, bytes]:
+    """Objects found through the xref table; asserts every offset lands on ``N 0 obj``."""
+    assert data.startswith(b"%PDF-1.") and data.rstrip().endswith(b"%%EOF")
+    startxref = int(re.search(rb"startxref\s+(\d+)\s+%%EOF\s*$", data).group(1))
+    assert data[startxref:startxref + 4] == b"xref"
+    header = re.match(rb"xref\n0 (\d+)\n", data[startxref:])
+    size = int(header.group(1))
+    table = data[startxref + header.end():startxref + header.end() + 20 * size]
+    entries = [table[20 * i:20 * i + 20] for i in range(size)]
+    assert entries[0] == b"0000000000 65535 f \n"
+    assert int(re.search(rb"/Size (\d+)", data[startxref:]).group(1)) == size
+    objects = {}
+    for number, entry in enumerate(entries[1:], start=1):
+        assert re.fullmatch(rb"\d{10} 00000 n \n", entry), entry
+        offset = int(entry[:10])
+        assert data[offset:].startswith(b"%d 0 obj\n" % number)
+        end = data.index(b"\nendobj\n", offset)
+        objects[number] = data[offset + len(b"%d 0 obj\n" % number):end]
+    return objects
+
+
+def pdf_pages(objects: dict[int, bytes]) -> list[tuple[tuple[float, float], str]]:
+    """(MediaBox width, height in pt) and the content stream text of every page, in page order."""
+    catalog = next(o for o in objects.values() if b"/Type /Catalog" in o)
+    pages_ref = int(re.search(rb"/Pages (\d+) 0 R", catalog).group(1))
+    kids = [int(k) for k in re.findall(rb"(\d+) 0 R", re.search(rb"/Kids \[(.*?)\]", objects[pages_ref]).group(1))]
+    assert int(re.search(rb"/Count (\d+)", objects[pages_ref]).group(1)) == len(kids)
+    pages = []
+    for kid in kids:
+        page = objects[kid]
+        box = [float(v) for v in re.search(rb"/MediaBox \[([^\]]*)\]", page).group(1).split()]
+        content = objects[int(re.search(rb"/Contents (\d+) 0 R", page).group(1))]
+        length = int(re.search(rb"/Length (\d+)", content).group(1))
+        stream = content[content.index(b"stream\n") + 7:]
+        assert stream[length:] == b"endstream"
+        pages.append(((box[2], box[3]), stream[:length].decode("ascii")))
+    return pages
+
+
+def marker_groups(content: str) -> list[tuple[list, list]]:
+    """Per q ... Q group: rects (x, y, w, h) and circles (4 Bezier end points), in pt, y up."""
+    groups = []
+    for block in re.findall(r"^q\n(.*?)^Q$", content, re.S | re.M):
+        rects = [tuple(map(float, m)) for m in re.findall(r"^(\S+) (\S+) (\S+) (\S+) re$", block, re.M)]
+        circles = []
+        for start, path in re.findall(r"^(\S+ \S+) m\n((?:.* c\n){4})h$", block, re.M):
+            # (4 arcs, 4 points: start, control, control, end, 2)
+            controls = np.array([line.split()[:6] for line in path.strip().split("\n")], float).reshape(4, 3, 2)
+            starts = np.vstack([[float(v) for v in start.split()], controls[:-1, 2]])
+            assert np.array_equal(starts[0], controls[-1, 2])  # a closed outline
+            circles.append(np.concatenate([starts[:, None], controls], axis=1))
+        groups.append((rects, circles))
+    return groups
+
+
+def check_marker_geometry(rects, circles, layout: MarkerLayout, marker_id: int, size_mm: float) -> None:
+    """The drawn rectangles are exactly the marker's black cells at ``size_mm`` / 8 per cell."""
+    rects = np.array(rects) / PT_PER_MM  # mm, PDF y up
+    widest = rects[np.argsort(rects[:, 2])[-2:]]  # the top and bottom border rows: 8 cells wide
+    np.testing.assert_allclose(widest[:, 2], size_mm, atol=1e-3)
+    np.testing.assert_allclose(widest[:, 3], size_mm / 8, atol=1e-3)
+    # inner square height: top of the top border row to the bottom of the bottom border row
+    assert (widest[:, 1] + widest[:, 3]).max() - widest[:, 1].min() == pytest.approx(size_mm, abs=1e-3)
+    cell = size_mm / layout.inner_cells
+    o = layout.inner_origin
+    x0 = widest[0, 0] - o * cell
+    y_top = (widest[:, 1] + widest[:, 3]).max() + o * cell  # grid top edge, PDF y up
+    grid = np.zeros((layout.n_cells, layout.n_cells), np.uint8)
+    for x, y, w, h in rects:
+        c, r, length = (x - x0) / cell, (y_top - (y + h)) / cell, w / cell
+        assert np.allclose([c, r, length, h / cell], np.round([c, r, length, 1]), atol=1e-3)
+        grid[round(r), round(c):round(c + length)] = 1
+    np.testing.assert_array_equal(grid, layout.cells(marker_id))
+    t = np.linspace(0, 1, 9)[:, None]
+    drawn = []
+    for arcs in np.array(circles) / PT_PER_MM:
+        ends = arcs[:, 3]
+        centre, radius = ends.mean(axis=0), np.ptp(ends[:, 0]) / 2
+        for p0, p1, p2, p3 in arcs:
+            # cubic Bezier B(t) = (1-t)^3 p0 + 3 (1-t)^2 t p1 + 3 (1-t) t^2 p2 + t^3 p3
+            curve = (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t ** 2 * p2 + t ** 3 * p3
+            # the standard 4-arc approximation stays within 0.03 % of the radius
+            np.testing.assert_allclose(np.linalg.norm(curve - centre, axis=1), radius, rtol=3e-4)
+        drawn.append([centre[0] - x0, y_top - centre[1], radius])
+    np.testing.assert_allclose(np.array(drawn) / cell, layout.circles, atol=1e-3)
+
+
+def test_pdf_sheet_is_valid_and_draws_markers_at_exact_scale(tmp_path):
+    assert run_markers(tmp_path, "--symbols", "A,B,7", "--format", "pdf", "--size-mm", "30") == 0
+    (pdf_path,) = tmp_path.glob("*.pdf")
+    objects = pdf_objects(pdf_path.read_bytes())
+    pages = pdf_pages(objects)
+    assert len(pages) == 1
+    (width_pt, height_pt), content = pages[0]
+    assert (width_pt, height_pt) == pytest.approx((210 * PT_PER_MM, 297 * PT_PER_MM), abs=1e-3)
+    layout = MarkerLayout(2)
+    groups = marker_groups(content)
+    assert len(groups) == 3
+    for symbol, (rects, circles) in zip(("A", "B", "7"), groups):
+        marker_id = layout.dictionary.id_of(symbol)
+        check_marker_geometry(rects, circles, layout, marker_id, 30.0)
+        assert f"({symbol}   id {marker_id}) Tj" in content
+    assert content.count("(parity 2, 6x6, inner square 30 mm) Tj") == 3
+    assert len(re.findall(r" l S$", content, re.M)) == 3 * 8  # crop marks: 2 per corner
+    assert b"/BaseFont /Helvetica" in b"".join(objects.values())
+
+
+def test_pdf_all_markers_fill_letter_pages_inside_the_margins(tmp_path):
+    assert run_markers(tmp_path, "--all", "--format", "pdf", "--parity", "4", "--page", "letter") == 0
+    (pdf_path,) = tmp_path.glob("*.pdf")
+    pages = pdf_pages(pdf_objects(pdf_path.read_bytes()))
+    layout = MarkerLayout(4)
+    labels = []
+    for (width_pt, height_pt), content in pages:
+        assert (width_pt, height_pt) == pytest.approx((215.9 * PT_PER_MM, 279.4 * PT_PER_MM), abs=1e-3)
+        for rects, circles in marker_groups(content):
+            assert len(circles) == 12
+            xs = np.array([(x, x + w) for x, _, w, _ in rects]) / PT_PER_MM
+            assert xs.min() >= printing.PAGE_MARGIN_MM and xs.max() <= 215.9 - printing.PAGE_MARGIN_MM
+        labels += re.findall(r"\((\S+)   id (\d+)\) Tj", content)
+    assert [(s, int(i)) for s, i in labels] == [(s, i) for i, s in enumerate(layout.dictionary.symbols)]
+    per_page = printing.sheet_geometry(printing.MarkerPrint(layout, 0, 35.0, 1), "letter").per_page
+    assert len(pages) == -(-50 // per_page)
+    rects, circles = marker_groups(pages[-1][1])[-1]
+    check_marker_geometry(rects, circles, layout, 49, 35.0)
+
+
+# ------------------------------------------------------------------ errors
+
+def test_unknown_symbol_lists_the_known_symbols_and_exits_2(tmp_path, capsys):
+    assert run_markers(tmp_path, "--symbols", "A,QQ") == 2
+    err = capsys.readouterr().err
+    assert "'QQ'" in err and "A, B, C" in err and "HOME" in err and "STAR" in err
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("size", ["0", "-5", "nan"])
+def test_non_positive_size_is_a_clear_error(tmp_path, capsys, size):
+    assert run_markers(tmp_path, "--symbols", "A", f"--size-mm={size}") == 2
+    assert "--size-mm must be a positive number" in capsys.readouterr().err
+
+
+def test_marker_too_large_for_the_page_is_a_clear_error(tmp_path, capsys):
+    assert run_markers(tmp_path, "--symbols", "A", "--format", "pdf", "--size-mm", "150") == 2
+    err = capsys.readouterr().err
+    assert "a4 page" in err and "--size-mm" in err
+
+
+def test_quiet_zone_narrower_than_the_border_is_refused(tmp_path, capsys):
+    assert run_markers(tmp_path, "--symbols", "A", "--quiet-zone-cells", "0") == 2
+    assert "--quiet-zone-cells" in capsys.readouterr().err
