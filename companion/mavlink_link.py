@@ -9,7 +9,8 @@ Threads (both stop on ``close()``):
 
 The pipeline thread calls ``publish(estimate)``, which sends at once (lowest
 latency) when the link is streaming, and never faster than ``max_rate_hz``
-(50 Hz at most: ArduPilot drops samples closer than 20 ms).
+(50 Hz at most: ArduPilot drops samples closer than 20 ms), judged on capture
+times with 2 ms of tolerance for a camera running at exactly that rate.
 
 Origin handshake (ArduPilot's EKF settles at a wrong height when the origin
 arrives after vision fusion began): once a FC heartbeat is seen, send
@@ -38,6 +39,10 @@ from companion.types import Estimate
 log = logging.getLogger(__name__)
 
 MAX_VISION_RATE_HZ = 50.0
+# ArduPilot drops vision samples closer than 20 ms.
+MIN_VISION_SPACING_NS = 20_000_000
+# Capture stamps of a camera at exactly max_rate_hz jitter by a little: let them through.
+RATE_JITTER_NS = 2_000_000
 SEVERITY_INFO = mm.mavlink2.MAV_SEVERITY_INFO
 SEVERITY_WARNING = mm.mavlink2.MAV_SEVERITY_WARNING
 NETWORK_PREFIXES = ("udpout:", "udpin:", "udp:", "tcp:", "tcpin:")
@@ -183,7 +188,7 @@ class MavlinkLink:
         if self.state is not LinkState.STREAMING or self._connection is None:
             self.counters.held_back += 1
             return False
-        min_interval_ns = 1e9 / self.params.max_rate_hz
+        min_interval_ns = max(MIN_VISION_SPACING_NS, 1e9 / self.params.max_rate_hz - RATE_JITTER_NS)
         if self._last_vision_t_ns is not None and estimate.t_ns - self._last_vision_t_ns < min_interval_ns:
             self.counters.rate_limited += 1
             return False
@@ -219,8 +224,11 @@ class MavlinkLink:
         return True
 
     def _run_heartbeat(self) -> None:
-        while not self._stop.wait(self.params.heartbeat_interval_s):
-            self._send(mm.heartbeat(active=self.state is LinkState.STREAMING))
+        # The first beat goes out as soon as the connection is open: a FC that has
+        # not heard from us yet (udpout) does not know where to answer.
+        while not self._stop.is_set():
+            sent = self._send(mm.heartbeat(active=self.state is LinkState.STREAMING))
+            self._stop.wait(self.params.heartbeat_interval_s if sent else 0.05)
 
     # ------------------------------------------------------- connection
 

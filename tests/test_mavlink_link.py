@@ -148,7 +148,8 @@ def test_vision_never_exceeds_the_rate_limit(peers, links):
     vision = peer.wait_for("VISION_POSITION_ESTIMATE", count=15)
     publisher.stop()
     usec = sorted(r["fields"]["usec"] for r in vision)
-    assert min(np.diff(usec)) >= 40_000  # 1 / 25 Hz
+    assert min(np.diff(usec)) >= 38_000  # 1 / 25 Hz less 2 ms of tolerance for capture jitter
+    assert np.median(np.diff(usec)) >= 40_000
     assert link.counters.rate_limited > 0
 
 

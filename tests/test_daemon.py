@@ -1,0 +1,293 @@
+"""End to end: `companion run` as a subprocess replaying a recorded sequence into an
+independent MAVLink peer (libmav, its own process) on loopback."""
+from __future__ import annotations
+
+import csv
+import math
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from companion.facility_map import load_map
+from mavlink_peer import PeerProcess, free_port
+
+REPO = Path(__file__).resolve().parent.parent
+SEQUENCE = Path(os.environ.get("COMPANION_TEST_SEQUENCE", REPO / "tests" / "data" / "warehouse_figure8"))
+MAP = REPO / "maps" / "warehouse.yaml"
+OFFSET_RE = re.compile(r"recorded t_ns 0 is monotonic (\d+) ns")
+
+
+# ------------------------------------------------------------------ helpers
+
+def read_rows(path: Path) -> list[dict]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+class Truth:
+    """groundtruth.csv by recorded capture time."""
+
+    def __init__(self, sequence: Path):
+        rows = read_rows(sequence / "groundtruth.csv")
+        self.t_ns = np.array([int(r["t_ns"]) for r in rows])
+        self.frame = np.array([int(r["frame"]) for r in rows])
+        self.ned = np.array([[float(r["north_m"]), float(r["east_m"]), float(r["down_m"])] for r in rows])
+        self.yaw = np.array([float(r["yaw_rad"]) for r in rows])
+
+    def at(self, recorded_t_ns: float) -> int:
+        """Row of the frame captured at this recorded time (within half a microsecond-truncation)."""
+        row = int(np.argmin(np.abs(self.t_ns - recorded_t_ns)))
+        assert abs(self.t_ns[row] - recorded_t_ns) < 1_000_000, "a message time that is no frame's capture time"
+        return row
+
+
+def write_config(tmp_path: Path, sequence: Path, port: int, **overrides) -> Path:
+    data = {
+        "source": {"kind": "replay", "path": str(sequence), "realtime": True},
+        "map": str(MAP),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "origin_wait_s": 5.0, "origin_retry_s": 0.3,
+                    "statustext_interval_s": 0.2, "heartbeat_interval_s": 0.5},
+        "status": {"interval_s": 0.2},
+    }
+    for section, values in overrides.items():
+        data.setdefault(section, {}).update(values)
+    path = tmp_path / "daemon.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def start_daemon(config: Path | None, env: dict | None = None) -> subprocess.Popen:
+    command = [sys.executable, "-m", "companion.cli", "run"] + (["--config", str(config)] if config else [])
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, **(env or {})})
+
+
+def finish(process: subprocess.Popen, timeout_s: float = 30.0) -> tuple[int, str, str]:
+    stdout, stderr = process.communicate(timeout=timeout_s)
+    return process.returncode, stdout, stderr
+
+
+def clock_offset_ns(stderr: str) -> int:
+    match = OFFSET_RE.search(stderr)
+    assert match, stderr
+    return int(match.group(1))
+
+
+@pytest.fixture
+def peers(tmp_path):
+    started = []
+
+    def start(port, *extra):
+        peer = PeerProcess(port, tmp_path / f"peer{len(started)}.jsonl", *extra, duration_s=60)
+        started.append(peer)
+        return peer.wait_listening()
+
+    yield start
+    for peer in started:
+        peer.stop()
+
+
+def vision_frames(peer: PeerProcess, offset_ns: int, truth: Truth) -> list[tuple[dict, int]]:
+    """(VISION_POSITION_ESTIMATE fields, ground-truth row) for every message the peer got."""
+    return [(r["fields"], truth.at(r["fields"]["usec"] * 1000 - offset_ns + 500))
+            for r in peer.records("VISION_POSITION_ESTIMATE")]
+
+
+# -------------------------------------------------------------------- tests
+
+def test_replay_reaches_an_independent_peer_with_the_true_pose(tmp_path, peers):
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set", "--timesync-period", "0.3")
+    process = start_daemon(write_config(tmp_path, SEQUENCE, port))
+    code, stdout, stderr = finish(process)
+    assert code == 0, stderr
+    truth = Truth(SEQUENCE)
+    offset = clock_offset_ns(stderr)
+    received = peer.records()
+    vision = vision_frames(peer, offset, truth)
+    # Order: the origin, confirmed, before any vision.
+    first_vision_ns = min(r["t_ns"] for r in received if r["name"] == "VISION_POSITION_ESTIMATE")
+    origin = peer.records("SET_GPS_GLOBAL_ORIGIN")
+    assert origin and origin[0]["t_ns"] < first_vision_ns
+    geodetic = load_map(MAP).frame.geodetic_origin
+    assert origin[0]["fields"]["latitude"] == round(geodetic.latitude_deg * 1e7)
+    assert origin[0]["fields"]["longitude"] == round(geodetic.longitude_deg * 1e7)
+    assert origin[0]["fields"]["altitude"] == round(geodetic.altitude_m * 1000)
+    # Identity.
+    assert {(r["sysid"], r["compid"]) for r in received} == {(1, 197)}
+    assert all(h["fields"]["type"] == 18 and h["fields"]["autopilot"] == 8 for h in peer.records("HEARTBEAT"))
+    # Rate: one message per frame at the camera rate, never closer than 20 ms.
+    usec = np.array(sorted(f["usec"] for f, _ in vision))
+    frame_period_us = np.median(np.diff(truth.t_ns)) / 1000
+    assert np.all(np.diff(usec) >= 20_000)
+    assert abs(np.median(np.diff(usec)) - frame_period_us) < 1_000
+    # Once streaming, every frame is sent (the bounded coast bridges a frame without pose).
+    first_frame = min(truth.frame[row] for _, row in vision)
+    assert len(vision) >= 0.95 * np.count_nonzero(truth.frame >= first_frame)
+    assert first_frame < 0.5 * truth.frame.max()
+    # Values against ground truth, covariance present, no reset.
+    errors = np.array([np.linalg.norm([f["x"] - truth.ned[row][0], f["y"] - truth.ned[row][1],
+                                       f["z"] - truth.ned[row][2]]) for f, row in vision])
+    yaw_errors = np.array([abs(math.remainder(f["yaw"] - truth.yaw[row], 2 * math.pi)) for f, row in vision])
+    assert np.median(errors) < 0.05 and errors.max() < 0.25, errors
+    assert np.degrees(np.median(yaw_errors)) < 2.0
+    for fields, _ in vision:
+        covariance = fields["covariance"]
+        assert all(math.isfinite(c) for c in covariance)
+        assert covariance[0] > 0 and covariance[6] > 0 and covariance[11] > 0 and covariance[20] > 0
+        assert fields["reset_counter"] == 0
+    # TIMESYNC answered with our clock, ts1 mirrored.
+    requests = {r["fields"]["ts1"] for r in peer.records("TIMESYNC", kind="sent")}
+    replies = peer.records("TIMESYNC")
+    assert replies and all(r["fields"]["ts1"] in requests and r["fields"]["tc1"] > 0 for r in replies)
+    # Live status and per-stage timings.
+    assert re.search(r"\d+\.\d fps \| markers \d+ \| N [+-]\d", stdout)
+    assert "stage capture->send" in stderr and "stage detect" in stderr
+
+
+def spliced_sequence(tmp_path: Path, keep: list[int], blank=(), gap_after: int | None = None,
+                     gap_ns: int = 0) -> Path:
+    """A copy of the sequence with only the frames ``keep`` (original numbers, in order),
+    those in ``blank`` turned black (markers out of sight), re-timed at the recorded
+    frame period with ``gap_ns`` of silence after frame ``gap_after`` (the camera
+    delivering nothing). groundtruth.csv follows the new times."""
+    out = tmp_path / "spliced"
+    (out / "frames").mkdir(parents=True)
+    rows = {int(r["frame"]): r for r in read_rows(SEQUENCE / "timestamps.csv")}
+    truth = {int(r["frame"]): r for r in read_rows(SEQUENCE / "groundtruth.csv")}
+    period_ns = int(np.median(np.diff([int(r["t_ns"]) for r in rows.values()])))
+    kept, kept_truth, t_ns = [], [], 0
+    for frame in keep:
+        row = dict(rows[frame], t_ns=t_ns)
+        if frame in blank:
+            black = np.zeros_like(cv2.imread(str(SEQUENCE / row["file"]), cv2.IMREAD_GRAYSCALE))
+            cv2.imwrite(str(out / row["file"]), black)
+        else:
+            shutil.copy(SEQUENCE / row["file"], out / row["file"])
+        kept.append(row)
+        kept_truth.append(dict(truth[frame], t_ns=t_ns))
+        t_ns += period_ns + (gap_ns if frame == gap_after else 0)
+    for name, table in (("timestamps.csv", kept), ("groundtruth.csv", kept_truth)):
+        with open(out / name, "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=list(table[0]))
+            writer.writeheader()
+            writer.writerows(table)
+    info = yaml.safe_load((SEQUENCE / "sequence.yaml").read_text())
+    info["map"] = str(MAP)
+    (out / "sequence.yaml").write_text(yaml.safe_dump(info))
+    return out
+
+
+def test_markers_lost_then_seen_elsewhere_resets_instead_of_dragging(tmp_path, peers):
+    """Markers out of sight (black frames), then the camera delivering nothing for 0.4 s,
+    then the markers again far away: the stream stops, resumes, and reset_counter steps."""
+    keep = list(range(0, 38)) + list(range(70, 100))
+    sequence = spliced_sequence(tmp_path, keep, blank=range(30, 38), gap_after=37, gap_ns=400_000_000)
+    truth = Truth(sequence)
+    assert np.linalg.norm(truth.ned[keep.index(70)] - truth.ned[keep.index(29)]) > 0.5, "no jump in this data"
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    process = start_daemon(write_config(tmp_path, sequence, port, fusion={"max_coast_s": 0.2}))
+    code, _, stderr = finish(process)
+    assert code == 0, stderr
+    vision = vision_frames(peer, clock_offset_ns(stderr), truth)
+    frames = np.array([truth.frame[row] for _, row in vision])
+    before = [(f, row) for f, row in vision if truth.frame[row] < 30]
+    after = [(f, row) for f, row in vision if truth.frame[row] >= 70]
+    # Nothing is sent once coasting ran out (0.2 s = 6 frames after the last seen frame 29).
+    assert not np.any((frames > 29 + 6) & (frames < 70)), frames
+    assert before and after
+    assert all(f["reset_counter"] == 0 for f, _ in before)
+    assert all(f["reset_counter"] == 1 for f, _ in after)
+    # The first estimate after the jump is where the vehicle is, not dragged from where it was.
+    first, row = after[0]
+    assert np.linalg.norm([first["x"], first["y"], first["z"]] - truth.ned[row]) < 0.1
+    texts = [r["fields"]["text"] for r in peer.wait_for("STATUSTEXT", count=3)]
+    assert "companion: markers lost" in texts and "companion: re-acquired (reset 1)" in texts
+
+
+def test_corrupt_frames_are_skipped_counted_and_the_stream_goes_on(tmp_path, peers):
+    sequence = spliced_sequence(tmp_path, keep=list(range(0, 60)))
+    rows = read_rows(sequence / "timestamps.csv")
+    broken = [rows[i] for i in (30, 31, 45)]
+    (sequence / broken[0]["file"]).write_bytes(b"\x89PNG but no image")
+    (sequence / broken[1]["file"]).write_bytes((sequence / broken[1]["file"]).read_bytes()[:200])
+    (sequence / broken[2]["file"]).unlink()
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    code, _, stderr = finish(start_daemon(write_config(tmp_path, sequence, port)))
+    assert code == 0, stderr
+    assert re.search(r"corrupt 3\b", stderr)
+    truth = Truth(sequence)
+    frames = {int(truth.frame[row]) for _, row in vision_frames(peer, clock_offset_ns(stderr), truth)}
+    assert not frames & {int(r["frame"]) for r in broken}
+    assert max(frames) == int(rows[-1]["frame"])
+
+
+def test_sigterm_mid_run_with_the_peer_going_away_and_coming_back(tmp_path, peers):
+    """One looping run: systemd notify, the FC vanishing and returning (origin again
+    before vision), then SIGTERM: a clean exit with nothing sent afterwards."""
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify_path = str(tmp_path / "notify.sock")
+    notify.bind(notify_path)
+    notify.settimeout(0.2)
+    messages: list[str] = []
+    reading = threading.Event()
+    reading.set()
+
+    def read_notify():  # systemd reads at once; the socket's queue is short
+        while reading.is_set():
+            try:
+                messages.append(notify.recv(4096).decode())
+            except socket.timeout:
+                pass
+
+    reader = threading.Thread(target=read_notify, daemon=True)
+    reader.start()
+    port = free_port()
+    first = peers(port, "--origin-reply", "on_set")
+    config = write_config(tmp_path, SEQUENCE, port, source={"loop": True},
+                          mavlink={"fc_timeout_s": 0.8, "origin_wait_s": 3.0})
+    process = start_daemon(config, env={"NOTIFY_SOCKET": notify_path, "WATCHDOG_USEC": "400000"})
+    first.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=15)
+    first.stop()
+    time.sleep(1.2)  # longer than fc_timeout_s
+    second = peers(port, "--origin-reply", "on_set")
+    vision = second.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=15)
+    origin = second.records("SET_GPS_GLOBAL_ORIGIN")
+    assert origin and origin[0]["t_ns"] < vision[0]["t_ns"]
+    process.send_signal(signal.SIGTERM)
+    stopped_ns = time.monotonic_ns()
+    code, _, stderr = finish(process, timeout_s=10)
+    assert code == 0, stderr
+    assert "SIGTERM: stopping" in stderr and "stage total" in stderr
+    exited_ns = time.monotonic_ns()
+    late = [r for r in second.records("VISION_POSITION_ESTIMATE") if r["t_ns"] > exited_ns]
+    assert not late
+    assert process.poll() == 0 and stopped_ns < exited_ns
+    time.sleep(0.3)
+    reading.clear()
+    reader.join()
+    notify.close()
+    assert messages[0].startswith("READY=1")
+    assert "WATCHDOG=1" in messages and messages[-1] == "STOPPING=1"
+    assert any(m.startswith("STATUS=") and "fps" in m for m in messages)
+
+
+def test_config_error_exits_2_naming_the_file_and_key(tmp_path):
+    config = write_config(tmp_path, SEQUENCE, 14550, mavlink={"max_rate_hz": 80})
+    code, _, stderr = finish(start_daemon(config), timeout_s=30)
+    assert code == 2
+    assert f"{config}: mavlink: max_rate_hz" in stderr and "Traceback" not in stderr
