@@ -37,6 +37,7 @@ from companion import frames
 
 NEAR_M = 0.02  # near clipping plane: nothing closer to the camera is drawn
 MIN_MIP_SIZE_PX = 4
+MIP_BIAS = 0.0  # > 0 picks coarser levels: less aliasing, more blur
 MARKER_LIFT_M = 0.001  # a marker sits this far in front of its backing board
 OCCLUDER_LIFT_M = 0.003  # a stuck-on occluder sits this far in front of its marker
 
@@ -289,13 +290,10 @@ class Renderer:
         # texture pixel (x, y) lies at tl + (x + 0.5)/W a + (y + 0.5)/H b, so
         # H_canvas_tex = K [a/W, b/H, tl + a/(2W) + b/(2H)]
         H0 = self.canvas_K @ np.column_stack([a / tex_w, b / tex_h, tl + a / (2 * tex_w) + b / (2 * tex_h)])
-        level = _mip_level(H0, uv, len(quad.texture.levels))
-        s = 2.0 ** level
-        # cv2.pyrDown centres level-L texel x_L on level-0 texel x_0 = 2^L x_L
-        H_level = H0 @ np.diag([s, s, 1.0])
-        H_roi = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ H_level
-        warped = cv2.warpPerspective(quad.texture.levels[level], H_roi, (roi_w, roi_h),
-                                     flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        level, blend = _mip_levels(H0, uv, len(quad.texture.levels))
+        shift_roi = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
+        warped = self._warp_level(quad.texture.levels, level, blend, H0, shift_roi, (roi_w, roi_h),
+                                  cv2.BORDER_REPLICATE)
 
         coverage = np.zeros((roi_h, roi_w), np.uint8)
         shift = 4
@@ -303,10 +301,9 @@ class Renderer:
         cv2.fillConvexPoly(coverage, points, 255, lineType=cv2.LINE_AA, shift=shift)
         alpha = coverage.astype(np.float32) * (1.0 / 255.0)
         if quad.texture.alpha_levels is not None:
-            warped_alpha = cv2.warpPerspective(quad.texture.alpha_levels[level], H_roi, (roi_w, roi_h),
-                                               flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                               borderValue=0)
-            alpha *= warped_alpha.astype(np.float32) * (1.0 / 255.0)
+            warped_alpha = self._warp_level(quad.texture.alpha_levels, level, blend, H0, shift_roi,
+                                            (roi_w, roi_h), cv2.BORDER_CONSTANT)
+            alpha *= warped_alpha * np.float32(1.0 / 255.0)
 
         # plane n.X = c in the camera frame; along the ray X = z K^-1 [u, v, 1]:
         # 1/z = n . K^-1 [u, v, 1] / c, affine in (u, v)
@@ -323,11 +320,28 @@ class Renderer:
         roi = (slice(y0, y1), slice(x0, x1))
         in_front = (alpha > 0.0) & (quad_inv_depth > inv_depth[roi])
         alpha = np.where(in_front, alpha, 0.0)
-        shade = warped.astype(np.float32) * np.float32(quad.gain) + np.float32(quad.offset)
+        shade = warped * np.float32(quad.gain) + np.float32(quad.offset)
         color[roi] += alpha * (shade - color[roi])
         solid = in_front & (alpha >= 0.5)
         inv_depth[roi][solid] = quad_inv_depth[solid]
         label[roi][solid] = index
+
+    @staticmethod
+    def _warp_level(levels, level: int, blend: float, H0: np.ndarray, shift_roi: np.ndarray, size,
+                    border: int) -> np.ndarray:
+        """(h, w) float32: mip ``level`` warped into the ROI, mixed with the next level by ``blend``."""
+        def warp(k: int) -> np.ndarray:
+            s = 2.0 ** k
+            # cv2.pyrDown centres level-k texel x_k on level-0 texel x_0 = 2^k x_k
+            H = shift_roi @ H0 @ np.diag([s, s, 1.0])
+            return cv2.warpPerspective(levels[k], H, size, flags=cv2.INTER_LINEAR, borderMode=border,
+                                       borderValue=0).astype(np.float32)
+
+        warped = warp(level)
+        if blend > 0.0:
+            # trilinear: (1 - b) level + b (level + 1)
+            warped += np.float32(blend) * (warp(level + 1) - warped)
+        return warped
 
     def _finish(self, color: np.ndarray, label: np.ndarray) -> Rendering:
         s = self.supersample
@@ -352,21 +366,32 @@ def _faces_camera(corners_cam: np.ndarray) -> bool:
     return float(front @ -tl) > 0.0
 
 
-def _mip_level(H_canvas_tex: np.ndarray, uv_polygon: np.ndarray, n_levels: int) -> int:
-    """Mip level whose texels are about one canvas pixel at the polygon's centre."""
+def _mip_levels(H_canvas_tex: np.ndarray, uv_polygon: np.ndarray, n_levels: int) -> tuple[int, float]:
+    """Mip level and blend toward the next one for the texel size at the polygon's centre.
+
+    Trilinear filtering: with p canvas pixels per level-0 texel, the level is
+    floor(log2(1/p) + MIP_BIAS) and the blend its fraction, so a shrunken texture is
+    neither aliased (a marker's edges would move by up to 0.2 px with the
+    sub-pixel phase) nor blurred more than needed.
+    """
     centre = np.append(uv_polygon.mean(axis=0), 1.0)
     tex = np.linalg.solve(H_canvas_tex, centre)
     if abs(tex[2]) < 1e-12:
-        return 0
+        return 0, 0.0
     tex = tex / tex[2]
     probe = np.array([tex, tex + [1.0, 0.0, 0.0], tex + [0.0, 1.0, 0.0]]) @ H_canvas_tex.T
     img = probe[:, :2] / probe[:, 2:3]
     # canvas pixels per texel: sqrt(|det J|) of the texture -> canvas map
     jac = np.column_stack([img[1] - img[0], img[2] - img[0]])
     px_per_texel = math.sqrt(abs(float(np.linalg.det(jac))))
-    if px_per_texel >= 1.0 or px_per_texel <= 0.0:
-        return 0
-    return int(min(math.floor(math.log2(1.0 / px_per_texel)), n_levels - 1))
+    if px_per_texel <= 0.0:
+        return 0, 0.0
+    log_scale = min(math.log2(1.0 / px_per_texel) + MIP_BIAS, n_levels - 1)
+    if log_scale <= 0.0:
+        return 0, 0.0
+    level = int(math.floor(log_scale))
+    blend = log_scale - level
+    return level, (blend if blend > 0.02 and level + 1 < n_levels else 0.0)
 
 
 def clip_polygon_near(points_cam: np.ndarray, near_m: float = NEAR_M) -> np.ndarray:

@@ -117,7 +117,7 @@ class _SurfaceTextures:
     def _concrete(self, n: int) -> np.ndarray:
         rng = self.rng
         base = render.solid_texture(rng, (n, n), 150.0, 18.0).astype(np.float32)
-        base += 6.0 * cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 0.8)
+        base += 2.0 * cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 1.5)
         for _ in range(3):  # scuffs and cracks
             p0 = rng.integers(0, n, 2)
             p1 = p0 + rng.integers(-n // 3, n // 3, 2)
@@ -295,29 +295,47 @@ class PassingOccluder:
         return render.box_occluder(rng, T, 1.1, 1.3)
 
 
-def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: int, floor_z_m: float,
+def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: int, world: World,
                    rng: np.random.Generator) -> list[PassingOccluder]:
-    """``count`` crossings spread over the flight, each 1-2 m in front of the camera when it starts."""
+    """``count`` crossings spread over the flight, each well in front of what the camera sees.
+
+    Each walks straight across the view the camera has at the crossing's
+    middle time ``t_mid``, perpendicular to its optical axis, at 0.45 times
+    the range of the nearest marker in view (0.7-2 m), so it passes between
+    the camera and the markers, and is in the middle of the image at t_mid.
+    """
     occluders = []
     for k in range(count):
-        t0 = (k + rng.uniform(0.1, 0.6)) * traj.duration_s / max(count, 1)
-        T_map_camera = traj.pose_at(t0) @ camera.T_body_camera
+        t_mid = (k + rng.uniform(0.3, 0.7)) * traj.duration_s / max(count, 1)
+        T_map_camera = traj.pose_at(t_mid) @ camera.T_body_camera
         optical_axis = T_map_camera[:3, 2]
         forward = np.array([optical_axis[0], optical_axis[1], 0.0])
         forward /= max(np.linalg.norm(forward), 1e-9)
         right = np.array([forward[1], -forward[0], 0.0])
-        distance = rng.uniform(1.0, 2.0)
+        distance = float(np.clip(0.45 * _nearest_marker_range(world, camera, T_map_camera), 0.7, 2.0))
         speed = rng.uniform(0.9, 1.4)
         direction = 1.0 if rng.uniform() < 0.5 else -1.0
         half_width = distance * math.tan(math.radians(40.0)) + 0.6
         centre = T_map_camera[:3, 3] + distance * forward
         start = centre - direction * half_width * right
-        start[2] = floor_z_m
-        duration = 2 * half_width / speed
+        start[2] = world.floor_z_m
+        half_time = half_width / speed
         kind = "person" if rng.uniform() < 0.6 else "box"
-        occluders.append(PassingOccluder(kind, t0, t0 + duration, start, direction * speed * right, -forward,
-                                         int(rng.integers(0, 2**31))))
+        # in the middle of the view at t_mid
+        occluders.append(PassingOccluder(kind, t_mid - half_time, t_mid + half_time, start,
+                                         direction * speed * right, -forward, int(rng.integers(0, 2**31))))
     return occluders
+
+
+def _nearest_marker_range(world: World, camera: CameraModel, T_map_camera: np.ndarray) -> float:
+    """Range (m) to the nearest marker centre inside the image, or 3.3 m with none in view."""
+    centres = np.array([m.T_map_marker[:3, 3] for m in world.markers])
+    T_camera_map = frames.invert_transform(T_map_camera)
+    in_camera = frames.transform_points(T_camera_map, centres)
+    in_view = (in_camera[:, 2] > 0.1) & camera.in_image(camera.project(in_camera))
+    if not in_view.any():
+        return 3.3
+    return float(np.linalg.norm(in_camera[in_view], axis=1).min())
 
 
 # ---------------------------------------------------------------- rendering
@@ -372,7 +390,7 @@ class Simulator:
                  realism: Realism = Realism(), seed: int = 0, supersample: int = 1):
         self.world, self.camera, self.trajectory, self.realism, self.seed = world, camera, traj, realism, seed
         self.renderer = render.Renderer.from_camera(camera, supersample)
-        self.occluders = plan_occluders(traj, camera, realism.occluders, world.floor_z_m,
+        self.occluders = plan_occluders(traj, camera, realism.occluders, world,
                                         np.random.default_rng(seed + 104729))
 
     def T_camera_map(self, t_s: float) -> np.ndarray:

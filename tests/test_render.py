@@ -108,6 +108,26 @@ def test_supersampled_render_keeps_ground_truth():
     assert np.max(np.linalg.norm(found[3] - truth.corners_px, axis=1)) < 0.5
 
 
+def test_rendered_square_has_the_projected_area_and_centre():
+    """Detector-free check: a black square's darkness integrates to its projected area and centre."""
+    renderer = render.Renderer(render.default_camera_matrix(W, H), [], W, H)
+    image = np.full((160, 160), 255, np.uint8)
+    image[16:144, 16:144] = 0
+    lo, hi = 15.5, 143.5
+    square = render.MarkerTexture(image, np.array([[lo, lo], [hi, lo], [hi, hi], [lo, hi]]), np.zeros((0, 2)), 0)
+    for distance in (0.3, 0.7, 1.0, 1.6, 2.5):  # inner side 230 .. 27 px: every mip level
+        for offset in ((0.0, 0.0), (0.3, 0.1), (0.5, 0.5), (0.77, 0.25)):
+            T = facing_marker_pose(distance, offset)
+            rendering, (truth,) = render_markers(renderer, [(square, T)], background=255.0)
+            darkness = (255.0 - rendering.image.astype(float)) / 255.0
+            area = abs(cv2.contourArea(truth.corners_px.astype(np.float32)))
+            side_error_px = (math.sqrt(darkness.sum()) - math.sqrt(area)) / 2
+            assert abs(side_error_px) < 0.06, (distance, offset, side_error_px)
+            ys, xs = np.mgrid[:H, :W]
+            centre = np.array([(darkness * xs).sum(), (darkness * ys).sum()]) / darkness.sum()
+            assert np.linalg.norm(centre - truth.corners_px.mean(axis=0)) < 0.08
+
+
 # ------------------------------------------------------------- clipping
 
 def test_clip_polygon_near():
