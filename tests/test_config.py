@@ -156,3 +156,15 @@ def test_unreadable_and_invalid_files(site):
         load_config(bad)
     with pytest.raises(ConfigError, match="list.yaml: must be a mapping"):
         config_from_dict([1, 2], "list.yaml")
+
+
+@pytest.mark.parametrize("name, kind", [("default.yaml", "udpout"), ("sitl.yaml", "tcp")])
+def test_shipped_configs_load(name, kind):
+    config = load_config(REPO / "config" / name)
+    assert isinstance(config.source, ReplayConfig) and config.source.path.is_dir()
+    assert config.mavlink.connection.startswith(kind)
+    assert config.mavlink.origin is not None  # from the map
+
+
+def test_default_config_is_found_without_a_path():
+    assert load_config(None).path.name == "default.yaml"

@@ -21,10 +21,13 @@ import pytest
 import yaml
 
 from companion.facility_map import load_map
+from companion.source import open_recording
 from mavlink_peer import PeerProcess, free_port
 
 REPO = Path(__file__).resolve().parent.parent
-SEQUENCE = Path(os.environ.get("COMPANION_TEST_SEQUENCE", REPO / "tests" / "data" / "warehouse_figure8"))
+SEQUENCES = REPO / "tests" / "data" / "sequences"
+HOVER = SEQUENCES / "warehouse_hover"     # 1 s hovering in an aisle, PNG frames
+AISLE = SEQUENCES / "warehouse_aisle"     # a flight along an aisle at 1.4 m/s, video
 MAP = REPO / "maps" / "warehouse.yaml"
 OFFSET_RE = re.compile(r"recorded t_ns 0 is monotonic (\d+) ns")
 
@@ -110,10 +113,10 @@ def vision_frames(peer: PeerProcess, offset_ns: int, truth: Truth) -> list[tuple
 def test_replay_reaches_an_independent_peer_with_the_true_pose(tmp_path, peers):
     port = free_port()
     peer = peers(port, "--origin-reply", "on_set", "--timesync-period", "0.3")
-    process = start_daemon(write_config(tmp_path, SEQUENCE, port))
+    process = start_daemon(write_config(tmp_path, HOVER, port))
     code, stdout, stderr = finish(process)
     assert code == 0, stderr
-    truth = Truth(SEQUENCE)
+    truth = Truth(HOVER)
     offset = clock_offset_ns(stderr)
     received = peer.records()
     vision = vision_frames(peer, offset, truth)
@@ -157,26 +160,38 @@ def test_replay_reaches_an_independent_peer_with_the_true_pose(tmp_path, peers):
     assert "stage capture->send" in stderr and "stage detect" in stderr
 
 
-def spliced_sequence(tmp_path: Path, keep: list[int], blank=(), gap_after: int | None = None,
+def recorded_images(sequence: Path) -> dict[int, np.ndarray]:
+    """Every frame of a sequence (PNG files or a video), by frame number."""
+    rec = open_recording(sequence)
+    if rec.files is not None:
+        return {int(n): cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for n, f in zip(rec.frames, rec.files)}
+    capture = cv2.VideoCapture(str(rec.video))
+    images = {}
+    for n in rec.frames:
+        ok, image = capture.read()
+        assert ok, f"{rec.video}: frame {n} unreadable"
+        images[int(n)] = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    capture.release()
+    return images
+
+
+def spliced_sequence(tmp_path: Path, sequence: Path, keep: list[int], blank=(), gap_after: int | None = None,
                      gap_ns: int = 0) -> Path:
-    """A copy of the sequence with only the frames ``keep`` (original numbers, in order),
-    those in ``blank`` turned black (markers out of sight), re-timed at the recorded
-    frame period with ``gap_ns`` of silence after frame ``gap_after`` (the camera
-    delivering nothing). groundtruth.csv follows the new times."""
+    """A PNG copy of a sequence with only the frames ``keep`` (original numbers, in
+    order), those in ``blank`` turned black (markers out of sight), re-timed at the
+    recorded frame period with ``gap_ns`` of silence after frame ``gap_after`` (the
+    camera delivering nothing). groundtruth.csv follows the new times."""
     out = tmp_path / "spliced"
     (out / "frames").mkdir(parents=True)
-    rows = {int(r["frame"]): r for r in read_rows(SEQUENCE / "timestamps.csv")}
-    truth = {int(r["frame"]): r for r in read_rows(SEQUENCE / "groundtruth.csv")}
-    period_ns = int(np.median(np.diff([int(r["t_ns"]) for r in rows.values()])))
+    images = recorded_images(sequence)
+    truth = {int(r["frame"]): r for r in read_rows(sequence / "groundtruth.csv")}
+    period_ns = int(np.median(np.diff([int(r["t_ns"]) for r in truth.values()])))
     kept, kept_truth, t_ns = [], [], 0
     for frame in keep:
-        row = dict(rows[frame], t_ns=t_ns)
-        if frame in blank:
-            black = np.zeros_like(cv2.imread(str(SEQUENCE / row["file"]), cv2.IMREAD_GRAYSCALE))
-            cv2.imwrite(str(out / row["file"]), black)
-        else:
-            shutil.copy(SEQUENCE / row["file"], out / row["file"])
-        kept.append(row)
+        name = f"frames/{frame:06d}.png"
+        image = images[frame]
+        cv2.imwrite(str(out / name), np.zeros_like(image) if frame in blank else image)
+        kept.append({"frame": frame, "t_ns": t_ns, "file": name})
         kept_truth.append(dict(truth[frame], t_ns=t_ns))
         t_ns += period_ns + (gap_ns if frame == gap_after else 0)
     for name, table in (("timestamps.csv", kept), ("groundtruth.csv", kept_truth)):
@@ -184,8 +199,9 @@ def spliced_sequence(tmp_path: Path, keep: list[int], blank=(), gap_after: int |
             writer = csv.DictWriter(handle, fieldnames=list(table[0]))
             writer.writeheader()
             writer.writerows(table)
-    info = yaml.safe_load((SEQUENCE / "sequence.yaml").read_text())
+    info = yaml.safe_load((sequence / "sequence.yaml").read_text())
     info["map"] = str(MAP)
+    info.pop("video", None)
     (out / "sequence.yaml").write_text(yaml.safe_dump(info))
     return out
 
@@ -194,7 +210,7 @@ def test_markers_lost_then_seen_elsewhere_resets_instead_of_dragging(tmp_path, p
     """Markers out of sight (black frames), then the camera delivering nothing for 0.4 s,
     then the markers again far away: the stream stops, resumes, and reset_counter steps."""
     keep = list(range(0, 38)) + list(range(70, 100))
-    sequence = spliced_sequence(tmp_path, keep, blank=range(30, 38), gap_after=37, gap_ns=400_000_000)
+    sequence = spliced_sequence(tmp_path, AISLE, keep, blank=range(30, 38), gap_after=37, gap_ns=400_000_000)
     truth = Truth(sequence)
     assert np.linalg.norm(truth.ned[keep.index(70)] - truth.ned[keep.index(29)]) > 0.5, "no jump in this data"
     port = free_port()
@@ -219,7 +235,7 @@ def test_markers_lost_then_seen_elsewhere_resets_instead_of_dragging(tmp_path, p
 
 
 def test_corrupt_frames_are_skipped_counted_and_the_stream_goes_on(tmp_path, peers):
-    sequence = spliced_sequence(tmp_path, keep=list(range(0, 60)))
+    sequence = spliced_sequence(tmp_path, AISLE, keep=list(range(0, 60)))
     rows = read_rows(sequence / "timestamps.csv")
     broken = [rows[i] for i in (30, 31, 45)]
     (sequence / broken[0]["file"]).write_bytes(b"\x89PNG but no image")
@@ -258,7 +274,7 @@ def test_sigterm_mid_run_with_the_peer_going_away_and_coming_back(tmp_path, peer
     reader.start()
     port = free_port()
     first = peers(port, "--origin-reply", "on_set")
-    config = write_config(tmp_path, SEQUENCE, port, source={"loop": True},
+    config = write_config(tmp_path, HOVER, port, source={"loop": True},
                           mavlink={"fc_timeout_s": 0.8, "origin_wait_s": 3.0})
     process = start_daemon(config, env={"NOTIFY_SOCKET": notify_path, "WATCHDOG_USEC": "400000"})
     first.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=15)
@@ -286,8 +302,21 @@ def test_sigterm_mid_run_with_the_peer_going_away_and_coming_back(tmp_path, peer
     assert any(m.startswith("STATUS=") and "fps" in m for m in messages)
 
 
+def test_embedded_default_runs_with_no_arguments(peers):
+    """`companion run`: the bundled sequence and maps/warehouse.yaml to udpout:127.0.0.1:14550."""
+    peer = peers(14550, "--origin-reply", "on_set")
+    process = start_daemon(None)
+    vision = peer.wait_for("VISION_POSITION_ESTIMATE", count=10, timeout_s=20)
+    process.send_signal(signal.SIGINT)
+    code, stdout, stderr = finish(process, timeout_s=10)
+    assert code == 0, stderr
+    assert "warehouse_aisle" in stderr and "warehouse.yaml" in stderr and "udpout:127.0.0.1:14550" in stderr
+    assert all(math.isfinite(v["fields"]["x"]) and v["fields"]["covariance"][0] > 0 for v in vision)
+    assert "SIGINT: stopping" in stderr and " fps | " in stdout
+
+
 def test_config_error_exits_2_naming_the_file_and_key(tmp_path):
-    config = write_config(tmp_path, SEQUENCE, 14550, mavlink={"max_rate_hz": 80})
+    config = write_config(tmp_path, HOVER, 14550, mavlink={"max_rate_hz": 80})
     code, _, stderr = finish(start_daemon(config), timeout_s=30)
     assert code == 2
     assert f"{config}: mavlink: max_rate_hz" in stderr and "Traceback" not in stderr
