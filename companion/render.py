@@ -48,7 +48,7 @@ class RenderError(ValueError):
 
 # ------------------------------------------------------------------ textures
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: compare by identity
 class Texture:
     """A grayscale texture with its mip levels (each half the previous size).
 
@@ -87,7 +87,7 @@ def make_texture(image: np.ndarray, alpha: np.ndarray | None = None) -> Texture:
     return Texture(tuple(levels), None if alphas is None else tuple(alphas))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: compare by identity
 class TexturedQuad:
     """A flat textured parallelogram in the world.
 
@@ -416,7 +416,7 @@ def clip_polygon_near(points_cam: np.ndarray, near_m: float = NEAR_M) -> np.ndar
 
 # ------------------------------------------------------------------ markers
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: compare by identity
 class MarkerTexture:
     """A printable square marker as an image, and where its reference points are on it.
 
@@ -519,7 +519,7 @@ def lift(T_world_marker: np.ndarray, distance_m: float) -> np.ndarray:
     return T_world_marker @ frames.make_transform(np.eye(3), [0.0, 0.0, distance_m])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # holds arrays: compare by identity
 class MarkerTruth:
     """Ground truth of one rendered marker in one image.
 
@@ -1030,13 +1030,15 @@ def random_marker_scene(rng: np.random.Generator, image_size: tuple[int, int],
             outline, in_front = renderer.project(quad.corners_world, T_camera_world)
             if not in_front.all() or not renderer.inside_image(outline, margin_px=2).all():
                 continue
-            box = np.r_[outline.min(axis=0), outline.max(axis=0)]
+            board = _board_behind(rng, quad, rng.uniform(1.15, 1.6), rng.uniform(60, 200))
+            board_outline, board_in_front = renderer.project(board.corners_world, T_camera_world)
+            if not board_in_front.all():
+                continue
+            # boards must not overlap either, or one would hide part of another marker
+            box = np.r_[board_outline.min(axis=0), board_outline.max(axis=0)]
             if any(_boxes_overlap(box, other) for other in boxes):
                 continue
             boxes.append(box)
-            board_scale = rng.uniform(1.15, 1.6)
-            board_level = rng.uniform(60, 200)
-            board = _board_behind(rng, quad, board_scale, board_level)
             paper_gain = rng.uniform(0.7, 0.95)
             quads.append(board)
             quads.append(replace(quad, gain=paper_gain, offset=rng.uniform(5, 30)))

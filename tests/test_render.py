@@ -382,3 +382,30 @@ def test_mip_levels_halve_exactly():
     sizes = [level.shape for level in texture.levels]
     assert sizes[:4] == [(256, 320), (128, 160), (64, 80), (32, 40)]
     assert all(min(s) >= render.MIN_MIP_SIZE_PX for s in sizes)
+
+
+def test_rs_marker_scenes_for_the_detector_benchmark():
+    from companion import marker
+    from companion.dictionary import load_dictionary
+
+    layout = marker.MarkerLayout(parity=2)
+    markers = [render.rs_marker_texture(layout, i) for i in (0, 17, 42)]
+    assert markers[0].circles_px.shape == (12, 2)
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.minDistanceToBorder = 0
+    inner = cv2.aruco.ArucoDetector(load_dictionary("6x6").aruco(), params)
+    rng = np.random.default_rng(12)
+    errors = []
+    for size in ((W, H), (1280, 720)):
+        for _ in range(4):
+            scene = render.random_marker_scene(rng, size, markers, condition="clean")
+            corners, ids, _ = inner.detectMarkers(scene.image)
+            found = {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners)}
+            for truth in scene.truths:
+                assert truth.circles_visible.all() and markers[truth.key].marker_id == truth.marker_id
+                if truth.marker_id in found:
+                    errors.append(np.linalg.norm(found[truth.marker_id] - truth.corners_px, axis=1))
+    errors = np.concatenate(errors)
+    assert len(errors) >= 4 * 15
+    assert np.median(errors) < 0.35
