@@ -325,9 +325,12 @@ def markers_pdf(markers: list[MarkerPrint], page: str = "a4") -> bytes:
             y = slot_y + mark_reach
             draw_marker(pdf, marker, x, y)
             draw_crop_marks(pdf, x, y, marker.outer_mm)
+            labels = marker_labels(marker)
+            label_w = max(text_width_mm(text, size_pt) for text, size_pt in zip(labels, LABEL_SIZES_PT))
+            label_x = min(x, slot_x + (slot_w - label_w) / 2)  # under the marker, inside the slot
             baseline = y + marker.outer_mm + mark_reach + LABEL_LINE_MM - 0.5
-            for line, (text, size_pt) in enumerate(zip(marker_labels(marker), LABEL_SIZES_PT)):
-                pdf.text(x, baseline + line * LABEL_LINE_MM, text, size_pt)
+            for line, (text, size_pt) in enumerate(zip(labels, LABEL_SIZES_PT)):
+                pdf.text(label_x, baseline + line * LABEL_LINE_MM, text, size_pt)
         pages.append(pdf)
     for index, pdf in enumerate(pages):
         draw_footer(pdf, index, len(pages))
