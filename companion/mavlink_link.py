@@ -220,7 +220,7 @@ class MavlinkLink:
                 self.counters.transport_errors += 1
                 self._transport_broken.set()
                 return False
-        self.counters.sent[message.get_type()] += 1
+            self.counters.sent[message.get_type()] += 1
         return True
 
     def _run_heartbeat(self) -> None:
@@ -291,7 +291,8 @@ class MavlinkLink:
     def _serve(self, connection) -> None:
         """Read and react until stopped; raises on a transport error."""
         while not self._stop.is_set():
-            if self._transport_broken.is_set():
+            # pymavlink's serial class swallows write errors and only marks the port dead.
+            if self._transport_broken.is_set() or getattr(connection, "portdead", False):
                 raise _TransportLost("send failed")
             message = connection.recv_match(blocking=True, timeout=0.05)
             if message is not None and message.get_type() != "BAD_DATA":

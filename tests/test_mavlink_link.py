@@ -1,12 +1,14 @@
 """MavlinkLink against an independent MAVLink peer (libmav, its own process) on loopback."""
 from __future__ import annotations
 
+import select
 import threading
 import time
 
 import numpy as np
 import pytest
 
+from companion import mavlink_messages as mm
 from companion.mavlink_link import LinkError, LinkParams, LinkState, MavlinkLink, Origin, parse_connection
 from companion.types import Estimate
 from mavlink_peer import PeerProcess, free_port
@@ -222,3 +224,39 @@ def test_bad_connection_strings_are_rejected_with_the_string(text):
 def test_bad_link_parameters_are_rejected(bad):
     with pytest.raises(LinkError, match=next(iter(bad))):
         LinkParams(**bad)
+
+
+def test_serial_device_with_baud_rate_over_a_pseudo_terminal(links):
+    """`/dev/pts/N,921600` opens a real tty through pyserial: heartbeats go out, a FC
+    heartbeat coming in starts the origin handshake, and a vanished device is retried."""
+    import os
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(slave)  # no echo or newline translation before pyserial opens it
+    device = os.ttyname(slave)
+    link = links(connection=f"{device},921600", origin=ORIGIN, heartbeat_interval_s=0.1,
+                 reconnect_initial_s=0.05, reconnect_max_s=0.1)
+    fc = mm.mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    parser = mm.mavlink2.MAVLink(None)
+    parser.robust_parsing = True
+    seen = []
+    deadline = time.monotonic() + 10
+    while "SET_GPS_GLOBAL_ORIGIN" not in {m.get_type() for m in seen} and time.monotonic() < deadline:
+        os.write(master, mm.mavlink2.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3).pack(fc))
+        time.sleep(0.05)
+        while True:
+            ready = select.select([master], [], [], 0)[0]
+            if not ready:
+                break
+            seen += [m for m in parser.parse_buffer(os.read(master, 4096)) or [] if m.get_type() != "BAD_DATA"]
+    kinds = {m.get_type() for m in seen}
+    assert {"HEARTBEAT", "SET_GPS_GLOBAL_ORIGIN"} <= kinds
+    assert all((m.get_srcSystem(), m.get_srcComponent()) == (1, 197) for m in seen)
+    assert link.fc_system_id == 1
+    os.close(master)  # the device goes away
+    os.close(slave)
+    deadline = time.monotonic() + 5
+    while link.counters.transport_errors < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert link.counters.transport_errors >= 2  # lost, then a failed reopen at least
+    assert all(thread.is_alive() for thread in link._threads)
