@@ -144,15 +144,16 @@ def test_exposure_wander_changes_brightness_slowly():
     assert simulate.exposure_gain_at(3.0, 0.0, seed=2) == 1.0
 
 
-def test_passing_occluder_hides_markers_for_a_while(world, camera):
+def test_passing_occluder_hides_markers_for_a_while(world, camera, facility_map):
     hover = tj.hover((7.0, 5.6, 1.9), -90.0, 6.0, drift_m=0.01)
     simulator = simulate.Simulator(world, camera, hover, simulate.Realism(occluders=1), seed=3)
     (occluder,) = simulator.occluders
+    marker_b = facility_map.marker_by_symbol("B").id
     times = np.arange(0.0, 6.0, 0.1)
     hidden = []
     for t in times:
         frame = simulator.render_frame(0, int(t * 1e9))
-        b = [x for x in frame.truths if x.key == 1]  # marker B
+        b = [x for x in frame.truths if x.key == marker_b]
         hidden.append(not b or not b[0].corners_visible.all())
     hidden = np.array(hidden)
     crossing = (times >= occluder.t_start_s) & (times <= occluder.t_end_s)
