@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion import cli, frames, render, simulate, trajectory as tj
+from companion import cli, frames, simulate, trajectory as tj
 from companion.camera import CameraModel, load_camera
 from companion.dictionary import load_dictionary
 from companion.facility_map import load_map
