@@ -1,0 +1,120 @@
+"""Detector stage: the square path. OpenCV ArUco finds the inner black squares.
+
+``cv2.aruco.ArucoDetector`` with the RS marker dictionary (as a custom ArUco
+dictionary) does the adaptive thresholding, contour and quad search, and
+sub-pixel corner refinement inside OpenCV. We keep two kinds of quads:
+
+* *accepted*: ArUco identified the inner marker (it may have mis-corrected
+  bits silently; the RS decode that follows checks every one);
+* *rejected*: quads ArUco could not identify. An intact border around a
+  damaged data area (a blob, glare) lands here, and the RS parity ring can
+  still decode it. A cheap batched pre-filter on the fixed cells (border
+  black, gap ring white, enough contrast) keeps only marker-like quads.
+
+Both come back as candidate quads with the inner-square corners in the
+order ArUco gives them (clockwise in the image, starting anywhere for a
+rejected quad); the decode finds the rotation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from companion import grid_sampling
+from companion.marker import MarkerLayout
+
+
+@dataclass(frozen=True)
+class SquareParams:
+    """ArUco and pre-filter settings of the square path.
+
+    error_correction_rate: ArUco's own bit correction (0..1 of the
+        dictionary's 6 correctable bits); everything it cannot identify is
+        still RS-decoded from the rejected quads.
+    decode_rejected: RS-decode marker-like rejected quads too.
+    min_contrast: white - black levels (gray levels) for a marker-like quad.
+    min_fixed_agreement: fraction of border cells that must read black and of
+        gap-ring cells that must read white.
+    """
+
+    error_correction_rate: float = 0.6
+    decode_rejected: bool = True
+    min_contrast: float = 20.0
+    min_fixed_agreement: float = 0.85
+
+
+@dataclass(frozen=True)
+class SquareCandidates:
+    """Quads from the square path.
+
+    corners_px: (M, 4, 2) float64 inner-square corners, clockwise in the image.
+    from_aruco: (M,) bool, True where ArUco identified the quad (its corners
+        are sub-pixel refined; the others are refined after decoding).
+    """
+
+    corners_px: np.ndarray
+    from_aruco: np.ndarray
+
+
+def make_aruco_detector(layout: MarkerLayout, params: SquareParams) -> cv2.aruco.ArucoDetector:
+    """ArucoDetector for the layout's inner marker, sub-pixel corners, no border margin."""
+    aruco_params = cv2.aruco.DetectorParameters()
+    aruco_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    aruco_params.minDistanceToBorder = 0
+    aruco_params.errorCorrectionRate = params.error_correction_rate
+    return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), aruco_params)
+
+
+class SquareFinder:
+    """Finds candidate inner squares in a grayscale frame."""
+
+    def __init__(self, layout: MarkerLayout, params: SquareParams):
+        self.layout = layout
+        self.params = params
+        self._aruco = make_aruco_detector(layout, params)
+        self._inner_corners = layout.inner_corners_cells
+        fixed = layout.border_mask | grid_sampling.gap_ring_mask(layout)
+        self._fixed_cells = np.argwhere(fixed)  # (F, 2) rows, columns
+        self._fixed_is_border = layout.border_mask[fixed]
+        self._fixed_points = self._fixed_cells[:, ::-1] + 0.5  # cell centres (u, v)
+
+    def find(self, gray: np.ndarray) -> SquareCandidates:
+        corners, _, rejected = self._aruco.detectMarkers(gray)
+        accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
+        others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
+        if self.params.decode_rejected and len(others):
+            others = others[self.marker_like(gray, others)]
+        else:
+            others = others[:0]
+        return SquareCandidates(np.concatenate([accepted, others]),
+                                np.r_[np.ones(len(accepted), bool), np.zeros(len(others), bool)])
+
+    def marker_like(self, gray: np.ndarray, quads: np.ndarray) -> np.ndarray:
+        """(M,) bool: quads whose fixed cells read as an RS marker's (one sample per cell)."""
+        H = grid_sampling.homographies_from_quads(self._inner_corners, quads)
+        values, inside = grid_sampling.sample_image(gray, grid_sampling.project(H, self._fixed_points))
+        border = values[:, self._fixed_is_border]
+        gap = values[:, ~self._fixed_is_border]
+        black = grid_sampling.nan_median_rows(border)
+        white = grid_sampling.nan_median_rows(gap)
+        with np.errstate(invalid="ignore"):
+            mid = (black + white)[:, None] / 2
+            border_black = np.mean(border < mid, axis=1)
+            gap_white = np.mean(gap > mid, axis=1)
+        p = self.params
+        return ((white - black >= p.min_contrast) & (border_black >= p.min_fixed_agreement)
+                & (gap_white >= p.min_fixed_agreement))
+
+
+def refine_corners(gray: np.ndarray, corners_px: np.ndarray, cell_px: float) -> np.ndarray:
+    """Sub-pixel inner-square corners (cv2.cornerSubPix), window about half a cell.
+
+    corners_px: (4, 2); cell_px: the marker's cell size in pixels.
+    """
+    half_window = int(np.clip(round(cell_px * 0.5), 2, 6))
+    points = corners_px.astype(np.float32).reshape(-1, 1, 2).copy()
+    criteria = (cv2.TERM_CRITERIA_MAX_ITER | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    cv2.cornerSubPix(gray, points, (half_window, half_window), (-1, -1), criteria)
+    return points.reshape(4, 2).astype(np.float64)

@@ -1,0 +1,209 @@
+"""Detector stage: read a marker's N x N cell grid from the image through its homography.
+
+Everything here is batched over M candidates at once: one ``cv2.remap`` call
+samples every point of every candidate, and the cell statistics are numpy
+reductions, so the cost grows with the number of pixels read, not with a
+Python loop.
+
+Homographies map grid coordinates (u, v) in cells (``companion.marker``:
+origin at the grid's outer top-left corner, u right, v down) to image pixels
+(x right, y down, pixel centres at integers).
+"""
+from __future__ import annotations
+
+import warnings
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from companion.marker import UNKNOWN, MarkerLayout
+
+# Sub-cell sample offsets (fractions of a cell from its centre): a 3 x 3
+# pattern inside the middle 60 % of the cell, away from the blurred edges.
+SUB_CELL_OFFSETS = np.array([-0.2, 0.0, 0.2])
+REMAP_ROW = 4096
+
+
+def homographies_from_quads(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray:
+    """Batched 4-point homographies grid -> image.
+
+    grid_corners: (4, 2) grid (u, v) of the quad corners (shared by all).
+    image_corners: (M, 4, 2) pixel corners of M quads, same order.
+    Returns (M, 3, 3) float64 with H[2, 2] = 1 (NaN rows for degenerate quads).
+    """
+    q = np.asarray(image_corners, dtype=np.float64).reshape(-1, 4, 2)
+    m = len(q)
+    u, v = grid_corners[:, 0], grid_corners[:, 1]
+    x, y = q[..., 0], q[..., 1]
+    # x = (h0 u + h1 v + h2) / (h6 u + h7 v + 1), y likewise with h3..h5:
+    # h0 u + h1 v + h2 - x h6 u - x h7 v = x  and  h3 u + h4 v + h5 - y h6 u - y h7 v = y
+    a = np.zeros((m, 8, 8))
+    a[:, 0:4, 0] = u
+    a[:, 0:4, 1] = v
+    a[:, 0:4, 2] = 1.0
+    a[:, 0:4, 6] = -x * u
+    a[:, 0:4, 7] = -x * v
+    a[:, 4:8, 3] = u
+    a[:, 4:8, 4] = v
+    a[:, 4:8, 5] = 1.0
+    a[:, 4:8, 6] = -y * u
+    a[:, 4:8, 7] = -y * v
+    b = np.concatenate([x, y], axis=1)
+    h = np.full((m, 9), np.nan)
+    ok = np.abs(np.linalg.det(a)) > 1e-12
+    if ok.any():
+        h[ok, :8] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+        h[ok, 8] = 1.0
+    return h.reshape(m, 3, 3)
+
+
+def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Grid points through M homographies: H (M, 3, 3), uv (K, 2) -> (M, K, 2) pixels."""
+    p = np.einsum("mij,kj->mki", H, np.column_stack([uv, np.ones(len(uv))]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[..., :2] / p[..., 2:3]
+
+
+def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear intensities at pixel positions.
+
+    xy: (..., 2) float pixel positions. Returns (values (...) float32, inside (...) bool);
+    points outside the image (or not finite) read as NaN and inside = False.
+    """
+    shape = xy.shape[:-1]
+    flat = xy.reshape(-1, 2).astype(np.float32)
+    h, w = gray.shape
+    x, y = flat[:, 0], flat[:, 1]
+    with np.errstate(invalid="ignore"):
+        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)  # False for NaN
+    # remap wants maps under 32767 columns: lay the points out in rows of REMAP_ROW
+    count = len(flat)
+    rows = max(-(-count // REMAP_ROW), 1)
+    grid = np.full((rows * REMAP_ROW, 2), -10.0, np.float32)
+    grid[:count][inside] = flat[inside]
+    values = cv2.remap(gray, grid.reshape(rows, REMAP_ROW, 2), None, cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=0).reshape(-1)[:count].astype(np.float32)
+    values[~inside] = np.nan
+    return values.reshape(shape), inside.reshape(shape)
+
+
+@dataclass(frozen=True)
+class CellSamples:
+    """Intensity statistics of every cell of M sampled grids.
+
+    mean, spread: (M, N, N) float32, mean and max - min over the cell's
+        sub-samples (NaN where a sub-sample fell outside the image).
+    inside: (M, N, N) bool, every sub-sample of the cell is inside the image.
+    """
+
+    mean: np.ndarray
+    spread: np.ndarray
+    inside: np.ndarray
+
+
+def cell_sample_points(n_cells: int, offsets: np.ndarray = SUB_CELL_OFFSETS) -> np.ndarray:
+    """(N * N * S, 2) grid (u, v) of the sub-samples, cell-major (row, column, sample)."""
+    rows, cols = np.mgrid[0:n_cells, 0:n_cells]
+    dv, du = np.meshgrid(offsets, offsets, indexing="ij")
+    u = cols[..., None] + 0.5 + du.ravel()
+    v = rows[..., None] + 0.5 + dv.ravel()
+    return np.stack([u, v], axis=-1).reshape(-1, 2)
+
+
+def sample_cells(gray: np.ndarray, H: np.ndarray, n_cells: int,
+                 offsets: np.ndarray = SUB_CELL_OFFSETS) -> CellSamples:
+    """Sample every cell of M grids: H (M, 3, 3) grid -> image."""
+    m = len(H)
+    s = len(offsets) ** 2
+    values, inside = sample_image(gray, project(H, cell_sample_points(n_cells, offsets)))
+    values = values.reshape(m, n_cells, n_cells, s)
+    inside_cells = inside.reshape(m, n_cells, n_cells, s).all(axis=-1)
+    with np.errstate(invalid="ignore"):
+        mean = values.mean(axis=-1)
+        spread = values.max(axis=-1) - values.min(axis=-1)
+    return CellSamples(mean, spread, inside_cells)
+
+
+@dataclass(frozen=True)
+class GridLevels:
+    """Each candidate's own black and white levels, read from its fixed cells.
+
+    black, white: (M,) float32 medians of the border cells and of the gap ring.
+    border_black, gap_white: (M,) fraction of readable border cells darker
+        than the midpoint and of readable gap-ring cells brighter than it.
+    """
+
+    black: np.ndarray
+    white: np.ndarray
+    border_black: np.ndarray
+    gap_white: np.ndarray
+
+    @property
+    def contrast(self) -> np.ndarray:
+        return self.white - self.black
+
+
+def gap_ring_mask(layout: MarkerLayout) -> np.ndarray:
+    """(N, N) bool: the one-cell white ring just outside the inner black square."""
+    n, o = layout.n_cells, layout.inner_origin
+    ring = np.zeros((n, n), bool)
+    ring[o - 1:o + layout.inner_cells + 1, o - 1:o + layout.inner_cells + 1] = True
+    ring[o:o + layout.inner_cells, o:o + layout.inner_cells] = False
+    return ring
+
+
+def grid_levels(cells: CellSamples, border: np.ndarray, gap: np.ndarray) -> GridLevels:
+    """Black/white levels and fixed-cell agreement of M grids (border, gap: (N, N) bool masks)."""
+    border_values = cells.mean[:, border]
+    gap_values = cells.mean[:, gap]
+    black = nan_median_rows(border_values)
+    white = nan_median_rows(gap_values)
+    with np.errstate(invalid="ignore"):
+        mid = (black + white)[:, None] / 2
+        border_known = np.isfinite(border_values)
+        gap_known = np.isfinite(gap_values)
+        border_black = (border_known & (border_values < mid)).sum(1) / np.maximum(border_known.sum(1), 1)
+        gap_white = (gap_known & (gap_values > mid)).sum(1) / np.maximum(gap_known.sum(1), 1)
+    return GridLevels(black, white, border_black, gap_white)
+
+
+def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity: float) -> np.ndarray:
+    """(M, N, N) int8 grids: 1 black, 0 white, -1 unknown.
+
+    A cell is unknown when it is (partly) outside the image, or its mean lies
+    within ``ambiguity`` x contrast of the midpoint between the candidate's
+    black and white levels.
+    """
+    mid = ((levels.black + levels.white) / 2)[:, None, None]
+    margin = (ambiguity * levels.contrast)[:, None, None]
+    with np.errstate(invalid="ignore"):
+        grid = np.where(cells.mean < mid, 1, 0).astype(np.int8)
+        unsure = ~cells.inside | ~np.isfinite(cells.mean) | (np.abs(cells.mean - mid) < margin)
+    grid[unsure] = UNKNOWN
+    return grid
+
+
+def nan_median_rows(values: np.ndarray) -> np.ndarray:
+    """(M, K) -> (M,) median of each row's finite values (NaN for an all-NaN row).
+
+    np.nanmedian goes through masked arrays and costs ~0.5 ms a call; sorting
+    puts NaN last, so the median is read at the middle of the finite prefix.
+    """
+    ordered = np.sort(values, axis=1)
+    count = np.isfinite(ordered).sum(axis=1)
+    lo = np.maximum((count - 1) // 2, 0)
+    hi = np.maximum(count // 2, 0)
+    rows = np.arange(len(values))
+    median = (ordered[rows, lo] + ordered[rows, hi]) / 2
+    median[count == 0] = np.nan
+    return median
+
+
+@contextmanager
+def quiet_nan_warnings():
+    """Silence numpy's 'All-NaN slice' RuntimeWarning (an all-unreadable candidate) inside a block."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield

@@ -1,0 +1,158 @@
+"""The RS marker detector on rendered frames: both paths, occlusions, rotations, rejections."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from companion import frames, render
+from companion.detector import Detector, DetectorError, DetectorParams, DetectorParamsError
+from companion.grid_decode import GridDecoder
+from companion.marker import UNKNOWN, MarkerLayout
+
+W, H = 640, 480
+SIZE_M = 0.15
+
+
+def facing_pose(distance_m: float, spin_deg: float = 0.0, tilt_deg: float = 0.0,
+                offset_px=(0.0, 0.0)) -> np.ndarray:
+    """T_camera_marker of an upright marker ahead of the camera, spun about its normal, then tilted."""
+    K = render.default_camera_matrix(W, H)
+    R = (frames.rot_y(math.radians(tilt_deg)) @ frames.rot_z(math.radians(spin_deg))
+         @ render._R_camera_marker_facing())
+    centre = distance_m * np.linalg.solve(K, [K[0, 2] + offset_px[0], K[1, 2] + offset_px[1], 1.0])
+    return frames.make_transform(R, centre)
+
+
+def render_scene(textures_and_poses, occluders=(), background=150.0, blur_sigma_px=0.6, seed=0):
+    """Render markers (and occluder quads) with one camera; returns (image, truths)."""
+    renderer = render.Renderer(render.default_camera_matrix(W, H), np.zeros(5), W, H)
+    quads, placed = [], []
+    for texture, T in textures_and_poses:
+        quads.append(render.marker_quad(texture, SIZE_M, T, gain=0.9, offset=10.0))
+        placed.append((texture, T, len(quads) - 1))
+    quads.extend(occluders)
+    rendering = renderer.render(quads, np.eye(4), background)
+    truths = [render.marker_truth(renderer, rendering, t, SIZE_M, T, np.eye(4), i) for t, T, i in placed]
+    rng = np.random.default_rng(seed)
+    image = render.sensor_noise(render.gaussian_blur(rendering.image, blur_sigma_px), rng, 1.0, 0.02)
+    return image, truths
+
+
+@pytest.fixture(scope="module")
+def layout():
+    return MarkerLayout(parity=2)
+
+
+@pytest.fixture(scope="module")
+def detector():
+    return Detector()
+
+
+def by_id(detections):
+    return {d.id: d for d in detections}
+
+
+# --------------------------------------------------------------- square path
+
+@pytest.mark.parametrize("spin_deg", [0, 90, 180, 270, 33])
+def test_square_path_reads_id_and_upright_corners_at_every_rotation(layout, detector, spin_deg):
+    texture = render.rs_marker_texture(layout, 17)
+    image, (truth,) = render_scene([(texture, facing_pose(1.2, spin_deg, tilt_deg=25))])
+    (d,) = detector.detect(image)
+    assert (d.id, d.symbol, d.path, d.corrected) == (17, "R", "square", 0)
+    assert np.abs(d.corners_px - truth.corners_px).max() < 0.6
+    assert d.quality > 0.95
+    assert d.circles_px.shape == (0, 2) and d.circle_ids.shape == (0,)
+
+
+def test_square_path_finds_several_markers_of_parity_4():
+    layout4 = MarkerLayout(parity=4)
+    textures = [render.rs_marker_texture(layout4, i) for i in (3, 41)]
+    image, truths = render_scene([(textures[0], facing_pose(1.4, 10, offset_px=(-150, 0))),
+                                  (textures[1], facing_pose(1.4, -80, offset_px=(150, 20)))])
+    found = by_id(Detector(DetectorParams(parity=4)).detect(image))
+    assert sorted(found) == [3, 41]
+    for truth in truths:
+        assert np.abs(found[truth.marker_id].corners_px - truth.corners_px).max() < 0.6
+
+
+def test_blob_on_the_data_is_corrected_through_the_parity_ring(layout, detector):
+    texture = render.rs_marker_texture(layout, 5)
+    T = facing_pose(1.3, 12)
+    blob = render.blob_occluder(SIZE_M, T, np.random.default_rng(3), radius_fraction=0.2, level=25.0)
+    image, (truth,) = render_scene([(texture, T)], occluders=[blob])
+    (d,) = detector.detect(image)
+    assert (d.id, d.path) == (5, "square")
+    assert d.corrected >= 1
+    assert np.abs(d.corners_px - truth.corners_px).max() < 0.6
+
+
+def test_data_that_disagrees_with_its_parity_ring_is_rejected(layout, detector):
+    # marker 9's parity ring around marker 30's data: ArUco reads id 30 from the inner square,
+    # but the RS parity contradicts it, so nothing may be reported
+    cells = layout.cells(9)
+    inner = slice(layout.inner_origin, layout.inner_origin + layout.inner_cells)
+    cells[inner, inner] = layout.cells(30)[inner, inner]
+    px_per_cell, quiet = 16, 1
+    image = np.where(np.kron(np.pad(cells, quiet), np.ones((px_per_cell, px_per_cell))) > 0, 0, 255).astype(np.uint8)
+    corners = (layout.inner_corners_cells + quiet) * px_per_cell - 0.5
+    texture = render.MarkerTexture(image, corners, np.zeros((0, 2)), 30)
+    image, _ = render_scene([(texture, facing_pose(1.2, 20))])
+    aruco_ids = cv2.aruco.ArucoDetector(layout.dictionary.aruco()).detectMarkers(image)[1]
+    assert aruco_ids is not None and 30 in aruco_ids.ravel()
+    assert detector.detect(image) == []
+
+
+def test_marker_free_frame_yields_nothing(detector):
+    background = render.clutter_image(np.random.default_rng(4), (W, H))
+    assert detector.detect(background) == []
+
+
+def test_stage_times_are_reported(layout, detector):
+    image, _ = render_scene([(render.rs_marker_texture(layout, 1), facing_pose(1.0))])
+    detector.detect(image)
+    assert {"square", "square_decode"} <= set(detector.last_stage_ms)
+    assert all(ms >= 0 for ms in detector.last_stage_ms.values())
+
+
+# ------------------------------------------------------------------- decoder
+
+def test_decoder_corrects_scattered_damage_and_refuses_random_cells(layout):
+    decoder = GridDecoder(layout)
+    rng = np.random.default_rng(1)
+    grid = np.rot90(layout.cells(12).astype(np.int8), -3)
+    damaged = grid.copy()
+    data = np.argwhere(layout.codeword_mask)
+    for r, c in data[rng.choice(len(data), 6, replace=False)]:
+        damaged[r, c] = 1 - damaged[r, c]
+    erased = damaged.copy()
+    for r, c in data[rng.choice(len(data), 10, replace=False)]:
+        erased[r, c] = UNKNOWN
+    results = decoder.decode(np.stack([damaged, erased]))
+    assert [(r.id, r.rotation) for r in results] == [(12, 3), (12, 3)]
+    assert results[0].mismatched_cells == 6
+    noise = rng.integers(0, 2, (500, layout.n_cells, layout.n_cells)).astype(np.int8)
+    assert all(r is None for r in decoder.decode(noise))
+
+
+def test_decoder_radius_shrinks_with_erasures(layout):
+    radius = GridDecoder(layout).radius_by_known
+    assert radius[-1] == (GridDecoder(layout).min_distance - 1) // 2 - 2
+    assert np.all(np.diff(radius) >= 0)
+    assert radius[40] == -1  # too few known cells: never accept
+
+
+# -------------------------------------------------------------------- inputs
+
+def test_bad_image_and_bad_params_raise_clear_errors(detector):
+    with pytest.raises(DetectorError, match="uint8"):
+        detector.detect(np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(DetectorParamsError, match="parity"):
+        DetectorParams(parity=3)
+    with pytest.raises(DetectorParamsError, match="circles"):
+        DetectorParams(circles="sometimes")
+    with pytest.raises(TypeError):
+        DetectorParams(**{"no_such_key": 1})
