@@ -24,7 +24,7 @@ import argparse
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -155,10 +155,10 @@ class FrameRecord:
     seconds: dict
 
 
-def evaluate(sequence: SequenceFrames, facility_map: FacilityMap, detector) -> list[FrameRecord]:
+def evaluate(sequence: SequenceFrames, facility_map: FacilityMap, detector, params: PoseParams) -> list[FrameRecord]:
     camera = sequence.camera
-    joint = PoseSolver(facility_map, camera)
-    single = PoseSolver(facility_map, camera, PoseParams(max_markers=1))
+    joint = PoseSolver(facility_map, camera, params)
+    single = PoseSolver(facility_map, camera, replace(params, max_markers=1))
     records = []
     for image, t_ns, T_true in zip(sequence.images, sequence.t_ns, sequence.T_map_body):
         detections = detector.detect(image)
@@ -206,8 +206,10 @@ def stats(records: list[FrameRecord], method: str) -> str:
     return f"{posed} {np.median(position):7.3f} {np.percentile(position, 95):7.3f} {position.max():7.3f} {np.median(yaw):7.2f}"
 
 
-def report(records: list[FrameRecord], sources: str, detector_name: str) -> str:
-    lines = [f"bench_pose: {len(records)} frames ({sources}), detector {detector_name}", ""]
+def report(records: list[FrameRecord], sources: str, detector_name: str, params: PoseParams) -> str:
+    lines = [f"bench_pose: {len(records)} frames ({sources}), detector {detector_name}",
+             f"corner_sigma_px {params.corner_sigma_px}, max_position_sd_m {params.max_position_sd_m}, "
+             f"max_tilt_deg {params.max_tilt_deg}", ""]
     head = "posed  med_m   p95_m   max_m  yaw_deg"
     lines.append(f"{'':<18} {'frames':>6} | {'joint PnP':<37} | {'single-marker PnP':<37} | {'naive IPPE (no gates)':<37}")
     lines.append(f"{'':<18} {'':>6} | {head:<37} | {head:<37} | {head:<37}")
@@ -248,7 +250,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--detector", choices=("rs", "aruco"), default="rs")
     parser.add_argument("--sequence", action="append", type=Path, help="recorded sequence folder (repeatable)")
     parser.add_argument("--fps", type=float, default=10.0, help="frame rate of the rendered flights")
+    parser.add_argument("--corner-sigma", type=float, default=PoseParams.corner_sigma_px,
+                        help="PoseParams.corner_sigma_px: the detector's corner noise, px")
+    parser.add_argument("--max-position-sd", type=float, default=PoseParams.max_position_sd_m,
+                        help="PoseParams.max_position_sd_m, m")
+    parser.add_argument("--max-tilt", type=float, default=PoseParams.max_tilt_deg,
+                        help="PoseParams.max_tilt_deg: largest plausible body roll/pitch, deg")
     args = parser.parse_args(argv)
+    params = PoseParams(corner_sigma_px=args.corner_sigma, max_position_sd_m=args.max_position_sd,
+                        max_tilt_deg=args.max_tilt)
     facility_map = load_map(MAP_PATH)
     detector = make_detector(args.detector)
     if args.sequence:
@@ -257,9 +267,9 @@ def main(argv: list[str] | None = None) -> int:
         sequences = rendered(facility_map, CameraModel.from_config(simulate.DEFAULT_CAMERA, "simulate.DEFAULT_CAMERA"), args.fps)
     records = []
     for sequence in sequences:
-        records += evaluate(sequence, facility_map, detector)
+        records += evaluate(sequence, facility_map, detector, params)
     sources = ", ".join(f"{s.name}: {len(s.images)}" for s in sequences)
-    print(report(records, sources, args.detector))
+    print(report(records, sources, args.detector, params))
     return 0
 
 

@@ -67,7 +67,8 @@ class PoseParams:
         best by less than this many sigma^2 makes the result ambiguous.
     max_position_sd_m: reject a pose whose position standard deviation along
         its worst axis is above this (metres).
-    max_tilt_deg: largest plausible body roll/pitch.
+    max_tilt_deg: largest plausible body roll/pitch (ArduPilot's ANGLE_MAX
+        defaults to 30 degrees); it rejects many flipped IPPE branches.
     distinct_rotation_deg, distinct_position_m: two poses closer than both
         are the same solution.
     prior_max_age_s: the last accepted pose serves as prior this long.
@@ -82,7 +83,7 @@ class PoseParams:
     hypothesis_gate_px: float = 30.0
     ambiguity_chi2: float = 25.0
     max_position_sd_m: float = 0.10
-    max_tilt_deg: float = 60.0
+    max_tilt_deg: float = 35.0
     distinct_rotation_deg: float = 3.0
     distinct_position_m: float = 0.05
     prior_max_age_s: float = 1.0
