@@ -1,9 +1,10 @@
 """End-to-end daemon benchmark: frames per second, capture -> send latency, stage split, accuracy.
 
-    python benchmarks/bench_daemon.py [--quick] [--seconds 6]
+    python benchmarks/bench_daemon.py [--quick]
 
 For 640x480 and 1280x720 it renders a sequence of the example warehouse
-(``companion simulate``, figure-eight flight), then runs the real daemon
+(``companion simulate``: the committed aisle flight's waypoints at 1.4 m/s,
+30 fps), then runs the real daemon
 (source thread, pipeline thread, MAVLink link to a UDP sink on loopback):
 
 * **throughput**: replay as fast as the pipeline takes frames; frames per
@@ -73,7 +74,11 @@ class UdpSink:
         self.sock.close()
 
 
-def render_sequence(folder: Path, width: int, height: int, seconds: float) -> Path:
+# The committed warehouse_aisle flight: along aisle 1, looking at the racks.
+AISLE_WAYPOINTS = [(3.2, 5.6, 1.8, -40.0), (6.0, 5.2, 2.0, -50.0), (9.5, 5.4, 2.1, -45.0), (11.5, 5.0, 1.9, -60.0)]
+
+
+def render_sequence(folder: Path, width: int, height: int, waypoints) -> Path:
     camera = {"camera": {"width": width, "height": height, "hfov_deg": HFOV_DEG,
                          "distortion": [-0.05, 0.02, 0.0, 0.0, 0.0],
                          "mount": {"lever_arm_m": [0.10, 0.0, 0.05], "facing": "forward", "tilt_down_deg": 20.0}}}
@@ -81,8 +86,8 @@ def render_sequence(folder: Path, width: int, height: int, seconds: float) -> Pa
     camera_file.write_text(yaml.safe_dump(camera))
     out = folder / f"seq_{width}x{height}"
     code = cli.main(["simulate", str(out), "--map", str(REPO / "maps" / "warehouse.yaml"),
-                     "--camera", str(camera_file), "--pattern", "figure8", "--duration", str(seconds),
-                     "--center", "9.0,5.0,1.5", "--no-progress"])
+                     "--camera", str(camera_file), "--pattern", "path", "--speed", "1.4",
+                     "--waypoints", ";".join(",".join(str(v) for v in p) for p in waypoints), "--no-progress"])
     if code != 0:
         raise SystemExit(f"simulate failed for {width}x{height}")
     return out
@@ -137,19 +142,18 @@ def stage_medians(daemon: Daemon) -> dict[str, tuple[float, float]]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: 640x480 only, 1.5 s of flight")
-    parser.add_argument("--seconds", type=float, default=6.0, help="length of each rendered sequence")
+    parser.add_argument("--quick", action="store_true", help="smoke test: 640x480 only, the first leg of the flight")
     args = parser.parse_args()
-    logging.basicConfig(level=logging.WARNING)
+    logging.basicConfig(level=logging.ERROR)
     resolutions = RESOLUTIONS[:1] if args.quick else RESOLUTIONS
-    seconds = 1.5 if args.quick else args.seconds
+    waypoints = AISLE_WAYPOINTS[:2] if args.quick else AISLE_WAYPOINTS
 
     sink = UdpSink()
     throughput_rows, latency_rows, accuracy_rows = [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp)
         for width, height in resolutions:
-            sequence = render_sequence(workdir, width, height, seconds)
+            sequence = render_sequence(workdir, width, height, waypoints)
             truth = groundtruth_ned(sequence)
             baseline_fps = aruco_fps(sequence, limit=len(truth))
             fast, wall_s = run_daemon(sequence, realtime=False, port=sink.port, workdir=workdir)
