@@ -43,7 +43,7 @@ from companion.types import Estimate, Frame, PoseMeasurement
 log = logging.getLogger("companion")
 
 STAGES = ("detect", "pose", "fuse", "send")
-# The pipeline must have looped this recently for the watchdog to be fed.
+# The pipeline loop must have turned this recently for the watchdog to be fed.
 PIPELINE_STALL_S = 5.0
 SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
 
@@ -68,13 +68,11 @@ class PipelineStats:
     records: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))
     frames: int = 0
     sent: int = 0
-    last_loop_s: float = field(default_factory=time.monotonic)
 
     def add(self, record: FrameRecord) -> None:
         self.records.append(record)
         self.frames += 1
         self.sent += record.latency_ns is not None
-        self.last_loop_s = time.monotonic()
 
     def recent(self, window_s: float) -> list[FrameRecord]:
         records = list(self.records)
@@ -185,6 +183,8 @@ class Daemon:
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
         self.notifier = Notifier()
         self.stop_event = threading.Event()
+        self.failed = False
+        self._pipeline_alive_s = time.monotonic()
         self._pipeline_thread = threading.Thread(target=self._run_pipeline, name="pipeline", daemon=True)
 
     def run(self) -> int:
@@ -202,7 +202,8 @@ class Daemon:
             self._supervise()
         finally:
             self.shutdown()
-        return 0
+        # Non-zero after a failure, so that systemd's Restart=on-failure restarts us.
+        return 1 if self.failed else 0
 
     def shutdown(self) -> None:
         self.stop_event.set()
@@ -217,15 +218,18 @@ class Daemon:
     def _run_pipeline(self) -> None:
         try:
             while not self.stop_event.is_set():
+                self._pipeline_alive_s = time.monotonic()
                 frame = self.source.get(timeout_s=0.2)
                 if frame is None:
                     if self.source.finished:
                         log.info("source finished")
+                        self.failed |= self.source.error is not None
                         break
                     continue
                 self.pipeline.process(frame)
         except Exception:
             log.exception("pipeline failed")
+            self.failed = True
         finally:
             self.stop_event.set()
 
@@ -237,7 +241,12 @@ class Daemon:
         next_log = next_status + max(interval_s, 5.0)
         while not self.stop_event.wait(0.05):
             now = time.monotonic()
-            if watchdog_s and now >= next_watchdog and now - self.pipeline.stats.last_loop_s < PIPELINE_STALL_S:
+            if not self.link.alive:
+                log.error("link threads ended unexpectedly; stopping")
+                self.failed = True
+                break
+            # Feed the watchdog only while the pipeline loop turns (with or without frames).
+            if watchdog_s and now >= next_watchdog and now - self._pipeline_alive_s < PIPELINE_STALL_S:
                 self.notifier.watchdog()
                 next_watchdog = now + watchdog_s
             if self.status_stream is not None and now >= next_status:

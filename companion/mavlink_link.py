@@ -180,6 +180,11 @@ class MavlinkLink:
         self._close_connection()
 
     @property
+    def alive(self) -> bool:
+        """True while both link threads run (they only end on close() or a bug)."""
+        return all(thread.is_alive() for thread in self._threads)
+
+    @property
     def fc_seen(self) -> bool:
         return time.monotonic() - self._last_fc_heartbeat_s < self.params.fc_timeout_s
 

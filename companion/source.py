@@ -54,6 +54,7 @@ class SourceCounters:
 
 class FrameSource(Protocol):
     counters: SourceCounters
+    error: Exception | None
 
     def start(self) -> None: ...
 
@@ -121,6 +122,7 @@ class _ThreadedSource:
 
     def __init__(self):
         self.counters = SourceCounters()
+        self.error: Exception | None = None  # what ended the thread, if it failed
         self._mailbox = LatestFrame()
         self._stop = threading.Event()
         self._done = threading.Event()
@@ -151,8 +153,9 @@ class _ThreadedSource:
     def _run_guarded(self) -> None:
         try:
             self._run()
-        except Exception:
+        except Exception as error:
             log.exception("%s thread failed", self.thread_name)
+            self.error = error
         finally:
             self._done.set()
             self._mailbox.close()
