@@ -34,9 +34,11 @@ import numpy as np
 
 from companion import frames
 from companion.config import Config, ConfigError, ReplayConfig, default_config_path, load_config
+from companion.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter, TrackState
 from companion.mavlink_link import SEVERITY_INFO, SEVERITY_WARNING, MavlinkLink
 from companion.notify import Notifier
+from companion.pose import PoseSolver
 from companion.source import FrameSource, replay_source, v4l2_source
 from companion.types import Estimate, Frame, PoseMeasurement
 
@@ -162,9 +164,6 @@ class Daemon:
     """Builds the stages from a Config and runs the threads until stopped."""
 
     def __init__(self, config: Config, status_stream=None, record_frames: int = 2000):
-        from companion.detector import Detector, DetectorParams
-        from companion.pose import PoseSolver
-
         self.config = config
         self.status_stream = status_stream
         try:
