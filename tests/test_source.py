@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.source import (CaptureSource, LatestFrame, SourceError, open_recording,
+from companion.source import (CaptureSource, LatestFrame, SourceError, open_recording, v4l2_source,
                               replay_source)
 from companion.types import Frame
 
@@ -231,3 +231,19 @@ def drain_until(source, count: int, limit_s: float = 10.0) -> list[Frame]:
         if frame is not None:
             frames.append(frame)
     return frames
+
+
+def test_missing_v4l2_camera_is_retried_with_backoff_until_closed():
+    """The real V4L2 backend on a device that is not there: the thread keeps retrying
+    (doubling its wait) instead of failing, and stops promptly on close."""
+    source = v4l2_source("/dev/video97", width=640, height=480, fps=30, pixel_format="MJPG", stall_timeout_s=0.2)
+    source.backoff_initial_s, source.backoff_max_s = 0.02, 0.08
+    source.start()
+    deadline = time.monotonic() + 5
+    while source.counters.reopens < 4 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert source.counters.reopens >= 4 and not source.connected.is_set()
+    assert source.get(timeout_s=0.05) is None and not source.finished
+    source.close()
+    assert not source._thread.is_alive()
+    assert source.error is None
