@@ -123,7 +123,7 @@ class Pipeline:
         t3 = time.perf_counter_ns()
         sent = False
         if estimate is not None and self.link is not None:
-            sent = self.link.publish(estimate, self.pose_filter.velocity_covariance_ned)
+            sent = self.link.publish(estimate)
         t4 = time.perf_counter_ns()
         latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
         self._report_state_change()

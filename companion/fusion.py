@@ -186,6 +186,7 @@ class _Track:
             covariance_ned=cov,
             reset_counter=reset_counter,
             tracking=tracking,
+            velocity_covariance_ned=P[VEL, VEL].copy(),
         )
 
 
@@ -217,13 +218,6 @@ class PoseFilter:
         self._candidate_count = 0
         self._last_t_ns: int | None = None
         self._last_sent: Estimate | None = None
-
-    @property
-    def velocity_covariance_ned(self) -> np.ndarray | None:
-        """(3, 3) velocity covariance of the current track, or None."""
-        if self._track is None:
-            return None
-        return self._track.kf.P[VEL, VEL].copy()
 
     def step(self, t_ns: int, measurement: PoseMeasurement | None) -> Estimate | None:
         """Advance to capture time ``t_ns`` with this frame's pose (or None)."""

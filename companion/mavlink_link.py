@@ -188,7 +188,7 @@ class MavlinkLink:
     def fc_seen(self) -> bool:
         return time.monotonic() - self._last_fc_heartbeat_s < self.params.fc_timeout_s
 
-    def publish(self, estimate: Estimate, velocity_covariance_ned=None) -> bool:
+    def publish(self, estimate: Estimate) -> bool:
         """Send the vision messages for one estimate now; False if held back."""
         if self.state is not LinkState.STREAMING or self._connection is None:
             self.counters.held_back += 1
@@ -202,9 +202,9 @@ class MavlinkLink:
         if self.params.send_vision_position:
             messages.append(mm.vision_position_estimate(estimate))
         if self.params.send_vision_speed:
-            messages.append(mm.vision_speed_estimate(estimate, velocity_covariance_ned))
+            messages.append(mm.vision_speed_estimate(estimate))
         if self.params.send_odometry:
-            messages.append(mm.odometry(estimate, velocity_covariance_ned))
+            messages.append(mm.odometry(estimate))
         return all(self._send(message) for message in messages)
 
     def statustext(self, text: str, severity: int = SEVERITY_INFO) -> None:

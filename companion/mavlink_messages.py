@@ -57,15 +57,15 @@ def vision_position_estimate(estimate: Estimate) -> Message:
     )
 
 
-def vision_speed_estimate(estimate: Estimate, velocity_covariance_ned: np.ndarray | None) -> Message:
+def vision_speed_estimate(estimate: Estimate) -> Message:
     """VISION_SPEED_ESTIMATE (103): NED velocity with its (3, 3) covariance, row-major.
 
     An unknown covariance is sent as NaN in the first element (MAVLink's rule).
     """
-    if velocity_covariance_ned is None:
+    if estimate.velocity_covariance_ned is None:
         covariance = [math.nan] + [0.0] * 8
     else:
-        covariance = [float(v) for v in np.asarray(velocity_covariance_ned, dtype=float).reshape(9)]
+        covariance = [float(v) for v in np.asarray(estimate.velocity_covariance_ned, dtype=float).reshape(9)]
     vn, ve, vd = (float(v) for v in estimate.velocity_ned_m_s)
     return mavlink2.MAVLink_vision_speed_estimate_message(
         usec=capture_time_usec(estimate.t_ns), x=vn, y=ve, z=vd,
@@ -80,7 +80,7 @@ def odometry_quality(estimate: Estimate) -> int:
     return int(max(1, min(100, round(100.0 * (1.0 - position_std_m / QUALITY_ZERO_STD_M)))))
 
 
-def odometry(estimate: Estimate, velocity_covariance_ned: np.ndarray | None = None) -> Message:
+def odometry(estimate: Estimate) -> Message:
     """ODOMETRY (331), frame MAV_FRAME_LOCAL_FRD, child MAV_FRAME_BODY_FRD.
 
     The local frame is the estimate's earth-fixed NED-like frame (for a map
@@ -92,12 +92,12 @@ def odometry(estimate: Estimate, velocity_covariance_ned: np.ndarray | None = No
     q = frames.quaternion_from_rotation(R_ned_body)
     # v_body = R_ned_body^T v_ned
     v_body = R_ned_body.T @ np.asarray(estimate.velocity_ned_m_s, dtype=float)
-    if velocity_covariance_ned is None:
+    if estimate.velocity_covariance_ned is None:
         velocity_covariance = [math.nan] + [0.0] * 20
     else:
         C = np.full((6, 6), 0.0)
         # Cov(v_body) = R^T Cov(v_ned) R; angular rates are not estimated (0 covariance rows).
-        C[:3, :3] = R_ned_body.T @ np.asarray(velocity_covariance_ned, dtype=float) @ R_ned_body
+        C[:3, :3] = R_ned_body.T @ np.asarray(estimate.velocity_covariance_ned, dtype=float) @ R_ned_body
         velocity_covariance = upper_triangle(C)
     n, e, d = (float(v) for v in estimate.position_ned_m)
     return mavlink2.MAVLink_odometry_message(

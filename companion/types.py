@@ -102,6 +102,8 @@ class Estimate:
     covariance_ned: (6, 6) over [north, east, down, roll, pitch, yaw].
     reset_counter: incremented when the estimate jumps (re-acquisition).
     tracking: True while recent markers support the estimate.
+    velocity_covariance_ned: (3, 3) over [v_north, v_east, v_down], or None
+        if unknown.
     """
 
     t_ns: int
@@ -113,3 +115,4 @@ class Estimate:
     covariance_ned: np.ndarray
     reset_counter: int
     tracking: bool
+    velocity_covariance_ned: np.ndarray | None = None

@@ -195,7 +195,8 @@ def test_estimate_covariance_is_symmetric_positive_definite_and_carries_rotation
     assert np.all(np.linalg.eigvalsh(C) > 0)
     assert C[3, 3] == pytest.approx(math.radians(1.0) ** 2)
     assert 0 < C[5, 5] < YAW_STD_RAD ** 2
-    assert pf.velocity_covariance_ned.shape == (3, 3)
+    Cv = est.velocity_covariance_ned
+    assert Cv.shape == (3, 3) and np.all(np.linalg.eigvalsh(Cv) > 0)
 
 
 def test_roll_and_pitch_pass_through_from_the_newest_pose():

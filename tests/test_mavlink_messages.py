@@ -70,17 +70,17 @@ def test_reset_counter_wraps_at_uint8():
 
 def test_vision_speed_estimate_with_and_without_covariance():
     Cv = np.diag([0.04, 0.05, 0.06])
-    decoded, _ = roundtrip(mm.vision_speed_estimate(estimate(), Cv))
+    decoded, _ = roundtrip(mm.vision_speed_estimate(estimate(velocity_covariance_ned=Cv)))
     assert (decoded.x, decoded.y, decoded.z) == pytest.approx((0.5, 0.25, -0.1))
     assert decoded.covariance[0] == pytest.approx(0.04) and decoded.covariance[4] == pytest.approx(0.05)
     assert decoded.covariance[8] == pytest.approx(0.06) and decoded.reset_counter == 3
-    unknown = mm.vision_speed_estimate(estimate(), None)
+    unknown = mm.vision_speed_estimate(estimate(velocity_covariance_ned=None))
     assert math.isnan(unknown.covariance[0])
 
 
 def test_odometry_frames_quaternion_body_velocity_and_quality():
-    est = estimate()
-    decoded, _ = roundtrip(mm.odometry(est, np.eye(3) * 0.01))
+    est = estimate(velocity_covariance_ned=np.eye(3) * 0.01)
+    decoded, _ = roundtrip(mm.odometry(est))
     assert decoded.frame_id == 20 and decoded.child_frame_id == 12  # LOCAL_FRD, BODY_FRD
     assert decoded.estimator_type == mm.mavlink2.MAV_ESTIMATOR_TYPE_VISION
     R = frames.rotation_from_quaternion(decoded.q)
