@@ -37,12 +37,20 @@ class SquareParams:
     min_contrast: white - black levels (gray levels) for a marker-like quad.
     min_fixed_agreement: fraction of border cells that must read black and of
         gap-ring cells that must read white.
+    min_side_px: shortest side of a rejected quad worth decoding (2.5 px per
+        cell; smaller quads are mostly single cells of markers already found).
+    threshold_windows_px: ArUco's adaptive-threshold windows (min, max, step).
+        OpenCV's default (3, 23, 10) thresholds three times; (7, 27, 20)
+        twice, about 25 % faster with the same or better recall here
+        (docs/detector.md has the measurement).
     """
 
     error_correction_rate: float = 0.6
     decode_rejected: bool = True
     min_contrast: float = 20.0
     min_fixed_agreement: float = 0.85
+    min_side_px: float = 20.0
+    threshold_windows_px: tuple[int, int, int] = (7, 27, 20)
 
 
 @dataclass(frozen=True)
@@ -64,6 +72,8 @@ def make_aruco_detector(layout: MarkerLayout, params: SquareParams) -> cv2.aruco
     aruco_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     aruco_params.minDistanceToBorder = 0
     aruco_params.errorCorrectionRate = params.error_correction_rate
+    aruco_params.adaptiveThreshWinSizeMin, aruco_params.adaptiveThreshWinSizeMax, \
+        aruco_params.adaptiveThreshWinSizeStep = params.threshold_windows_px
     return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), aruco_params)
 
 
@@ -85,7 +95,8 @@ class SquareFinder:
         accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
         others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if self.params.decode_rejected and len(others):
-            others = others[self.marker_like(gray, others)]
+            others = others[_shortest_side(others) >= self.params.min_side_px]
+            others = others[self.marker_like(gray, others)] if len(others) else others
         else:
             others = others[:0]
         return SquareCandidates(np.concatenate([accepted, others]),
@@ -106,6 +117,11 @@ class SquareFinder:
         p = self.params
         return ((white - black >= p.min_contrast) & (border_black >= p.min_fixed_agreement)
                 & (gap_white >= p.min_fixed_agreement))
+
+
+def _shortest_side(quads: np.ndarray) -> np.ndarray:
+    """(M,) shortest side of M quads (M, 4, 2)."""
+    return np.linalg.norm(quads - np.roll(quads, -1, axis=1), axis=2).min(axis=1)
 
 
 def refine_corners(gray: np.ndarray, corners_px: np.ndarray, cell_px: float) -> np.ndarray:

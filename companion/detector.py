@@ -26,8 +26,13 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+import cv2
+
 from companion import grid_sampling
-from companion.detect_square import SquareFinder, SquareParams, refine_corners
+from companion.detect_circles import (CircleCandidate, CircleParams, assemble_candidates, corner_triples,
+                                      find_blobs, missing_corner_cells)
+from companion.detect_square import SquareFinder, SquareParams
+from companion.edge_refine import EdgeRefiner
 from companion.grid_decode import DEFAULT_FALSE_ACCEPT_BOUND, GridDecoder
 from companion.marker import MarkerLayout
 from companion.types import Detection
@@ -51,6 +56,8 @@ class DetectorParams:
     aruco_error_correction_rate: bits ArUco may correct itself (fraction of
         the dictionary's 6); the rest is left to the RS decode of rejected quads.
     decode_rejected: RS-decode marker-like quads ArUco rejected (blobs on data).
+    aruco_threshold_windows_px: ArUco's adaptive threshold windows (min, max,
+        step), odd sizes; two thresholds instead of OpenCV's three (3, 23, 10).
     circles: when the occluded (circles) path runs: "when_square_empty"
         (only in frames where the square path found nothing), "always", or "never".
     ambiguity: cells whose mean is within this fraction of the marker's
@@ -64,6 +71,7 @@ class DetectorParams:
     dictionary: str = "6x6"
     aruco_error_correction_rate: float = 0.6
     decode_rejected: bool = True
+    aruco_threshold_windows_px: tuple[int, int, int] = (7, 27, 20)
     circles: str = "when_square_empty"
     ambiguity: float = 0.15
     min_contrast: float = 20.0
@@ -76,6 +84,12 @@ class DetectorParams:
         if not 0.0 <= self.aruco_error_correction_rate <= 1.0:
             raise DetectorParamsError(f"aruco_error_correction_rate must be in [0, 1], got "
                                       f"{self.aruco_error_correction_rate!r}")
+        windows = tuple(self.aruco_threshold_windows_px)
+        if (len(windows) != 3 or not all(isinstance(w, int) for w in windows) or windows[0] < 3
+                or windows[0] % 2 == 0 or windows[1] < windows[0] or windows[2] < 1):
+            raise DetectorParamsError("aruco_threshold_windows_px must be [min, max, step] integers with an odd "
+                                      f"min >= 3, max >= min and step >= 1, got {self.aruco_threshold_windows_px!r}")
+        object.__setattr__(self, "aruco_threshold_windows_px", windows)
         if self.circles not in CIRCLES_MODES:
             raise DetectorParamsError(f"circles must be one of {', '.join(CIRCLES_MODES)}, got {self.circles!r}")
         if not 0.0 <= self.ambiguity < 0.5:
@@ -101,9 +115,13 @@ class Detector:
         self.decoder = GridDecoder(self.layout, params.false_accept_bound, params.min_gap)
         self.square = SquareFinder(self.layout, SquareParams(
             error_correction_rate=params.aruco_error_correction_rate,
-            decode_rejected=params.decode_rejected, min_contrast=params.min_contrast))
+            decode_rejected=params.decode_rejected, min_contrast=params.min_contrast,
+            threshold_windows_px=params.aruco_threshold_windows_px))
+        self.circle_params = CircleParams()
+        self.edges = EdgeRefiner(self.layout, min_contrast=params.min_contrast)
         self._border = self.layout.border_mask
         self._gap = grid_sampling.gap_ring_mask(self.layout)
+        self._codeword = self.layout.codeword_mask
         self.last_stage_ms: dict[str, float] = {}
 
     def detect(self, gray: np.ndarray) -> list[Detection]:
@@ -112,12 +130,15 @@ class Detector:
         clock = _StageClock()
         candidates = self.square.find(gray)
         clock.lap("square")
-        detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
+        detections = self._decode_quads(gray, candidates.corners_px)
         clock.lap("square_decode")
+        mode = self.params.circles
+        if mode == "always" or (mode == "when_square_empty" and not detections):
+            detections += self._circles_path(gray, detections, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
 
-    def _decode_quads(self, gray: np.ndarray, quads: np.ndarray, refined: np.ndarray) -> list[Detection]:
+    def _decode_quads(self, gray: np.ndarray, quads: np.ndarray) -> list[Detection]:
         """Sample, classify and decode M candidate inner squares (M, 4, 2) (clockwise corners)."""
         if len(quads) == 0:
             return []
@@ -126,19 +147,82 @@ class Detector:
         levels = grid_sampling.grid_levels(cells, self._border, self._gap)
         grids = grid_sampling.classify_cells(cells, levels, self.params.ambiguity)
         usable = levels.contrast >= self.params.min_contrast
+        index = np.flatnonzero(usable)
         results = self.decoder.decode(grids[usable])
-        detections = []
-        for index, result in zip(np.flatnonzero(usable), results):
-            if result is None:
-                continue
-            corners = quads[index]
-            if not refined[index]:
-                cell_px = np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1).mean() / 8
-                corners = refine_corners(gray, corners, cell_px)
-            detections.append(Detection(
-                symbol=result.symbol, id=result.id, corners_px=np.roll(corners, -result.rotation, axis=0),
-                path="square", corrected=result.corrected, quality=result.quality))
+        found = np.array([r is not None for r in results], bool)
+        if not found.any():
+            return []
+        index, results = index[found], [r for r in results if r is not None]
+        corners = self.edges.refine_square_corners(gray, H[index], quads[index])
+        detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(c, -r.rotation, axis=0), path="square",
+                                corrected=r.corrected, quality=r.quality) for r, c in zip(results, corners)]
         return _unique(detections)
+
+    # ------------------------------------------------------------------ circles path
+
+    def _circles_path(self, gray: np.ndarray, found: list[Detection], clock: "_StageClock") -> list[Detection]:
+        """Markers found by their corner circles, away from markers already found."""
+        blobs = find_blobs(gray, self.circle_params)
+        if found and len(blobs):
+            blobs = blobs.subset(~self._inside_found(blobs.centres_px, found))
+        clock.lap("circles_blobs")
+        candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout), self.layout)
+        clock.lap("circles_group")
+        detections = [d for d in (self._decode_circle_candidate(gray, c) for c in candidates) if d is not None]
+        clock.lap("circles_decode")
+        return _unique(detections)
+
+    def _inside_found(self, points_px: np.ndarray, found: list[Detection]) -> np.ndarray:
+        """(K,) bool: points inside the full grid outline of an already found marker."""
+        inside = np.zeros(len(points_px), bool)
+        n = self.layout.n_cells
+        outline_grid = np.array([[0, 0], [n, 0], [n, n], [0, n]], float)
+        for d in found:
+            H = grid_sampling.homographies_from_quads(self.layout.inner_corners_cells, d.corners_px[None])
+            outline = grid_sampling.project(H, outline_grid)[0].astype(np.float32)
+            inside |= np.array([cv2.pointPolygonTest(outline, (float(x), float(y)), False) >= 0
+                                for x, y in points_px])
+        return inside
+
+    def _decode_circle_candidate(self, gray: np.ndarray, candidate: CircleCandidate) -> Detection | None:
+        grid_points = self.layout.circles[candidate.circle_ids, :2]
+        H, _ = cv2.findHomography(grid_points, candidate.circles_px, 0)
+        if H is None or _circle_fit_error_cells(H, grid_points, candidate.circles_px) > 0.3:
+            return None
+        fit = self.edges.refine_homography(gray, H, grid_points, candidate.circles_px)
+        if fit.rms_cells > 0.15:
+            return None
+        cells = grid_sampling.sample_cells(gray, fit.H[None], self.layout.n_cells)
+        levels = grid_sampling.grid_levels(cells, self._border, self._gap)
+        if levels.contrast[0] < self.params.min_contrast:
+            return None
+        grid = grid_sampling.classify_cells(cells, levels, self.params.ambiguity)
+        probed = grid_sampling.erase_near_bad_fixed_cells(grid, self._border, self._gap, self._codeword)
+        region = missing_corner_cells(self.layout, candidate.corners) & self._codeword
+        hypotheses = [probed[0]]
+        if region.any():
+            with_region = probed[0].copy()
+            with_region[region] = -1
+            hypotheses.append(with_region)
+        result = self.decoder.decode_any(np.stack(hypotheses))
+        if result is None:
+            return None
+        k = result.rotation
+        inner = grid_sampling.project(fit.H[None], self.layout.inner_corners_cells)[0]
+        corner, slot = divmod(candidate.circle_ids, 3)
+        return Detection(symbol=result.symbol, id=result.id, corners_px=np.roll(inner, -k, axis=0),
+                         path="circles", corrected=result.corrected, quality=result.quality,
+                         circles_px=candidate.circles_px.copy(), circle_ids=3 * ((corner - k) % 4) + slot)
+
+
+def _circle_fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
+    """RMS distance, in cells, between the circle centres and the fitted grid points."""
+    projected = grid_sampling.project(H[None], grid_points)[0]
+    G = np.linalg.inv(H)
+    back = grid_sampling.project(G[None], points_px)[0]
+    if not (np.all(np.isfinite(projected)) and np.all(np.isfinite(back))):
+        return np.inf
+    return float(np.sqrt(np.mean(np.sum((back - grid_points) ** 2, axis=1))))
 
 
 def _unique(detections: list[Detection]) -> list[Detection]:

@@ -114,23 +114,46 @@ class GridDecoder:
                        d[rows, order[:, 1]].round().astype(int), known.sum(1).astype(int))
 
     def decode(self, grids: np.ndarray) -> list[DecodeResult | None]:
-        """Decode M sampled grids (M, N, N) int8 (1 black, 0 white, -1 unknown)."""
-        grids = np.asarray(grids, dtype=np.int8).reshape(-1, self.layout.n_cells, self.layout.n_cells)
+        """Decode M sampled grids (M, N, N) int8 (1 black, 0 white, -1 unknown), each on its own."""
+        grids = self._as_grids(grids)
         if len(grids) == 0:
             return []
         ranking = self.rank(grids)
-        radius = self.radius_by_known[ranking.known]
-        accepted = (ranking.d1 <= radius) & (ranking.d2 >= ranking.d1 + self.min_gap)
-        results: list[DecodeResult | None] = []
+        accepted = self._accepted(ranking)
+        return [self._result(grid, *self._nearest(ranking, i)) if accepted[i] else self._algebraic(grid, ranking, i)
+                for i, grid in enumerate(grids)]
+
+    def decode_any(self, hypotheses: np.ndarray) -> DecodeResult | None:
+        """Decode one candidate read several ways (H, N, N) (e.g. with more or fewer erasures).
+
+        The bounded-distance step is tried on every reading before the (slower)
+        algebraic step on any; the first reading that decodes wins.
+        """
+        grids = self._as_grids(hypotheses)
+        if len(grids) == 0:
+            return None
+        ranking = self.rank(grids)
+        accepted = self._accepted(ranking)
+        if accepted.any():
+            i = int(np.argmax(accepted))
+            return self._result(grids[i], *self._nearest(ranking, i))
         for i, grid in enumerate(grids):
-            rotation, marker_id = divmod(int(ranking.best[i]), self._n_markers)
-            if accepted[i]:
-                results.append(self._result(grid, marker_id, rotation))
-            elif self.algebraic and self._worth_algebraic(ranking, i):
-                results.append(self._algebraic(grid, marker_id, rotation))
-            else:
-                results.append(None)
-        return results
+            result = self._algebraic(grid, ranking, i)
+            if result is not None:
+                return result
+        return None
+
+    def _as_grids(self, grids: np.ndarray) -> np.ndarray:
+        return np.asarray(grids, dtype=np.int8).reshape(-1, self.layout.n_cells, self.layout.n_cells)
+
+    def _accepted(self, ranking: Ranking) -> np.ndarray:
+        radius = self.radius_by_known[ranking.known]
+        return (ranking.d1 <= radius) & (ranking.d2 >= ranking.d1 + self.min_gap)
+
+    def _nearest(self, ranking: Ranking, i: int) -> tuple[int, int]:
+        """(marker id, rotation) of grid i's nearest word."""
+        rotation, marker_id = divmod(int(ranking.best[i]), self._n_markers)
+        return marker_id, rotation
 
     def _worth_algebraic(self, ranking: Ranking, i: int) -> bool:
         """Skip grids the RS decoder's own check would reject: its result must be the unique
@@ -139,12 +162,18 @@ class GridDecoder:
         return bool(ranking.d2[i] > ranking.d1[i]
                     and ranking.d1[i] <= self.layout.max_mismatch_fraction * ranking.known[i])
 
-    def _algebraic(self, grid: np.ndarray, nearest_id: int, nearest_rotation: int) -> DecodeResult | None:
-        """The lead's RS decoder, accepted only if it agrees with the unique nearest word."""
-        result = self.layout.decode(grid)
-        if result is None or (result.id, result.rotation) != (nearest_id, nearest_rotation):
+    def _algebraic(self, grid: np.ndarray, ranking: Ranking, i: int) -> DecodeResult | None:
+        """The lead's RS decoder, accepted only if it returns grid i's unique nearest word.
+
+        Only that word's rotation is tried: any other answer would be refused.
+        """
+        if not (self.algebraic and self._worth_algebraic(ranking, i)):
             return None
-        return self._result(grid, result.id, result.rotation)
+        marker_id, rotation = self._nearest(ranking, i)
+        result = self.layout.decode(grid, rotations=(rotation,))
+        if result is None or result.id != marker_id:
+            return None
+        return self._result(grid, marker_id, rotation)
 
     def _result(self, grid: np.ndarray, marker_id: int, rotation: int) -> DecodeResult:
         upright = np.rot90(grid, rotation)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -23,7 +24,7 @@ from companion.marker import UNKNOWN, MarkerLayout
 # Sub-cell sample offsets (fractions of a cell from its centre): a 3 x 3
 # pattern inside the middle 60 % of the cell, away from the blurred edges.
 SUB_CELL_OFFSETS = np.array([-0.2, 0.0, 0.2])
-REMAP_ROW = 4096
+REMAP_ROW = 16384
 
 
 def homographies_from_quads(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray:
@@ -61,7 +62,8 @@ def homographies_from_quads(grid_corners: np.ndarray, image_corners: np.ndarray)
 
 def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Grid points through M homographies: H (M, 3, 3), uv (K, 2) -> (M, K, 2) pixels."""
-    p = np.einsum("mij,kj->mki", H, np.column_stack([uv, np.ones(len(uv))]))
+    uv1 = np.concatenate([uv, np.ones((len(uv), 1))], axis=1)
+    p = uv1[None] @ np.transpose(H, (0, 2, 1))  # (M, K, 3); matmul, not einsum: 20x faster here
     with np.errstate(divide="ignore", invalid="ignore"):
         return p[..., :2] / p[..., 2:3]
 
@@ -78,12 +80,14 @@ def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     x, y = flat[:, 0], flat[:, 1]
     with np.errstate(invalid="ignore"):
         inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)  # False for NaN
+    np.nan_to_num(flat, copy=False, nan=-10.0, posinf=-10.0, neginf=-10.0)
     # remap wants maps under 32767 columns: lay the points out in rows of REMAP_ROW
     count = len(flat)
-    rows = max(-(-count // REMAP_ROW), 1)
-    grid = np.full((rows * REMAP_ROW, 2), -10.0, np.float32)
-    grid[:count][inside] = flat[inside]
-    values = cv2.remap(gray, grid.reshape(rows, REMAP_ROW, 2), None, cv2.INTER_LINEAR,
+    cols = max(min(count, REMAP_ROW), 1)
+    rows = -(-count // cols)
+    if rows * cols != count:
+        flat = np.concatenate([flat, np.full((rows * cols - count, 2), -10.0, np.float32)])
+    values = cv2.remap(gray, flat.reshape(rows, cols, 2), None, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0).reshape(-1)[:count].astype(np.float32)
     values[~inside] = np.nan
     return values.reshape(shape), inside.reshape(shape)
@@ -103,8 +107,19 @@ class CellSamples:
     inside: np.ndarray
 
 
+@lru_cache(maxsize=8)
+def _cell_sample_points(n_cells: int, offsets: tuple[float, ...]) -> np.ndarray:
+    points = cell_sample_points_uncached(n_cells, np.array(offsets))
+    points.flags.writeable = False
+    return points
+
+
 def cell_sample_points(n_cells: int, offsets: np.ndarray = SUB_CELL_OFFSETS) -> np.ndarray:
-    """(N * N * S, 2) grid (u, v) of the sub-samples, cell-major (row, column, sample)."""
+    """(N * N * S, 2) grid (u, v) of the sub-samples, cell-major (row, column, sample); read-only."""
+    return _cell_sample_points(n_cells, tuple(float(o) for o in offsets))
+
+
+def cell_sample_points_uncached(n_cells: int, offsets: np.ndarray) -> np.ndarray:
     rows, cols = np.mgrid[0:n_cells, 0:n_cells]
     dv, du = np.meshgrid(offsets, offsets, indexing="ij")
     u = cols[..., None] + 0.5 + du.ravel()
@@ -207,3 +222,22 @@ def quiet_nan_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         yield
+
+
+def erase_near_bad_fixed_cells(grids: np.ndarray, border: np.ndarray, gap: np.ndarray,
+                               codeword: np.ndarray, reach_cells: int = 1) -> np.ndarray:
+    """Occlusion probes: codeword cells next to a fixed cell that reads wrong become unknown.
+
+    grids: (M, N, N) int8 classified grids. A border cell that reads white or
+    a gap-ring cell that reads black shows something in front of the marker
+    there; codeword cells within ``reach_cells`` (Chebyshev) of it are more
+    likely hidden than read, so they are erased rather than left as errors.
+    Returns a new (M, N, N) int8 array.
+    """
+    bad = (border[None] & (grids == 0)) | (gap[None] & (grids == 1))
+    size = 2 * reach_cells + 1
+    near_bad = np.stack([cv2.dilate(b.astype(np.uint8), np.ones((size, size), np.uint8)) > 0 for b in bad]) \
+        if len(bad) else bad
+    out = grids.copy()
+    out[near_bad & codeword[None]] = UNKNOWN
+    return out

@@ -1,0 +1,323 @@
+"""Detector stage: the occluded path. Corner circles -> marker grids, when the border is broken.
+
+Each corner of an RS marker carries one large circle and two small ones
+(``MarkerLayout.circles``): the small ones sit two cells from the large one
+along the two grid edges, with half its radius. A marker whose black border
+is hidden (a strip over one side, a corner patch) still shows at least two
+corners, so at least six circles, which fix the grid homography.
+
+1. ``find_blobs``: one adaptive threshold and one connected-components pass
+   inside OpenCV, then vectorised filters on the component table (area,
+   aspect, fill) and on a ring of 8 samples around each blob (a circle is a
+   dark, compact spot on white paper: the ring is bright all round, and the
+   spot is much darker than the ring). No contour is ever converted to
+   Python.
+2. ``corner_triples``: (large, small, small) blobs at the layout's relative
+   positions and size ratio, oriented by the handedness of the printed face.
+3. ``assemble_candidates``: from each triple (called corner 0; the decoder
+   resolves the true rotation), the other corners' circles are predicted and
+   matched blob by blob, so a corner that lost a small circle still counts.
+4. The homography from the circle centres is then refined on the inner
+   square's visible edges (``edge_refine``) and the grid sampled and decoded
+   by the detector with erasures where the image shows no marker.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from companion import grid_sampling
+from companion.marker import MarkerLayout
+
+RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
+RING_DIRECTIONS = np.stack([np.cos(RING_ANGLES), np.sin(RING_ANGLES)], axis=1)
+
+
+@dataclass(frozen=True)
+class CircleParams:
+    """Blob finding and grouping settings.
+
+    threshold_block_px, threshold_offset: adaptive mean threshold (window, and
+        how much darker than the local mean a pixel must be).
+    min_area_px: smallest blob (a small circle of a 40 px marker is ~12 px).
+    max_aspect: bounding-box elongation allowed (tilted circles are ellipses).
+    min_fill: blob area over bounding-box area.
+    ring_scale: the test ring's radius over the blob's half extent.
+    ring_dark_allowed: ring samples (of 8) allowed to be dark (a neighbour,
+        the paper's edge).
+    max_darkness_ratio: blob centre over the ring's median intensity (black
+        ink on white paper is far below 1; sensor-noise specks are not).
+    min_ring_contrast: ring median - centre, gray levels.
+    """
+
+    threshold_block_px: int = 31
+    threshold_offset: float = 7.0
+    min_area_px: int = 5
+    max_area_fraction: float = 0.01
+    max_aspect: float = 3.0
+    min_fill: float = 0.45
+    ring_scale: float = 1.4
+    ring_dark_allowed: int = 2
+    max_darkness_ratio: float = 0.7
+    min_ring_contrast: float = 10.0
+
+
+@dataclass(frozen=True)
+class Blobs:
+    """Circle-like dark blobs.
+
+    centres_px: (M, 2) float64 centroids; areas_px: (M,) float64;
+    extents_px: (M,) float64, half the larger bounding-box side.
+    """
+
+    centres_px: np.ndarray
+    areas_px: np.ndarray
+    extents_px: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.areas_px)
+
+    def subset(self, keep: np.ndarray) -> "Blobs":
+        return Blobs(self.centres_px[keep], self.areas_px[keep], self.extents_px[keep])
+
+
+def find_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
+    """Dark, compact blobs on bright surroundings in an (H, W) uint8 image."""
+    smooth = cv2.blur(gray, (3, 3))
+    binary = cv2.adaptiveThreshold(smooth, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY_INV,
+                                   params.threshold_block_px, params.threshold_offset)
+    _, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    w, h, area = stats[1:, 2], stats[1:, 3], stats[1:, 4]
+    centres = centroids[1:]
+    shape_ok = ((area >= params.min_area_px) & (area <= params.max_area_fraction * gray.size)
+                & (np.maximum(w, h) <= params.max_aspect * np.minimum(w, h))
+                & (area >= params.min_fill * w * h))
+    blobs = Blobs(centres[shape_ok], area[shape_ok].astype(np.float64),
+                  np.maximum(w, h)[shape_ok] / 2.0)
+    return blobs.subset(_ring_test(smooth, blobs, params))
+
+
+def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> np.ndarray:
+    """(M,) bool: the blob centre is much darker than a bright ring around it."""
+    if len(blobs) == 0:
+        return np.zeros(0, bool)
+    radius = params.ring_scale * blobs.extents_px + 0.5
+    ring = blobs.centres_px[:, None, :] + radius[:, None, None] * RING_DIRECTIONS[None]
+    # a ring point past the image edge reads the edge pixel (circles near the border stay testable)
+    h, w = smooth.shape
+    ring = np.clip(ring, 0, [w - 1, h - 1])
+    points = np.concatenate([blobs.centres_px[:, None, :], ring], axis=1)
+    values, _ = grid_sampling.sample_image(smooth, points)
+    centre, ring_values = values[:, 0], np.sort(values[:, 1:], axis=1)
+    ring_median = np.median(ring_values, axis=1)
+    contrast = ring_median - centre
+    return ((contrast >= params.min_ring_contrast)
+            & (centre <= params.max_darkness_ratio * ring_median)
+            & (ring_values[:, params.ring_dark_allowed] - centre >= 0.5 * contrast))
+
+
+@dataclass(frozen=True)
+class Triples:
+    """Corner groups: (large, small along the first edge, small along the second edge).
+
+    index: (T, 3) indices into the blobs, in the layout's circle order of a corner.
+    points_px: (T, 3, 2) their centres.
+    """
+
+    index: np.ndarray
+    points_px: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def corner_triples(blobs: Blobs, layout: MarkerLayout) -> Triples:
+    """Find (large, small, small) blob triples shaped like one corner of the layout.
+
+    Face-on, the small circles are 2 cells from the large one (``spacing``
+    over the large radius: 2.5 for p = 2) at half its radius, at right angles.
+    Under perspective and tilt up to ~60 deg the tests below stay loose; the
+    homography fit and the decode are the strict checks.
+    """
+    large_r, small_r = layout.circles[0, 2], layout.circles[1, 2]
+    spacing = np.linalg.norm(layout.circles[1, :2] - layout.circles[0, :2]) / large_r
+    area_ratio = (large_r / small_r) ** 2
+    c, a = blobs.centres_px, blobs.areas_px
+    if len(a) < 3:
+        return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
+    radius = np.sqrt(a / np.pi)
+    # candidate (large i, small j) pairs, in a window sorted by x so the work stays near-linear
+    reach = spacing * 1.5 * radius
+    order = np.argsort(c[:, 0], kind="stable")
+    xs = c[order, 0]
+    lo = np.searchsorted(xs, c[:, 0] - reach, "left")
+    hi = np.searchsorted(xs, c[:, 0] + reach, "right")
+    counts = hi - lo
+    i = np.repeat(np.arange(len(a)), counts)
+    j = order[np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())]
+    d = np.linalg.norm(c[j] - c[i], axis=1)
+    ratio = a[i] / a[j]
+    keep = ((ratio >= area_ratio / 2.2) & (ratio <= area_ratio * 2.2)
+            & (d >= 0.45 * spacing * radius[i]) & (d <= 1.5 * spacing * radius[i]))
+    i, j = i[keep], j[keep]
+    if len(i) < 2:
+        return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
+    # all (j1, j2) pairs sharing a large i (pairs are grouped by i already)
+    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    sizes = np.diff(np.r_[starts, len(i)])
+    triples = []
+    for start, size in zip(starts[sizes >= 2], sizes[sizes >= 2]):
+        js = j[start:start + size]
+        a1, a2 = np.triu_indices(size, 1)
+        triples.append(np.stack([np.full(len(a1), i[start]), js[a1], js[a2]], axis=1))
+    if not triples:
+        return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
+    t = np.concatenate(triples)
+    e1, e2 = c[t[:, 1]] - c[t[:, 0]], c[t[:, 2]] - c[t[:, 0]]
+    cross = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    n1, n2 = np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1)
+    cos = (e1 * e2).sum(axis=1) / (n1 * n2)
+    small_ratio = a[t[:, 1]] / a[t[:, 2]]
+    ok = ((np.abs(cos) < 0.8) & (n1 / n2 < 2.5) & (n2 / n1 < 2.5)
+          & (small_ratio < 2.5) & (small_ratio > 1 / 2.5))
+    t, cross = t[ok], cross[ok]
+    # handedness: seen from the front, (first edge) x (second edge) > 0 in image coordinates
+    t[cross < 0] = t[cross < 0][:, [0, 2, 1]]
+    return Triples(t, c[t])
+
+
+@dataclass(frozen=True)
+class CircleCandidate:
+    """A marker candidate assembled around one corner triple.
+
+    circle_ids: (K,) layout circle indices (corner 3c + slot, with the anchor
+        triple called corner 0: the true rotation is left to the decoder).
+    circles_px: (K, 2) matched blob centres; blob_index: (K,) their blob indices.
+    corners: sorted layout corners with at least one matched circle.
+    """
+
+    circle_ids: np.ndarray
+    circles_px: np.ndarray
+    blob_index: np.ndarray
+
+    @property
+    def corners(self) -> np.ndarray:
+        return np.unique(self.circle_ids // 3)
+
+
+def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, min_circles: int = 5,
+                        large_window_cells: float = 2.5, small_window_cells: float = 0.7) -> list[CircleCandidate]:
+    """Grow marker candidates from corner triples by predicting the other corners.
+
+    Each triple, taken as corner 0, fixes an affine grid -> image map. The
+    other corners are visited nearest first (the two neighbours, then the
+    diagonal). At each, the blob nearest the predicted large circle (within
+    ``large_window_cells``, wide because one corner extrapolates poorly under
+    perspective; 1 cell once two corners are known) whose size fits is taken;
+    its small circles come from a triple built on it if there is one, else
+    from the blobs nearest their predictions. Every match tightens the map (a
+    homography from six circles on). A candidate needs ``min_circles``
+    circles on at least two corners; its blobs anchor no other candidate.
+    """
+    grid = layout.circles[:, :2]
+    radius_cells = layout.circles[:, 2]
+    taken = np.zeros(len(blobs), bool)
+    blob_r = np.sqrt(blobs.areas_px / np.pi)
+    is_triple_large = np.zeros(len(blobs), bool)
+    is_triple_large[triples.index[:, 0]] = True
+    candidates = []
+    for t in range(len(triples)):
+        if taken[triples.index[t]].any():
+            continue
+        ids, index = [0, 1, 2], list(triples.index[t])
+
+        def nearest(circle: int, window_cells: float, prefer: np.ndarray | None = None) -> int | None:
+            """The blob nearest circle's prediction that fits its size (among ``prefer`` if any fit)."""
+            predicted, cell_px = _predict(_fit(grid[ids], blobs.centres_px[index]), grid[circle])
+            if not np.isfinite(cell_px):
+                return None
+            expected_r = radius_cells[circle] * cell_px
+            d = np.linalg.norm(blobs.centres_px - predicted, axis=1)
+            fits = (d < window_cells * cell_px) & (blob_r > 0.4 * expected_r) & (blob_r < 2.0 * expected_r)
+            fits[index] = False
+            if prefer is not None and (fits & prefer).any():
+                fits &= prefer
+            return int(np.flatnonzero(fits)[np.argmin(d[fits])]) if fits.any() else None
+
+        for corner in (1, 3, 2):
+            large = nearest(3 * corner, large_window_cells if len(ids) == 3 else 1.0, is_triple_large)
+            if large is None:
+                continue
+            ids.append(3 * corner)
+            index.append(large)
+            built_on_it = triples.index[triples.index[:, 0] == large]
+            if len(built_on_it):
+                smalls = built_on_it[np.argmin([_small_error(grid, ids, index, blobs, corner, tri)
+                                                for tri in built_on_it])][1:]
+                ids += [3 * corner + 1, 3 * corner + 2]
+                index += [int(smalls[0]), int(smalls[1])]
+                continue
+            for slot in (1, 2):
+                small = nearest(3 * corner + slot, small_window_cells)
+                if small is not None:
+                    ids.append(3 * corner + slot)
+                    index.append(small)
+        ids_a = np.array(ids)
+        if len(ids_a) >= min_circles and len(np.unique(ids_a // 3)) >= 2:
+            candidates.append(CircleCandidate(ids_a, blobs.centres_px[index].copy(), np.array(index)))
+            taken[index] = True
+    return candidates
+
+
+def _small_error(grid, ids, index, blobs: Blobs, corner: int, triple: np.ndarray) -> float:
+    """How far a triple's small circles lie from their predictions (px), for choosing among triples."""
+    H = _fit(grid[ids], blobs.centres_px[index])
+    predicted = grid_sampling.project(H[None], grid[[3 * corner + 1, 3 * corner + 2]])[0]
+    return float(np.linalg.norm(blobs.centres_px[triple[1:]] - predicted, axis=1).sum())
+
+
+def _fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
+    """(3, 3) grid -> image: least-squares affine below 6 points, homography from 6.
+
+    Four or five points, three of them bunched in one corner, pin a
+    homography's perspective terms badly; an affine map extrapolates better
+    until a second corner is complete.
+    """
+    if len(grid_points) < 6:
+        design = np.column_stack([grid_points, np.ones(len(grid_points))])
+        A, *_ = np.linalg.lstsq(design, image_points, rcond=None)  # [x y] = [u v 1] A
+        return np.vstack([A.T, [0.0, 0.0, 1.0]])
+    H, _ = cv2.findHomography(grid_points, image_points, 0)
+    return H if H is not None else np.full((3, 3), np.nan)
+
+
+def _predict(H: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
+    """Image position of grid point uv through H, and the local size of one cell there (px)."""
+    p = grid_sampling.project(H[None], np.array([uv, uv + [1.0, 0.0], uv + [0.0, 1.0]]))[0]
+    a, b = p[1] - p[0], p[2] - p[0]
+    cell_px = float(np.sqrt(abs(a[0] * b[1] - a[1] * b[0])))
+    return p[0], cell_px if np.all(np.isfinite(p)) else np.nan
+
+
+def missing_corner_cells(layout: MarkerLayout, present_corners: np.ndarray) -> np.ndarray:
+    """(N, N) bool: cells likely hidden, given which corners' circles were not found.
+
+    An occluder that hides a corner's circles reaches in from outside: each
+    missing corner erases its (o + 2)-cell square (parity bands, gap, border
+    and the first data row and column), and two missing corners of one side
+    erase that whole side band. Corners are in the candidate's own labels.
+    """
+    n, depth = layout.n_cells, layout.inner_origin + 2
+    corner_square = np.zeros((n, n), bool)
+    corner_square[:depth, :depth] = True
+    top_band = np.zeros((n, n), bool)
+    top_band[:depth, :] = True
+    missing = [c for c in range(4) if c not in set(np.asarray(present_corners).tolist())]
+    region = np.zeros((n, n), bool)
+    for c in missing:
+        region |= np.rot90(corner_square, -c)  # TL square turned clockwise to corner c
+        if (c + 1) % 4 in missing:
+            region |= np.rot90(top_band, -c)  # side from corner c to corner c + 1
+    return region
