@@ -28,9 +28,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 
 from companion import frames
+from companion.yaml_input import Where, read_yaml
 
 SECTION_KEYS = {"calibration_file", "width", "height", "fx_px", "fy_px", "cx_px", "cy_px", "hfov_deg", "distortion", "mount"}
 INTRINSIC_KEYS = ("width", "height", "fx_px", "fy_px", "cx_px", "cy_px", "hfov_deg", "distortion")
@@ -121,15 +121,14 @@ class CameraModel:
         A relative ``calibration_file`` is resolved against the directory of
         ``origin``.
         """
-        where = _Where(origin, "camera")
-        if not isinstance(section, dict):
-            raise where.error("must be a mapping (calibration_file or width/height/..., mount)")
+        where = Where(str(origin), CameraError, "camera", style="quoted")
+        section = where.mapping(section, "calibration_file or width/height/..., mount")
         where.reject_unknown(section, SECTION_KEYS)
         if "calibration_file" in section:
-            K, dist, width, height = _from_calibration_section(section, origin, where)
+            K, dist, width, height = _from_calibration_section(section, where)
         else:
             K, dist, width, height = _inline_intrinsics(section, where)
-        T_body_camera = mount_transform(section.get("mount", {}), where.sub("mount"))
+        T_body_camera = mount_transform(section.get("mount"), where.sub("mount"))
         return cls(K=K, dist=dist, width=width, height=height, T_body_camera=T_body_camera)
 
     @classmethod
@@ -137,7 +136,7 @@ class CameraModel:
         """Read an OpenCV calibration YAML; the mount defaults to a forward camera at the body origin."""
         K, dist, width, height = read_opencv_calibration(path)
         if T_body_camera is None:
-            T_body_camera = mount_transform({}, _Where(str(path), "mount"))
+            T_body_camera = mount_transform({}, Where(str(path), CameraError, "mount", style="quoted"))
         return cls(K=K, dist=dist, width=width, height=height, T_body_camera=T_body_camera)
 
     def to_config(self) -> dict:
@@ -163,75 +162,27 @@ class CameraModel:
 def load_camera(path) -> CameraModel:
     """Read a camera from a file: an OpenCV calibration YAML (forward mount),
     a config file with a ``camera`` section, or a bare camera section."""
-    path = str(path)
-    try:
-        text = Path(path).read_text()
-    except OSError as error:
-        raise CameraError(f"{path}: cannot read camera file: {error.strerror}") from None
-    if _is_file_storage(text):
+    if _is_file_storage(path):
         return CameraModel.from_calibration_file(path)
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise CameraError(f"{path}: not valid YAML: {error}") from None
-    if isinstance(document, dict) and "camera" in document:
-        document = document["camera"]
-    return CameraModel.from_config(document, path)
+    document = read_yaml(path, CameraError, "camera file")
+    return CameraModel.from_config(document.get("camera", document), str(path))
 
 
 # ------------------------------------------------------------------ pieces
 
-def _is_file_storage(text: str) -> bool:
+def _is_file_storage(path) -> bool:
     """OpenCV 4 writes "%YAML:1.0", OpenCV 5 "%YAML 1.2"; both tag matrices."""
-    head = text.lstrip()
-    return head.startswith(("%YAML:", "<?xml")) or "!!opencv-matrix" in text
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError):
+        return False  # read_yaml says why
+    return text.lstrip().startswith(("%YAML:", "<?xml")) or "!!opencv-matrix" in text
 
 
-class _Where:
-    """Where in which file we are, for error messages."""
-
-    def __init__(self, origin: str, prefix: str):
-        self.origin, self.prefix = origin, prefix
-
-    def sub(self, name: str) -> "_Where":
-        return _Where(self.origin, f"{self.prefix}.{name}")
-
-    def key(self, key: str) -> str:
-        return f"{self.prefix}.{key}" if self.prefix else key
-
-    def error(self, message: str, key: str | None = None) -> CameraError:
-        where = f"key '{self.key(key)}'" if key else f"section '{self.prefix}'"
-        return CameraError(f"{self.origin}: {where}: {message}")
-
-    def reject_unknown(self, mapping: dict, known: set[str]) -> None:
-        unknown = sorted(str(k) for k in mapping if k not in known)
-        if unknown:
-            raise self.error(f"unknown key (known keys: {', '.join(sorted(known))})", unknown[0])
-
-    def number(self, mapping: dict, key: str, default=None) -> float:
-        value = mapping.get(key, default)
-        if value is None:
-            raise self.error("missing", key)
-        if not _is_finite_number(value):
-            raise self.error(f"must be a finite number, got {value!r}", key)
-        return float(value)
-
-    def positive(self, mapping: dict, key: str) -> float:
-        value = self.number(mapping, key)
-        if value <= 0.0:
-            raise self.error(f"must be positive, got {value:g}", key)
-        return value
-
-    def size(self, mapping: dict, key: str) -> int:
-        value = mapping.get(key)
-        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-            raise self.error(f"must be a positive integer (pixels), got {value!r}", key)
-        return value
-
-
-def _inline_intrinsics(section: dict, where: _Where):
+def _inline_intrinsics(section: dict, where: Where):
     """(K, dist, width, height) from inline keys: fx/fy/cx/cy or hfov_deg."""
-    width, height = where.size(section, "width"), where.size(section, "height")
+    width = where.positive(section, "width", integer=True)
+    height = where.positive(section, "height", integer=True)
     pinhole = [k for k in ("fx_px", "fy_px", "cx_px", "cy_px") if k in section]
     if "hfov_deg" in section and pinhole:
         raise where.error("give either hfov_deg or fx_px/fy_px/cx_px/cy_px, not both", "hfov_deg")
@@ -246,38 +197,23 @@ def _inline_intrinsics(section: dict, where: _Where):
         fx, fy = where.positive(section, "fx_px"), where.positive(section, "fy_px")
         cx, cy = where.number(section, "cx_px"), where.number(section, "cy_px")
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    dist = _distortion(section.get("distortion", [0.0] * 5), where)
+    dist = where.numbers(section, "distortion", DISTORTION_LENGTHS, [0.0] * 5)
     _check_intrinsics(K, width, height, where, "cx_px")
     return K, dist, width, height
 
 
-def _distortion(values, where: _Where) -> np.ndarray:
-    if not isinstance(values, (list, tuple)) or len(values) not in DISTORTION_LENGTHS:
-        raise where.error(f"must be a list of {', '.join(map(str, DISTORTION_LENGTHS))} numbers, got {values!r}", "distortion")
-    for value in values:
-        if not _is_finite_number(value):
-            raise where.error(f"must hold finite numbers, got {value!r}", "distortion")
-    return np.array(values, dtype=float)
-
-
-def _check_intrinsics(K: np.ndarray, width: int, height: int, where: _Where, key: str) -> None:
+def _check_intrinsics(K: np.ndarray, width: int, height: int, where: Where, key: str) -> None:
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise where.error(f"focal lengths must be positive, got fx={K[0, 0]:g}, fy={K[1, 1]:g}", key)
     if not (0.0 <= K[0, 2] <= width and 0.0 <= K[1, 2] <= height):
         raise where.error(f"principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {width}x{height} image", key)
 
 
-def _from_calibration_section(section: dict, origin: str, where: _Where):
+def _from_calibration_section(section: dict, where: Where):
     inline = [k for k in INTRINSIC_KEYS if k in section]
     if inline:
         raise where.error("intrinsics come from calibration_file; remove the inline value", inline[0])
-    name = section["calibration_file"]
-    if not isinstance(name, str) or not name:
-        raise where.error(f"must be a file name, got {name!r}", "calibration_file")
-    path = Path(name)
-    if not path.is_absolute():
-        path = Path(origin).resolve().parent / path
-    return read_opencv_calibration(path)
+    return read_opencv_calibration(where.path(section, "calibration_file"))
 
 
 def read_opencv_calibration(path):
@@ -287,13 +223,13 @@ def read_opencv_calibration(path):
     ``image_width`` and ``image_height`` (as OpenCV's calibration samples write).
     """
     path = str(path)
-    where = _Where(path, "")
+    where = Where(path, CameraError, style="quoted")
     if not Path(path).is_file():
-        raise CameraError(f"{path}: cannot read calibration file: no such file")
+        raise where.error("cannot read calibration file: no such file")
     try:
         storage = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
     except cv2.error as error:
-        raise CameraError(f"{path}: not an OpenCV FileStorage file: {error.err}") from None
+        raise where.error(f"not an OpenCV FileStorage file: {error.err}") from None
     try:
         K = _matrix_node(storage, "camera_matrix", where)
         dist = _matrix_node(storage, "distortion_coefficients", where).reshape(-1)
@@ -311,7 +247,7 @@ def read_opencv_calibration(path):
     return K, dist, width, height
 
 
-def _matrix_node(storage, key: str, where: _Where) -> np.ndarray:
+def _matrix_node(storage, key: str, where: Where) -> np.ndarray:
     node = storage.getNode(key)
     if node.empty():
         raise where.error("missing", key)
@@ -321,7 +257,7 @@ def _matrix_node(storage, key: str, where: _Where) -> np.ndarray:
     return np.asarray(matrix, dtype=float)
 
 
-def _int_node(storage, key: str, where: _Where) -> int:
+def _int_node(storage, key: str, where: Where) -> int:
     node = storage.getNode(key)
     if node.empty() or not (node.isInt() or node.isReal()):
         raise where.error("missing or not a number", key)
@@ -331,25 +267,17 @@ def _int_node(storage, key: str, where: _Where) -> int:
     return int(value)
 
 
-def mount_transform(mount, where: _Where) -> np.ndarray:
+def mount_transform(mount, where: Where) -> np.ndarray:
     """(4, 4) T_body_camera from a ``mount`` section (lever arm + simple rotation)."""
-    if not isinstance(mount, dict):
-        raise where.error("must be a mapping (lever_arm_m, facing, tilt_down_deg or roll/pitch/yaw_deg)")
+    mount = where.mapping(mount, "lever_arm_m, facing, tilt_down_deg or roll/pitch/yaw_deg")
     where.reject_unknown(mount, MOUNT_KEYS)
-    lever_arm_m = mount.get("lever_arm_m", [0.0, 0.0, 0.0])
-    valid = isinstance(lever_arm_m, (list, tuple)) and len(lever_arm_m) == 3
-    if not valid or not all(_is_finite_number(v) for v in lever_arm_m):
-        raise where.error(f"must be [forward, right, down] in metres, got {lever_arm_m!r}", "lever_arm_m")
+    lever_arm_m = where.numbers(mount, "lever_arm_m", (3,), [0.0, 0.0, 0.0], " [forward, right, down] in metres")
     roll_deg, pitch_deg, yaw_deg = _mount_angles(mount, where)
     R_body_camera = frames.R_body_camera_from_mount(roll_deg, pitch_deg, yaw_deg)
-    return frames.make_transform(R_body_camera, [float(v) for v in lever_arm_m])
+    return frames.make_transform(R_body_camera, lever_arm_m)
 
 
-def _is_finite_number(value) -> bool:
-    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
-
-
-def _mount_angles(mount: dict, where: _Where) -> tuple[float, float, float]:
+def _mount_angles(mount: dict, where: Where) -> tuple[float, float, float]:
     """(roll, pitch, yaw) degrees of the camera FRD frame in the body."""
     explicit = [k for k in ("roll_deg", "pitch_deg", "yaw_deg") if k in mount]
     simple = [k for k in ("facing", "tilt_down_deg") if k in mount]

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from companion import frames
+from companion.yaml_input import REQUIRED, Where, read_yaml
 
 TOP_KEYS = {"name", "frame", "dictionary", "parity", "default_size_m", "markers"}
 FRAME_KEYS = {"origin", "x_bearing_deg", "geodetic_origin"}
@@ -122,33 +122,21 @@ class FacilityMap:
 
 def load_map(path) -> FacilityMap:
     """Read and validate a facility map YAML file; raises MapError."""
-    path = str(path)
-    try:
-        text = Path(path).read_text()
-    except OSError as error:
-        raise MapError(f"{path}: cannot read map: {error.strerror}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise MapError(f"{path}: not valid YAML: {error}") from None
-    return map_from_dict(data, path)
+    return map_from_dict(read_yaml(path, MapError, "map"), str(path))
 
 
 def map_from_dict(data, path: str) -> FacilityMap:
     """Validate an already parsed map document; ``path`` names it in errors."""
-    where = _Where(path)
-    if not isinstance(data, dict):
-        raise where.error("the document must be a mapping with 'frame' and 'markers'")
+    where = Where(path, MapError, style="labelled")
+    data = where.mapping(data, "the map")
     where.reject_unknown(data, TOP_KEYS)
     dictionary = _dictionary(data, where)
     parity = data.get("parity", 2)
     if parity not in PARITIES:
-        raise where.error(f"key 'parity': must be one of {PARITIES}, got {parity!r}")
-    default_size_m = data.get("default_size_m")
-    if default_size_m is not None:
-        default_size_m = _positive(default_size_m, where, "default_size_m")
-    frame = _frame(where.require(data, "frame"), where.sub("frame"))
-    markers = _markers(where.require(data, "markers"), where, dictionary, default_size_m)
+        raise where.error(f"must be one of {PARITIES}, got {parity!r}", "parity")
+    default_size_m = where.positive(data, "default_size_m", None)
+    frame = _frame(where.value(data, "frame"), where.sub("frame"))
+    markers = _markers(where.value(data, "markers"), where, dictionary, default_size_m)
     return FacilityMap(
         name=str(data.get("name", Path(path).stem)),
         path=path,
@@ -159,75 +147,50 @@ def map_from_dict(data, path: str) -> FacilityMap:
     )
 
 
-class _Where:
-    """Where in the file we are, for error messages."""
-
-    def __init__(self, path: str, context: str = ""):
-        self.path, self.context = path, context
-
-    def sub(self, context: str) -> "_Where":
-        return _Where(self.path, context)
-
-    def error(self, message: str) -> MapError:
-        prefix = f"{self.path}: {self.context}: " if self.context else f"{self.path}: "
-        return MapError(prefix + message)
-
-    def require(self, mapping: dict, key: str):
-        if key not in mapping:
-            raise self.error(f"missing key '{key}'")
-        return mapping[key]
-
-    def reject_unknown(self, mapping: dict, known: set[str]) -> None:
-        unknown = sorted(str(k) for k in mapping if k not in known)
-        if unknown:
-            raise self.error(f"unknown key '{unknown[0]}' (known keys: {', '.join(sorted(known))})")
+def geodetic_origin(section, where: Where) -> GeodeticOrigin:
+    """A ``latitude_deg, longitude_deg, altitude_m`` section (a map frame's, or the config's mavlink.origin)."""
+    section = where.mapping(section, "latitude_deg, longitude_deg, altitude_m")
+    where.reject_unknown(section, GEODETIC_KEYS)
+    origin = GeodeticOrigin(*(where.number(section, key) for key in ("latitude_deg", "longitude_deg", "altitude_m")))
+    if not -90.0 <= origin.latitude_deg <= 90.0:
+        raise where.error(f"must be in [-90, 90], got {origin.latitude_deg}", "latitude_deg")
+    if not -180.0 <= origin.longitude_deg <= 180.0:
+        raise where.error(f"must be in [-180, 180], got {origin.longitude_deg}", "longitude_deg")
+    return origin
 
 
-def _dictionary(data: dict, where: _Where):
+def _dictionary(data: dict, where: Where):
     from companion.dictionary import DictionaryError, load_dictionary
 
     name = data.get("dictionary", "6x6")
     try:
         return load_dictionary(str(name))
     except DictionaryError as error:
-        raise where.error(f"key 'dictionary': {error}") from None
+        raise where.error(str(error), "dictionary") from None
 
 
-def _frame(section, where: _Where) -> MapFrame:
-    if not isinstance(section, dict):
-        raise where.error("must be a mapping with 'origin' and 'x_bearing_deg'")
+def _frame(section, where: Where) -> MapFrame:
+    section = where.mapping(section, "origin, x_bearing_deg, geodetic_origin")
     where.reject_unknown(section, FRAME_KEYS)
-    origin = where.require(section, "origin")
+    origin = where.value(section, "origin")
     if not isinstance(origin, str) or not origin.strip():
-        raise where.error("key 'origin': describe where the origin is on site (non-empty text)")
-    bearing = _number(where.require(section, "x_bearing_deg"), where, "x_bearing_deg")
+        raise where.error("describe where the origin is on site (non-empty text)", "origin")
+    bearing = where.number(section, "x_bearing_deg")
     geodetic = section.get("geodetic_origin")
     if geodetic is not None:
-        geodetic = _geodetic(geodetic, where.sub("frame.geodetic_origin"))
+        geodetic = geodetic_origin(geodetic, where.sub("geodetic_origin"))
     return MapFrame(origin=origin.strip(), x_bearing_deg=bearing, geodetic_origin=geodetic)
 
 
-def _geodetic(section, where: _Where) -> GeodeticOrigin:
-    if not isinstance(section, dict):
-        raise where.error("must be a mapping with latitude_deg, longitude_deg, altitude_m")
-    where.reject_unknown(section, GEODETIC_KEYS)
-    values = {key: _number(where.require(section, key), where, key) for key in sorted(GEODETIC_KEYS)}
-    if not -90.0 <= values["latitude_deg"] <= 90.0:
-        raise where.error(f"key 'latitude_deg': must be in [-90, 90], got {values['latitude_deg']}")
-    if not -180.0 <= values["longitude_deg"] <= 180.0:
-        raise where.error(f"key 'longitude_deg': must be in [-180, 180], got {values['longitude_deg']}")
-    return GeodeticOrigin(**values)
-
-
-def _markers(section, where: _Where, dictionary, default_size_m) -> dict[int, MapMarker]:
+def _markers(section, where: Where, dictionary, default_size_m) -> dict[int, MapMarker]:
     if not isinstance(section, list) or not section:
-        raise where.error("key 'markers': must be a non-empty list of markers")
+        raise where.error("must be a non-empty list of markers", "markers")
     markers: dict[int, MapMarker] = {}
     for index, entry in enumerate(section):
         marker = _marker(entry, where, index, dictionary, default_size_m)
         if marker.id in markers:
             raise where.sub(_label(index, marker.symbol)).error(
-                f"key 'symbol': duplicate marker {marker.symbol!r} (id {marker.id}), already listed"
+                f"duplicate marker {marker.symbol!r} (id {marker.id}), already listed", "symbol"
             )
         markers[marker.id] = marker
     return markers
@@ -237,19 +200,15 @@ def _label(index: int, symbol: str | None) -> str:
     return f"marker {index}" + (f" ({symbol})" if symbol else "")
 
 
-def _marker(entry, where: _Where, index: int, dictionary, default_size_m) -> MapMarker:
-    if not isinstance(entry, dict):
-        raise where.sub(_label(index, None)).error("must be a mapping (symbol, size_m, position_m, ...)")
-    symbol = entry.get("symbol")
-    where = where.sub(_label(index, symbol if isinstance(symbol, str) else None))
+def _marker(entry, top: Where, index: int, dictionary, default_size_m) -> MapMarker:
+    given = entry.get("symbol") if isinstance(entry, dict) else None
+    where = top.sub(_label(index, given if isinstance(given, str) else None))
+    entry = where.mapping(entry, "symbol, size_m, position_m, ...")
     where.reject_unknown(entry, MARKER_KEYS)
     symbol, marker_id = _identity(entry, where, dictionary)
-    where = where.sub(_label(index, symbol))
-    if "size_m" in entry or default_size_m is None:
-        size_m = _positive(where.require(entry, "size_m"), where, "size_m")
-    else:
-        size_m = default_size_m
-    position_m = _vector(where.require(entry, "position_m"), 3, where, "position_m")
+    where = top.sub(_label(index, symbol))
+    size_m = where.positive(entry, "size_m", REQUIRED if default_size_m is None else default_size_m)
+    position_m = where.numbers(entry, "position_m", (3,))
     R_map_marker = _orientation(entry, where)
     return MapMarker(
         symbol=symbol,
@@ -260,80 +219,63 @@ def _marker(entry, where: _Where, index: int, dictionary, default_size_m) -> Map
     )
 
 
-def _identity(entry: dict, where: _Where, dictionary) -> tuple[str, int]:
+def _identity(entry: dict, where: Where, dictionary) -> tuple[str, int]:
     symbols = list(dictionary.symbols)
     if "symbol" not in entry and "id" not in entry:
-        raise where.error("missing key 'symbol' (or 'id')")
+        raise where.error("missing (or give 'id')", "symbol")
     marker_id = None
     if "id" in entry:
         marker_id = entry["id"]
         if isinstance(marker_id, bool) or not isinstance(marker_id, int) or not 0 <= marker_id < len(symbols):
-            raise where.error(f"key 'id': must be an integer 0-{len(symbols) - 1}, got {marker_id!r}")
+            raise where.error(f"must be an integer 0-{len(symbols) - 1}, got {marker_id!r}", "id")
     if "symbol" not in entry:
         return symbols[marker_id], marker_id
     symbol = str(entry["symbol"]).upper()
     if symbol not in symbols:
-        raise where.error(f"key 'symbol': unknown symbol {entry['symbol']!r} (dictionary has {', '.join(symbols)})")
+        raise where.error(f"unknown symbol {entry['symbol']!r} (dictionary has {', '.join(symbols)})", "symbol")
     if marker_id is not None and symbols.index(symbol) != marker_id:
-        raise where.error(f"key 'id': {marker_id} is not the id of symbol {symbol!r} ({symbols.index(symbol)})")
+        raise where.error(f"{marker_id} is not the id of symbol {symbol!r} ({symbols.index(symbol)})", "id")
     return symbol, symbols.index(symbol)
 
 
-def _orientation(entry: dict, where: _Where) -> np.ndarray:
+def _orientation(entry: dict, where: Where) -> np.ndarray:
     """(3, 3) R_map_marker from exactly one of facing / rpy_deg / quaternion_wxyz."""
     given = [key for key in ROTATION_KEYS if key in entry]
     if len(given) != 1:
         found = ", ".join(given) if given else "none"
-        raise where.error(f"key 'facing': give exactly one of {', '.join(ROTATION_KEYS)} (found: {found})")
+        raise where.error(f"give exactly one of {', '.join(ROTATION_KEYS)} (found: {found})", "facing")
     if "rotation_deg" in entry and given[0] != "facing":
-        raise where.error("key 'rotation_deg': only allowed with 'facing'")
+        raise where.error("only allowed with 'facing'", "rotation_deg")
     if given[0] == "facing":
         return _facing(entry, where)
     if given[0] == "rpy_deg":
-        roll, pitch, yaw = np.radians(_vector(entry["rpy_deg"], 3, where, "rpy_deg"))
+        roll, pitch, yaw = np.radians(where.numbers(entry, "rpy_deg", (3,)))
         return frames.rotation_from_euler_321(roll, pitch, yaw)
-    q = _vector(entry["quaternion_wxyz"], 4, where, "quaternion_wxyz")
+    q = where.numbers(entry, "quaternion_wxyz", (4,))
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise where.error(f"key 'quaternion_wxyz': must be a unit quaternion, norm is {norm:.4g}")
+        raise where.error(f"must be a unit quaternion, norm is {norm:.4g}", "quaternion_wxyz")
     return frames.rotation_from_quaternion(q)
 
 
-def _facing(entry: dict, where: _Where) -> np.ndarray:
+def _facing(entry: dict, where: Where) -> np.ndarray:
     """Base orientation for the facing direction, then the in-plane rotation."""
     facing = entry["facing"]
-    if isinstance(facing, str):
-        if facing.strip().lower() not in FACING_WORDS:
-            raise where.error(
-                f"key 'facing': {facing!r} is not a direction; use one of "
-                f"{', '.join(FACING_WORDS)} or a wall heading in degrees"
-            )
+    if not isinstance(facing, str):
+        facing = where.number(entry, "facing")  # a wall heading, degrees
+    elif facing.strip().lower() in FACING_WORDS:
         facing = FACING_WORDS[facing.strip().lower()]
+    else:
+        raise where.error(
+            f"{facing!r} is not a direction; use one of {', '.join(FACING_WORDS)} or a wall heading in degrees",
+            "facing",
+        )
     if facing == "up":
         R_base = frames.R_map_marker_facing_up()
     elif facing == "down":
         R_base = frames.R_map_marker_facing_down()
     else:
-        R_base = frames.R_map_marker_on_wall(_number(facing, where, "facing"))
-    rotation_deg = _number(entry.get("rotation_deg", 0.0), where, "rotation_deg")
+        R_base = frames.R_map_marker_on_wall(facing)
+    rotation_deg = where.number(entry, "rotation_deg", 0.0)
     # In-plane rotation about the marker's own face normal (counter-clockwise as its viewer sees it).
     return R_base @ frames.rot_z(math.radians(rotation_deg))
-
-
-def _number(value, where: _Where, key: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise where.error(f"key '{key}': must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _positive(value, where: _Where, key: str) -> float:
-    number = _number(value, where, key)
-    if number <= 0.0:
-        raise where.error(f"key '{key}': must be positive, got {number:g}")
-    return number
-
-
-def _vector(value, length: int, where: _Where, key: str) -> np.ndarray:
-    if not isinstance(value, (list, tuple)) or len(value) != length:
-        raise where.error(f"key '{key}': must be a list of {length} numbers, got {value!r}")
-    return np.array([_number(v, where, key) for v in value])
