@@ -27,9 +27,9 @@ a sparse template:
   levels (image = black + contrast * template, least squares), and composes
   the inverse of the step into the homography;
 * the fit is kept only if its misfit is no larger than at the initial
-  corners, the marker kept its contrast and no corner moved a cell or more;
-  otherwise the initial corners come back (``refined`` False, ``status``
-  says why).
+  corners and small in itself (the model matches), the marker kept its
+  contrast and no corner moved two cells or more; otherwise the initial
+  corners come back (``refined`` False, ``status`` says why).
 
 Points outside the image read as NaN and are left out, so a marker partly
 outside the frame is aligned on what is visible. A marker is a homography of
@@ -56,7 +56,7 @@ import numpy as np
 
 from companion.marker import MarkerLayout, marker_image
 
-RefineStatus = Literal["refined", "worse", "diverged", "low_contrast", "not_visible", "degenerate"]
+RefineStatus = Literal["refined", "worse", "mismatch", "diverged", "low_contrast", "not_visible", "degenerate"]
 MAX_DISTORTION_COEFFICIENTS = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (OpenCV's rational model)
 
 
@@ -75,6 +75,9 @@ class RefineParams:
     max_shift_cells: refined corners this far (in cells) or further from the
         initial ones are a divergence: the initial corners are kept.
     min_contrast: white - black gray levels the fitted marker must keep.
+    max_residual: the largest misfit (``MarkerFit.residual``) of a fit that
+        is kept; above it the model does not match the image (a wrong lock;
+        correct fits measure 0.1-0.45, wrong locks 0.9 and more).
     min_visible_fraction: of the template points that must lie in the image.
     cache_size: templates (marker id x scale) kept.
     """
@@ -83,8 +86,9 @@ class RefineParams:
     max_px_per_cell: int = 6
     max_iterations: int = 6
     tolerance_px: float = 0.005
-    max_shift_cells: float = 1.0
-    min_contrast: float = 10.0
+    max_shift_cells: float = 2.0
+    min_contrast: float = 5.0
+    max_residual: float = 0.6
     min_visible_fraction: float = 0.3
     cache_size: int = 64
 
@@ -100,6 +104,8 @@ class RefineParams:
             raise MarkerRefineError(f"max_shift_cells must be > 0, got {self.max_shift_cells!r}")
         if not self.min_contrast > 0:
             raise MarkerRefineError(f"min_contrast must be > 0, got {self.min_contrast!r}")
+        if not self.max_residual > 0:
+            raise MarkerRefineError(f"max_residual must be > 0, got {self.max_residual!r}")
         if not 0 < self.min_visible_fraction <= 1:
             raise MarkerRefineError(f"min_visible_fraction must be in (0, 1], got {self.min_visible_fraction!r}")
         if self.cache_size < 1:
@@ -120,7 +126,8 @@ class MarkerFit:
     circles_in_image: (12,) bool, that centre lies inside the frame.
     refined: the alignment held (else the geometry is the initial corners').
     status: "refined", or why the initial corners were kept: "worse" (the
-        misfit grew), "diverged" (moved a cell or more, or a step failed),
+        misfit grew), "mismatch" (the misfit stayed above ``max_residual``),
+        "diverged" (moved two cells or more, or a step failed),
         "low_contrast", "not_visible", "degenerate" (corners not a quad).
     residual: RMS misfit between the marker model and the image over the
         template points read, as a fraction of the fitted contrast, at the
@@ -147,7 +154,7 @@ class MarkerFit:
 class _Template:
     """The edge points of one marker drawn at one scale, ready for inverse-compositional steps.
 
-    points: (1, P, 2) float32 normalised grid coordinates.
+    points: (1, P, 2) float32 normalised grid coordinates; x, y: (P,) the same, contiguous.
     values: (P,) float32 template intensity, 0 black .. 1 white.
     steepest: (P, 8) float32 grad T . dW/dp (the steepest-descent images).
     hessian_inverse: (8, 8) float64 (steepest^T steepest)^-1.
@@ -155,6 +162,8 @@ class _Template:
     """
 
     points: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
     values: np.ndarray
     steepest: np.ndarray
     hessian_inverse: np.ndarray
@@ -181,54 +190,76 @@ class _Lens:
     """OpenCV's distortion model (up to 8 coefficients) between ideal and frame pixels."""
 
     def __init__(self, K: np.ndarray, dist: np.ndarray):
-        self.K = np.asarray(K, dtype=np.float64).reshape(3, 3)
+        K = np.asarray(K, dtype=np.float64)
         dist = np.asarray(dist, dtype=np.float64).ravel()
-        if len(dist) > MAX_DISTORTION_COEFFICIENTS or not np.all(np.isfinite(dist)) or not np.all(np.isfinite(self.K)):
-            raise MarkerRefineError(f"camera: need finite K and at most {MAX_DISTORTION_COEFFICIENTS} distortion "
-                                    f"coefficients (k1 k2 p1 p2 k3 k4 k5 k6), got {len(dist)}")
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise MarkerRefineError(f"camera.K must be a finite (3, 3) intrinsic matrix, got {K.tolist()}")
+        if len(dist) > MAX_DISTORTION_COEFFICIENTS or not np.all(np.isfinite(dist)):
+            raise MarkerRefineError(f"camera.dist must be at most {MAX_DISTORTION_COEFFICIENTS} finite coefficients "
+                                    f"(k1 k2 p1 p2 k3 k4 k5 k6), got {dist.tolist()}")
+        self.K = K
         self.dist = np.zeros(MAX_DISTORTION_COEFFICIENTS)
         self.dist[:len(dist)] = dist
+        self._tangential = bool(np.any(self.dist[2:4]))
+        self._rational = bool(np.any(self.dist[5:8]))
 
-    def distort(self, xy: np.ndarray) -> np.ndarray:
-        """(..., 2) float32 ideal pixels -> frame pixels."""
-        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
-        k1, k2, p1, p2, k3, k4, k5, k6 = (np.float32(c) for c in self.dist)
-        x = (xy[..., 0] - np.float32(cx)) * np.float32(1.0 / fx)
-        y = (xy[..., 1] - np.float32(cy)) * np.float32(1.0 / fy)
-        r2 = x * x + y * y
+    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ideal pixel coordinates -> frame pixels; x, y: float arrays of one shape (float32 stays float32)."""
+        t = x.dtype.type
+        fx, fy, cx, cy = (t(v) for v in (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]))
+        k1, k2, p1, p2, k3, k4, k5, k6 = (t(v) for v in self.dist)
+        u = (x - cx) * (1 / fx)
+        v = (y - cy) * (1 / fy)
+        r2 = u * u + v * v
         # radial = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
-        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-        xy_product = 2 * x * y
-        # x_d = x radial + 2 p1 x y + p2 (r^2 + 2 x^2), y_d = y radial + p1 (r^2 + 2 y^2) + 2 p2 x y
-        xd = x * radial + p1 * xy_product + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + p2 * xy_product
-        return np.stack([xd * np.float32(fx) + np.float32(cx), yd * np.float32(fy) + np.float32(cy)], axis=-1)
+        radial = ((k3 * r2 + k2) * r2 + k1) * r2 + 1
+        if self._rational:
+            radial /= ((k6 * r2 + k5) * r2 + k4) * r2 + 1
+        ud, vd = u * radial, v * radial
+        if self._tangential:
+            # u_d += 2 p1 u v + p2 (r^2 + 2 u^2),  v_d += p1 (r^2 + 2 v^2) + 2 p2 u v
+            uv2 = 2 * u * v
+            ud += p1 * uv2 + p2 * (r2 + 2 * u * u)
+            vd += p1 * (r2 + 2 * v * v) + p2 * uv2
+        return ud * fx + cx, vd * fy + cy
 
-    def undistort(self, xy: np.ndarray) -> np.ndarray:
+    def distort_points(self, xy: np.ndarray) -> np.ndarray:
+        """(K, 2) float64 ideal pixels -> frame pixels."""
+        x, y = self.distort(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]))
+        return np.column_stack([x, y])
+
+    def undistort_points(self, xy: np.ndarray) -> np.ndarray:
         """(K, 2) float64 frame pixels -> ideal pixels."""
-        return cv2.undistortPoints(np.asarray(xy, dtype=np.float64).reshape(-1, 1, 2), self.K, self.dist,
-                                   P=self.K).reshape(-1, 2)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
+        return cv2.undistortPoints(np.asarray(xy, dtype=np.float64).reshape(-1, 1, 2), self.K, self.dist, R=None,
+                                   P=self.K, criteria=criteria).reshape(-1, 2)
 
 
 @dataclass(frozen=True, eq=False)
 class _View:
     """The frame around one marker as float32, read at ideal-pixel positions.
 
-    crop: (h, w) float32. S_crop_image: (3, 3) frame pixels -> crop pixels.
+    crop: (h, w) float32. S_crop_image: (3, 3) frame pixels -> crop pixels (a shift).
     """
 
     crop: np.ndarray
     S_crop_image: np.ndarray
     lens: _Lens | None
 
-    def read(self, points: np.ndarray, M: np.ndarray) -> np.ndarray:
-        """(P,) float32 frame intensities at the (1, P, 2) points through M (NaN outside the frame)."""
+    def read(self, template: _Template, M: np.ndarray) -> np.ndarray:
+        """(P,) float32 frame intensities at the template points through M (NaN outside the frame)."""
         if self.lens is None:
-            xy = cv2.perspectiveTransform(points, self.S_crop_image @ M)
-        else:
-            xy = self.lens.distort(cv2.perspectiveTransform(points, M))
-            xy += self.S_crop_image[:2, 2].astype(np.float32)  # frame -> crop pixels: a shift
-        return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+            xy = cv2.perspectiveTransform(template.points, self.S_crop_image @ M)
+            return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=np.nan)[0]
+        m = M.astype(np.float32).ravel()
+        x, y = template.x, template.y
+        # ideal pixel = M (x, y, 1) / w, w = m6 x + m7 y + m8
+        w = 1 / (m[6] * x + m[7] * y + m[8])
+        x_frame, y_frame = self.lens.distort((m[0] * x + m[1] * y + m[2]) * w, (m[3] * x + m[4] * y + m[5]) * w)
+        x_frame += np.float32(self.S_crop_image[0, 2])
+        y_frame += np.float32(self.S_crop_image[1, 2])
+        return cv2.remap(self.crop, x_frame[None], y_frame[None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=np.nan)[0]
 
 
@@ -264,7 +295,7 @@ class MarkerRefiner:
         marker's upright orientation (rotation already corrected by the decode).
         """
         gray, initial = self._check(gray, marker_id, corners_px)
-        initial_ideal = initial if self.lens is None else self.lens.undistort(initial)
+        initial_ideal = initial if self.lens is None else self.lens.undistort_points(initial)
         H0 = _homography(self._corners_grid, initial_ideal)
         if H0 is None:
             return self._fit(gray, initial, None, "degenerate")
@@ -331,7 +362,7 @@ class MarkerRefiner:
 
     def _sample(self, view: _View, M: np.ndarray, template: _Template) -> _Sample | None:
         """Read the frame at the template points and fit its levels; None if too little is in the frame."""
-        image = view.read(template.points, M)
+        image = view.read(template, M)
         inside = np.isfinite(image)
         count, total = int(np.count_nonzero(inside)), len(image)
         if count < self.params.min_visible_fraction * total:
@@ -363,6 +394,8 @@ class MarkerRefiner:
             return "diverged"
         if not last.rms <= first.rms:
             return "worse"
+        if not last.rms <= self.params.max_residual:
+            return "mismatch"
         return "refined"
 
     # ---------------------------------------------------------------- helpers
@@ -381,9 +414,7 @@ class MarkerRefiner:
 
     def _to_frame(self, ideal_px: np.ndarray) -> np.ndarray:
         """(K, 2) ideal pixels -> frame pixels (float64)."""
-        if self.lens is None:
-            return ideal_px
-        return self.lens.distort(ideal_px.astype(np.float32)).astype(np.float64)
+        return ideal_px if self.lens is None else self.lens.distort_points(ideal_px)
 
     def _view(self, gray: np.ndarray, H: np.ndarray) -> _View | None:
         """The frame around the marker (grid H: grid -> ideal pixels), None if it is all outside."""
@@ -461,7 +492,9 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
     dW_dp_y = np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1)
     steepest = grad[:, :1] * dW_dp_x + grad[:, 1:] * dW_dp_y
     values = image[rows, columns].astype(np.float32)
-    return _Template(points=xy[None].astype(np.float32), values=values, steepest=steepest.astype(np.float32),
+    points = xy.astype(np.float32)
+    return _Template(points=points[None], x=points[:, 0].copy(), y=points[:, 1].copy(), values=values,
+                     steepest=steepest.astype(np.float32),
                      hessian_inverse=np.linalg.inv(steepest.T @ steepest), sum=float(values.sum()),
                      sum_squares=float(values @ values))
 
