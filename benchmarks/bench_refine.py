@@ -25,8 +25,9 @@ Each detection matched (by id) to a fully visible marker is then refined by
 Errors are Euclidean distances of each corner from the truth, in pixels;
 times are the median per marker of the second call (template caches warm),
 and ``x_subpix`` is that time over ``cornersubpix``'s in the same row.
-Two smaller tables follow: lens distortion (``lk`` without and with the
-camera model) and the detector's occluded (circles-path) detections.
+Smaller tables follow: ``lk`` started from the corners ``Detector`` gives
+today (square path), lens distortion (``lk`` without and with the camera
+model), and the detector's occluded (circles-path) detections.
 
     PYTHONPATH=. python benchmarks/bench_refine.py [--quick] [--scenes 10] [--seed 1]
 """
@@ -146,7 +147,8 @@ class Ecc:
 
     def refine(self, gray: np.ndarray, marker_id: int, corners_px: np.ndarray) -> np.ndarray:
         layout, n = self.layout, self.layout.n_cells
-        area = 0.5 * abs(np.cross(corners_px[2] - corners_px[0], corners_px[3] - corners_px[1]))
+        (x0, y0), (x1, y1), (x2, y2), (x3, y3) = corners_px.tolist()
+        area = 0.5 * abs((x2 - x0) * (y3 - y1) - (y2 - y0) * (x3 - x1))
         ppc = int(np.clip(round(math.sqrt(area) / 8), 3, 6))
         template = self.templates.get((marker_id, ppc))
         if template is None:
@@ -175,13 +177,16 @@ class Ecc:
 def render_band(rng, layout: MarkerLayout, textures: dict, band, condition: str, scenes: int):
     """Scenes of one band and condition, detected with each ArUco refinement.
 
-    Returns (samples, {aruco method: (corners by sample, ms per marker per scene)}).
+    Returns (samples, {aruco method: corners by sample (None if not found)}, {aruco method: ms per marker}):
+    an ArUco refinement's time is its detectMarkers time over CORNER_REFINE_NONE's, summed over the
+    scenes, divided by the markers it refined.
     """
     detectors = {name: aruco_detector(method) for name, method in ARUCO_METHODS.items()}
     plain = aruco_detector(cv2.aruco.CORNER_REFINE_NONE)
     samples: list[Sample] = []
     aruco_corners: dict[str, list] = defaultdict(list)
-    aruco_ms: dict[str, list] = defaultdict(list)
+    extra_ms: dict[str, float] = defaultdict(float)
+    refined: dict[str, int] = defaultdict(int)
     for _ in range(scenes):
         ids = rng.choice(len(layout.dictionary.bits), MARKERS_PER_SCENE, replace=False)
         markers = [textures.setdefault(int(i), render.rs_marker_texture(layout, int(i))) for i in ids]
@@ -191,8 +196,8 @@ def render_band(rng, layout: MarkerLayout, textures: dict, band, condition: str,
         found = {}
         for name, detector in detectors.items():
             ms, found[name] = timed_detect(detector, scene.image)
-            if found[name]:
-                aruco_ms[name].append(max(ms - base_ms, 0.0) / len(found[name]))
+            extra_ms[name] += ms - base_ms
+            refined[name] += len(found[name])
         for marker_id, initial in found["aruco_subpix"].items():
             truth = truths.get(marker_id)
             if truth is None or np.linalg.norm(initial - truth.corners_px, axis=1).mean() > 0.25 * truth.inner_px:
@@ -200,13 +205,14 @@ def render_band(rng, layout: MarkerLayout, textures: dict, band, condition: str,
             samples.append(Sample(scene.image, marker_id, initial, truth.corners_px))
             for name in ARUCO_METHODS:
                 aruco_corners[name].append(found[name].get(marker_id))
+    aruco_ms = {name: extra_ms[name] / refined[name] if refined[name] else math.nan for name in ARUCO_METHODS}
     return samples, aruco_corners, aruco_ms
 
 
 def timed_detect(detector, image) -> tuple[float, dict[int, np.ndarray]]:
-    """(best of two detectMarkers times in ms, {id: corners (4, 2)})."""
+    """(best of three detectMarkers times in ms, {id: corners (4, 2)})."""
     best = math.inf
-    for _ in range(2):
+    for _ in range(3):
         start = time.perf_counter()
         corners, ids, _ = detector.detectMarkers(image)
         best = min(best, (time.perf_counter() - start) * 1e3)
@@ -255,7 +261,7 @@ def main_table(layout: MarkerLayout, scenes: int, seed: int) -> dict:
                     errors[name].append(np.linalg.norm(result - s.truth_px, axis=1))
                     ms[name].append(elapsed)
             for name in ARUCO_METHODS:
-                ms[name] = aruco_ms[name]
+                ms[name] = [aruco_ms[name]]
             baseline_ms = np.median(ms["cornersubpix"]) if ms["cornersubpix"] else math.nan
             for name in METHODS:
                 e = np.concatenate(errors[name]) if errors[name] else np.full(1, np.nan)
@@ -328,6 +334,51 @@ def lens_table(layout: MarkerLayout, markers: int, seed: int) -> None:
               f"{np.median(r[:, 5]):>10.3f}")
 
 
+def detector_table(layout: MarkerLayout, scenes: int, seed: int) -> None:
+    """The detector's own square-path corners (whatever ``Detector`` does today) and lk started from them."""
+    from companion.detector import Detector
+
+    detector = Detector()
+    refiner = MarkerRefiner(layout)
+    textures: dict = {}
+    rng = np.random.default_rng(seed)
+    print("\nthe detector's square-path corners -> lk from them (companion.detector.Detector as it is today; "
+          "corner error px, median -> median, n):")
+    print(f"{'condition':<14} " + " ".join(f"{f'{lo}-{hi} px':>22}" for lo, hi in BANDS_PX))
+    totals = defaultdict(list)
+    for condition in CONDITIONS:
+        cells = []
+        for band in BANDS_PX:
+            before, after = [], []
+            for _ in range(scenes):
+                ids = rng.choice(len(layout.dictionary.bits), MARKERS_PER_SCENE, replace=False)
+                markers = [textures.setdefault(int(i), render.rs_marker_texture(layout, int(i))) for i in ids]
+                scene = render.random_marker_scene(rng, IMAGE_SIZE, markers, band, condition,
+                                                   max_tilt_deg=MAX_TILT_DEG)
+                truths = {int(ids[t.key]): t for t in scene.truths if t.fully_visible}
+                for detection in detector.detect(scene.image):
+                    truth = truths.get(detection.id)
+                    if detection.path != "square" or truth is None:
+                        continue
+                    fit = refiner.refine(scene.image, detection.id, detection.corners_px)
+                    before.append(np.linalg.norm(detection.corners_px - truth.corners_px, axis=1))
+                    after.append(np.linalg.norm(fit.corners_px - truth.corners_px, axis=1))
+            if before:
+                b, a = np.concatenate(before), np.concatenate(after)
+                totals[("detector", band)].append(b)
+                totals[("lk", band)].append(a)
+                cells.append(f"{np.median(b):.3f} -> {np.median(a):.3f} ({len(before):>2})")
+            else:
+                cells.append("-")
+        print(f"{condition:<14} " + " ".join(f"{c:>22}" for c in cells))
+    for name in ("detector", "lk"):
+        cells = []
+        for band in BANDS_PX:
+            e = np.concatenate(totals[(name, band)]) if totals[(name, band)] else np.full(1, np.nan)
+            cells.append(f"{np.median(e):.3f} / p90 {np.percentile(e, 90):.3f}")
+        print(f"{'all: ' + name:<14} " + " ".join(f"{c:>22}" for c in cells))
+
+
 def occluded_table(layout: MarkerLayout, scenes: int, seed: int) -> None:
     """Detections of partly occluded markers (the detector's circles path): lk against what the detector gives."""
     from companion.detector import Detector
@@ -374,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads; {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, "
           f"{scenes} scenes x {MARKERS_PER_SCENE} markers per band and condition, tilt <= {MAX_TILT_DEG:.0f} deg\n")
     main_table(layout, scenes, args.seed)
+    detector_table(layout, 1 if args.quick else 4, args.seed)
     lens_table(layout, 12 if args.quick else 80, args.seed)
     occluded_table(layout, 3 if args.quick else 25, args.seed)
     return 0
