@@ -250,3 +250,16 @@ def test_the_template_cache_is_bounded(layout, textures):
     for marker_id in (0, 1, 2, 0):
         refiner.refine(image, marker_id, truth.corners_px)
     assert len(refiner._templates) == 2
+
+
+def test_the_robust_layout_is_refined_too():
+    layout = MarkerLayout(parity=4)  # 18 x 18 grid
+    texture = render.rs_marker_texture(layout, 31)
+    image, truth = render_one(texture, facing_pose(1.2, (300.0, 220.0), spin_deg=-35, tilt_deg=35))
+    corners, ids, _ = aruco_detector().detectMarkers(image)
+    assert ids is not None and 31 in ids.ravel()
+    initial = np.asarray(corners[list(ids.ravel()).index(31)], float).reshape(4, 2)
+    fit = MarkerRefiner(layout).refine(image, 31, initial)
+    assert fit.refined
+    assert mean_corner_error(fit.corners_px, truth.corners_px) < 0.3 * mean_corner_error(initial, truth.corners_px)
+    assert np.median(np.linalg.norm(fit.circles_px - truth.circles_px, axis=1)) < 0.08
