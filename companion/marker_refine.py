@@ -31,8 +31,15 @@ a sparse template:
   contrast and no corner moved two cells or more; otherwise the initial
   corners come back (``refined`` False, ``status`` says why).
 
+Measured (``benchmarks/bench_refine.py``, 20-150 px markers, tilts to 60
+degrees, clean / blur / motion blur / noise / low light / JPEG): median
+corner error 0.02 px, p90 0.05-0.08 px, from ArUco's 0.3-0.8 px; about
+0.2 ms per marker (7-10 x ``cv2.cornerSubPix``), plus about 2 ms once per
+(marker id, scale) to build its template.
+
 Points outside the image read as NaN and are left out, so a marker partly
-outside the frame is aligned on what is visible. A marker is a homography of
+outside the frame is aligned on what is visible (its corners on the cut
+side come out to about 0.15 px). A marker is a homography of
 its grid only in an undistorted image: give the refiner the camera
 (``CameraModel`` or anything with ``K`` and ``dist``) and it aligns in the
 ideal pinhole image, reading the frame through the lens model. Without it,
