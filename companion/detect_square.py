@@ -37,7 +37,7 @@ class SquareParams:
     min_contrast: white - black levels (gray levels) for a marker-like quad.
     min_fixed_agreement: fraction of border cells that must read black and of
         gap-ring cells that must read white.
-    min_side_px: shortest side of a rejected quad worth decoding (2.5 px per
+    min_side_px: mean side of a rejected quad worth decoding (2.5 px per
         cell; smaller quads are mostly single cells of markers already found).
     threshold_windows_px: ArUco's adaptive-threshold windows (min, max, step).
         OpenCV's default (3, 23, 10) thresholds three times; (7, 27, 20)
@@ -48,7 +48,7 @@ class SquareParams:
     error_correction_rate: float = 0.6
     decode_rejected: bool = True
     min_contrast: float = 20.0
-    min_fixed_agreement: float = 0.85
+    min_fixed_agreement: float = 0.75
     min_side_px: float = 20.0
     threshold_windows_px: tuple[int, int, int] = (7, 27, 20)
 
@@ -95,7 +95,7 @@ class SquareFinder:
         accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
         others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if self.params.decode_rejected and len(others):
-            others = others[_shortest_side(others) >= self.params.min_side_px]
+            others = others[_mean_side(others) >= self.params.min_side_px]
             others = others[self.marker_like(gray, others)] if len(others) else others
         else:
             others = others[:0]
@@ -119,18 +119,6 @@ class SquareFinder:
                 & (gap_white >= p.min_fixed_agreement))
 
 
-def _shortest_side(quads: np.ndarray) -> np.ndarray:
-    """(M,) shortest side of M quads (M, 4, 2)."""
-    return np.linalg.norm(quads - np.roll(quads, -1, axis=1), axis=2).min(axis=1)
-
-
-def refine_corners(gray: np.ndarray, corners_px: np.ndarray, cell_px: float) -> np.ndarray:
-    """Sub-pixel inner-square corners (cv2.cornerSubPix), window about half a cell.
-
-    corners_px: (4, 2); cell_px: the marker's cell size in pixels.
-    """
-    half_window = int(np.clip(round(cell_px * 0.5), 2, 6))
-    points = corners_px.astype(np.float32).reshape(-1, 1, 2).copy()
-    criteria = (cv2.TERM_CRITERIA_MAX_ITER | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-    cv2.cornerSubPix(gray, points, (half_window, half_window), (-1, -1), criteria)
-    return points.reshape(4, 2).astype(np.float64)
+def _mean_side(quads: np.ndarray) -> np.ndarray:
+    """(M,) mean side of M quads (M, 4, 2)."""
+    return np.linalg.norm(quads - np.roll(quads, -1, axis=1), axis=2).mean(axis=1)

@@ -142,7 +142,11 @@ class Detector:
         """Sample, classify and decode M candidate inner squares (M, 4, 2) (clockwise corners)."""
         if len(quads) == 0:
             return []
-        H = grid_sampling.homographies_from_quads(self.layout.inner_corners_cells, quads)
+        inner = self.layout.inner_corners_cells
+        # sub-pixel corners first: rejected quads come with whole-pixel corners, and a
+        # thin, oblique marker needs better ones to be sampled right
+        quads = self.edges.refine_square_corners(gray, grid_sampling.homographies_from_quads(inner, quads), quads)
+        H = grid_sampling.homographies_from_quads(inner, quads)
         cells = grid_sampling.sample_cells(gray, H, self.layout.n_cells)
         levels = grid_sampling.grid_levels(cells, self._border, self._gap)
         grids = grid_sampling.classify_cells(cells, levels, self.params.ambiguity)
@@ -153,7 +157,7 @@ class Detector:
         if not found.any():
             return []
         index, results = index[found], [r for r in results if r is not None]
-        corners = self.edges.refine_square_corners(gray, H[index], quads[index])
+        corners = quads[index]
         detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(c, -r.rotation, axis=0), path="square",
                                 corrected=r.corrected, quality=r.quality) for r, c in zip(results, corners)]
         return _unique(detections)
@@ -168,7 +172,7 @@ class Detector:
         clock.lap("circles_blobs")
         candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout), self.layout)
         clock.lap("circles_group")
-        detections = [d for d in (self._decode_circle_candidate(gray, c) for c in candidates) if d is not None]
+        detections = self._decode_circle_candidates(gray, candidates)
         clock.lap("circles_decode")
         return _unique(detections)
 
@@ -184,45 +188,60 @@ class Detector:
                                 for x, y in points_px])
         return inside
 
-    def _decode_circle_candidate(self, gray: np.ndarray, candidate: CircleCandidate) -> Detection | None:
-        grid_points = self.layout.circles[candidate.circle_ids, :2]
-        H, _ = cv2.findHomography(grid_points, candidate.circles_px, 0)
-        if H is None or _circle_fit_error_cells(H, grid_points, candidate.circles_px) > 0.3:
-            return None
-        fit = self.edges.refine_homography(gray, H, grid_points, candidate.circles_px)
-        if fit.rms_cells > 0.15:
-            return None
-        cells = grid_sampling.sample_cells(gray, fit.H[None], self.layout.n_cells)
+    def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate]) -> list[Detection]:
+        """Fit, refine on the edges, sample and decode circle candidates, all batched."""
+        fitted = []
+        for candidate in candidates:
+            grid_points = self.layout.circles[candidate.circle_ids, :2]
+            H, _ = cv2.findHomography(grid_points, candidate.circles_px, 0)
+            if H is not None and _circle_fit_error_cells(H, grid_points, candidate.circles_px) <= 0.3:
+                fitted.append((candidate, H, (grid_points, candidate.circles_px)))
+        if not fitted:
+            return []
+        fits = self.edges.refine_homographies(gray, np.stack([h for _, h, _ in fitted]), [a for _, _, a in fitted])
+        good = [i for i, fit in enumerate(fits) if fit.rms_cells <= 0.15]
+        if not good:
+            return []
+        candidates = [fitted[i][0] for i in good]
+        H = np.stack([fits[i].H for i in good])
+        cells = grid_sampling.sample_cells(gray, H, self.layout.n_cells)
         levels = grid_sampling.grid_levels(cells, self._border, self._gap)
-        if levels.contrast[0] < self.params.min_contrast:
-            return None
-        grid = grid_sampling.classify_cells(cells, levels, self.params.ambiguity)
-        probed = grid_sampling.erase_near_bad_fixed_cells(grid, self._border, self._gap, self._codeword)
-        region = missing_corner_cells(self.layout, candidate.corners) & self._codeword
-        hypotheses = [probed[0]]
-        if region.any():
-            with_region = probed[0].copy()
-            with_region[region] = -1
-            hypotheses.append(with_region)
-        result = self.decoder.decode_any(np.stack(hypotheses))
-        if result is None:
-            return None
-        k = result.rotation
-        inner = grid_sampling.project(fit.H[None], self.layout.inner_corners_cells)[0]
-        corner, slot = divmod(candidate.circle_ids, 3)
-        return Detection(symbol=result.symbol, id=result.id, corners_px=np.roll(inner, -k, axis=0),
-                         path="circles", corrected=result.corrected, quality=result.quality,
-                         circles_px=candidate.circles_px.copy(), circle_ids=3 * ((corner - k) % 4) + slot)
-
+        grids = grid_sampling.classify_cells(cells, levels, self.params.ambiguity)
+        probed = grid_sampling.erase_near_bad_fixed_cells(grids, self._border, self._gap, self._codeword)
+        # reading 1: occlusion probes; reading 2: also the region of the corners whose circles are missing
+        readings, owners = [], []
+        for i, candidate in enumerate(candidates):
+            if levels.contrast[i] < self.params.min_contrast:
+                continue
+            readings.append(probed[i])
+            owners.append(i)
+            region = missing_corner_cells(self.layout, candidate.corners) & self._codeword
+            if region.any():
+                readings.append(np.where(region, -1, probed[i]).astype(np.int8))
+                owners.append(i)
+        if not readings:
+            return []
+        decoded = self.decoder.decode_groups(np.stack(readings), np.array(owners))
+        detections = []
+        for i, result in decoded.items():
+            k, candidate = result.rotation, candidates[i]
+            inner = grid_sampling.project(H[i][None], self.layout.inner_corners_cells)[0]
+            corner, slot = divmod(candidate.circle_ids, 3)
+            detections.append(Detection(
+                symbol=result.symbol, id=result.id, corners_px=np.roll(inner, -k, axis=0), path="circles",
+                corrected=result.corrected, quality=result.quality, circles_px=candidate.circles_px.copy(),
+                circle_ids=3 * ((corner - k) % 4) + slot))
+        return detections
 
 def _circle_fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
-    """RMS distance, in cells, between the circle centres and the fitted grid points."""
+    """RMS distance between the circle centres and the fitted grid points, in cells (local cell size)."""
     projected = grid_sampling.project(H[None], grid_points)[0]
-    G = np.linalg.inv(H)
-    back = grid_sampling.project(G[None], points_px)[0]
-    if not (np.all(np.isfinite(projected)) and np.all(np.isfinite(back))):
-        return np.inf
-    return float(np.sqrt(np.mean(np.sum((back - grid_points) ** 2, axis=1))))
+    centre = grid_points.mean(axis=0)
+    p = grid_sampling.project(H[None], np.array([centre, centre + [1.0, 0.0], centre + [0.0, 1.0]]))[0]
+    a, b = p[1] - p[0], p[2] - p[0]
+    cell_px = np.sqrt(abs(a[0] * b[1] - a[1] * b[0]))
+    error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
+    return float(error) if np.isfinite(error) else np.inf
 
 
 def _unique(detections: list[Detection]) -> list[Detection]:

@@ -128,30 +128,36 @@ class EdgeRefiner:
 
     # --------------------------------------------------------- circles path
 
-    def refine_homography(self, gray: np.ndarray, H: np.ndarray, anchors_grid: np.ndarray,
-                          anchors_px: np.ndarray, iterations: int = 2) -> EdgeFit:
-        """Refine one H (grid -> image) on the edges, keeping the anchors (circle centres) in the fit."""
-        fit = EdgeFit(H, 0, np.nan)
+    def refine_homographies(self, gray: np.ndarray, H: np.ndarray, anchors: list[tuple[np.ndarray, np.ndarray]],
+                            iterations: int = 1) -> list[EdgeFit]:
+        """Refine M homographies H (M, 3, 3) (grid -> image) on their edges, batched.
+
+        anchors: per candidate, (grid (K, 2), image (K, 2)) correspondences
+        (circle centres) kept in the fit.
+        """
+        fits = [EdgeFit(h, 0, np.nan) for h in H]
         for _ in range(iterations):
-            points = self.edge_points(gray, fit.H[None])
-            valid = points.valid[0]
-            on_edge_px = points.px[0, valid]
-            axis, value = self._axis[valid], self._value[valid]
-            if len(on_edge_px) < 4:
-                return fit
-            G = _solve(anchors_grid, anchors_px, on_edge_px, axis, value)
-            if G is None:
-                return fit
-            residual = _line_residuals(G, on_edge_px, axis, value)
-            keep = residual < OUTLIER_CELLS
-            if 4 <= keep.sum() < len(keep):
-                refit = _solve(anchors_grid, anchors_px, on_edge_px[keep], axis[keep], value[keep])
-                G = G if refit is None else refit
-            used = keep if keep.sum() >= 4 else np.ones(len(keep), bool)
-            errors = np.r_[_line_residuals(G, on_edge_px[used], axis[used], value[used]),
-                           _grid_distances(G, anchors_px, anchors_grid)]
-            fit = EdgeFit(np.linalg.inv(G), int(used.sum()), float(np.sqrt(np.mean(errors ** 2))))
-        return fit
+            points = self.edge_points(gray, np.stack([f.H for f in fits]))
+            fits = [self._refit(fit, points.px[i], points.valid[i], *anchors[i]) for i, fit in enumerate(fits)]
+        return fits
+
+    def _refit(self, fit: EdgeFit, px: np.ndarray, valid: np.ndarray, anchors_grid: np.ndarray,
+               anchors_px: np.ndarray) -> EdgeFit:
+        """One candidate's homography from its anchors and its good edge points (E, 2)."""
+        on_edge_px, axis, value = px[valid], self._axis[valid], self._value[valid]
+        if len(on_edge_px) < 4:
+            return fit
+        G = _solve(anchors_grid, anchors_px, on_edge_px, axis, value)
+        if G is None:
+            return fit
+        keep = _line_residuals(G, on_edge_px, axis, value) < OUTLIER_CELLS
+        if 4 <= keep.sum() < len(keep):
+            refit = _solve(anchors_grid, anchors_px, on_edge_px[keep], axis[keep], value[keep])
+            G = G if refit is None else refit
+        used = keep if keep.sum() >= 4 else np.ones(len(keep), bool)
+        errors = np.r_[_line_residuals(G, on_edge_px[used], axis[used], value[used]),
+                       _grid_distances(G, anchors_px, anchors_grid)]
+        return EdgeFit(np.linalg.inv(G), int(used.sum()), float(np.sqrt(np.mean(errors ** 2))))
 
 
 def _fit_lines(points: EdgePoints, min_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -207,7 +213,8 @@ def _solve(anchors_grid, anchors_px, on_edge_px, axis, value) -> np.ndarray | No
     G = np.linalg.inv(S) @ vt[-1].reshape(3, 3) @ T
     if not np.all(np.isfinite(G)) or abs(G[2, 2]) < 1e-12:
         return None
-    return G / G[2, 2]
+    G = G / G[2, 2]
+    return G if abs(np.linalg.det(G)) > 1e-15 else None
 
 
 def _line_residuals(G, on_edge_px, axis, value) -> np.ndarray:

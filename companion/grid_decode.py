@@ -123,25 +123,30 @@ class GridDecoder:
         return [self._result(grid, *self._nearest(ranking, i)) if accepted[i] else self._algebraic(grid, ranking, i)
                 for i, grid in enumerate(grids)]
 
-    def decode_any(self, hypotheses: np.ndarray) -> DecodeResult | None:
-        """Decode one candidate read several ways (H, N, N) (e.g. with more or fewer erasures).
+    def decode_groups(self, grids: np.ndarray, groups: np.ndarray) -> dict[int, DecodeResult]:
+        """Decode candidates each read one or more ways (e.g. with more or fewer erasures).
 
-        The bounded-distance step is tried on every reading before the (slower)
-        algebraic step on any; the first reading that decodes wins.
+        grids: (G, N, N) int8, groups: (G,) the candidate of each reading, in
+        order of preference. The bounded-distance step runs on every reading at
+        once before the (slower) algebraic step on any; per candidate the first
+        reading that decodes wins. Returns {candidate: result} for those decoded.
         """
-        grids = self._as_grids(hypotheses)
+        grids = self._as_grids(grids)
+        groups = np.asarray(groups)
         if len(grids) == 0:
-            return None
+            return {}
         ranking = self.rank(grids)
         accepted = self._accepted(ranking)
-        if accepted.any():
-            i = int(np.argmax(accepted))
-            return self._result(grids[i], *self._nearest(ranking, i))
+        results: dict[int, DecodeResult] = {}
+        for i in np.flatnonzero(accepted):
+            if int(groups[i]) not in results:
+                results[int(groups[i])] = self._result(grids[i], *self._nearest(ranking, i))
         for i, grid in enumerate(grids):
-            result = self._algebraic(grid, ranking, i)
-            if result is not None:
-                return result
-        return None
+            if int(groups[i]) not in results:
+                result = self._algebraic(grid, ranking, i)
+                if result is not None:
+                    results[int(groups[i])] = result
+        return results
 
     def _as_grids(self, grids: np.ndarray) -> np.ndarray:
         return np.asarray(grids, dtype=np.int8).reshape(-1, self.layout.n_cells, self.layout.n_cells)
