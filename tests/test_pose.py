@@ -62,9 +62,9 @@ def yaw_error_deg(measurement, T_map_body):
 
 # A view down aisle 1 (y = 5) toward the office wall: several markers at 2-8 m.
 AISLE_VIEW = body_pose(np.array([9.0, 5.0, 1.5]), [18.0, 5.0, 1.3])
-# A close, oblique view of marker B (R1, x = 7, z = 1.4, facing +y) alone:
-# 1.5 m, 30 degrees off its normal, so the flipped IPPE branch fits clearly worse.
-B_VIEW = body_pose(np.array([6.25, 3.5 + 1.5 * math.cos(math.radians(30)), 1.5]), [7.0, 3.5, 1.4])
+# A close, oblique view of marker B (R1, x = 7, z = 1.3, facing +y) alone:
+# 1.0 m, 30 degrees off its normal, so the flipped IPPE branch fits clearly worse.
+B_VIEW = body_pose(np.array([6.5, 3.5 + 1.0 * math.cos(math.radians(30)), 1.5]), [7.0, 3.5, 1.3])
 
 
 def test_views_see_what_the_tests_need():
