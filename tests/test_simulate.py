@@ -70,7 +70,7 @@ def reprojection_errors(sequence: simulate.RecordedSequence, facility_map, max_f
 
 
 def short_flight() -> tj.Trajectory:
-    """1.5 m along rack R1's north face, looking at it nearly face-on (markers 5, B, 6 at 1.5-2.5 m)."""
+    """1.5 m along rack R1's north face, looking at it nearly face-on (markers 5, B, 6 at 1.7-2.1 m)."""
     return tj.smooth_path([(6.0, 5.4, 1.5, -80.0), (7.5, 5.2, 1.5, -95.0)], speed_m_s=1.0, max_accel_m_s2=1.5)
 
 
