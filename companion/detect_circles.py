@@ -240,74 +240,105 @@ class CircleCandidate:
 
 
 def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, min_circles: int = 5,
-                        large_window_cells: float = 2.5, small_window_cells: float = 0.7) -> list[CircleCandidate]:
+                        triple_window_cells: float = 4.0, large_window_cells: float = 1.1,
+                        small_window_cells: float = 0.7) -> list[CircleCandidate]:
     """Grow marker candidates from corner triples by predicting the other corners.
 
     Each triple, taken as corner 0, fixes an affine grid -> image map. The
     other corners are visited nearest first (the two neighbours, then the
-    diagonal). At each, the blob nearest the predicted large circle (within
-    ``large_window_cells``, wide because one corner extrapolates poorly under
-    perspective; 1 cell once two corners are known) whose size fits is taken;
-    its small circles come from a triple built on it if there is one, else
-    from the blobs nearest their predictions. Every match tightens the map (a
-    homography from six circles on). A candidate needs ``min_circles``
-    circles on at least two corners; its blobs anchor no other candidate.
+    diagonal) and each is taken from, in order of preference:
+
+    1. a whole triple whose three circles lie, on average, within
+       ``triple_window_cells`` of their predictions (wide while only the
+       anchor is known: one corner extrapolates poorly under perspective;
+       1 cell after that);
+    2. the blob nearest the predicted large circle within
+       ``large_window_cells``, then each small circle's nearest blob within
+       ``small_window_cells`` (a corner that lost a small circle still counts).
+
+    Sizes must fit the map (a blob's radius within 0.4-2.5 x the circle's).
+    Every match refines the map (a homography from six circles on). A
+    candidate needs ``min_circles`` circles on at least two corners; its blobs
+    anchor no other candidate.
     """
     grid = layout.circles[:, :2]
     radius_cells = layout.circles[:, 2]
     taken = np.zeros(len(blobs), bool)
     blob_r = np.sqrt(blobs.areas_px / np.pi)
-    is_triple_large = np.zeros(len(blobs), bool)
-    is_triple_large[triples.index[:, 0]] = True
+    centres = blobs.centres_px
     candidates = []
     for t in range(len(triples)):
         if taken[triples.index[t]].any():
             continue
         ids, index = [0, 1, 2], list(triples.index[t])
-
-        def nearest(circle: int, window_cells: float, prefer: np.ndarray | None = None) -> int | None:
-            """The blob nearest circle's prediction that fits its size (among ``prefer`` if any fit)."""
-            predicted, cell_px = _predict(_fit(grid[ids], blobs.centres_px[index]), grid[circle])
-            if not np.isfinite(cell_px):
-                return None
-            expected_r = radius_cells[circle] * cell_px
-            d = np.linalg.norm(blobs.centres_px - predicted, axis=1)
-            fits = (d < window_cells * cell_px) & (blob_r > 0.4 * expected_r) & (blob_r < 2.0 * expected_r)
-            fits[index] = False
-            if prefer is not None and (fits & prefer).any():
-                fits &= prefer
-            return int(np.flatnonzero(fits)[np.argmin(d[fits])]) if fits.any() else None
-
+        H = _fit(grid[ids], centres[index])
         for corner in (1, 3, 2):
-            large = nearest(3 * corner, large_window_cells if len(ids) == 3 else 1.0, is_triple_large)
-            if large is None:
-                continue
-            ids.append(3 * corner)
-            index.append(large)
-            built_on_it = triples.index[triples.index[:, 0] == large]
-            if len(built_on_it):
-                smalls = built_on_it[np.argmin([_small_error(grid, ids, index, blobs, corner, tri)
-                                                for tri in built_on_it])][1:]
-                ids += [3 * corner + 1, 3 * corner + 2]
-                index += [int(smalls[0]), int(smalls[1])]
-                continue
-            for slot in (1, 2):
-                small = nearest(3 * corner + slot, small_window_cells)
-                if small is not None:
-                    ids.append(3 * corner + slot)
-                    index.append(small)
+            circles = np.arange(3 * corner, 3 * corner + 3)
+            predicted, cell_px = _predict(H, grid[circles])
+            if not np.isfinite(cell_px):
+                break
+            # 1. a whole triple
+            window = triple_window_cells if len(ids) == 3 else 1.0
+            error = np.linalg.norm(triples.points_px - predicted[None], axis=2).mean(axis=1) / cell_px
+            r_ratio = blob_r[triples.index[:, 0]] / (radius_cells[circles[0]] * cell_px)
+            fits = ((error < window) & (r_ratio > 0.4) & (r_ratio < 2.5)
+                    & ~(taken[triples.index] | np.isin(triples.index, index)).any(axis=1))
+            tries = [triples.index[k].tolist() for k in np.flatnonzero(fits)[np.argsort(error[fits])][:2]]
+            # 2. else circle by circle: the large one, then the small ones shifted by the large one's offset
+            if not tries:
+                found = _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
+                                      large_window_cells, small_window_cells)
+                tries = [] if found is None else [found]
+            for found in tries:
+                added = [c for c, b in zip(circles, found) if b >= 0]
+                blobs_added = [b for b in found if b >= 0]
+                H_new = _fit(grid[ids + added], centres[index + blobs_added])
+                if _fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]) <= 0.3:
+                    ids, index, H = ids + added, index + blobs_added, H_new
+                    break
         ids_a = np.array(ids)
         if len(ids_a) >= min_circles and len(np.unique(ids_a // 3)) >= 2:
-            candidates.append(CircleCandidate(ids_a, blobs.centres_px[index].copy(), np.array(index)))
+            candidates.append(CircleCandidate(ids_a, centres[index].copy(), np.array(index)))
             taken[index] = True
     return candidates
 
 
-def _small_error(grid, ids, index, blobs: Blobs, corner: int, triple: np.ndarray) -> float:
-    """How far a triple's small circles lie from their predictions (px), for choosing among triples."""
-    H = _fit(grid[ids], blobs.centres_px[index])
-    predicted = grid_sampling.project(H[None], grid[[3 * corner + 1, 3 * corner + 2]])[0]
-    return float(np.linalg.norm(blobs.centres_px[triple[1:]] - predicted, axis=1).sum())
+def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used, large_window, small_window):
+    """Blob indices (3,) for one corner's circles (-1: none), or None if its large circle is missing.
+
+    The large circle is the nearest blob of fitting size within
+    ``large_window`` cells of its prediction; the small ones are searched
+    within ``small_window`` of their predictions moved by the large circle's
+    offset (most of an extrapolation's error is that shift).
+    """
+    free = ~taken
+    free[used] = False
+    d = np.linalg.norm(centres - predicted[0], axis=1)
+    r_ratio = blob_r / (radii_cells[0] * cell_px)
+    ok = free & (d < large_window * cell_px) & (r_ratio > 0.4) & (r_ratio < 2.5)
+    if not ok.any():
+        return None
+    large = int(np.flatnonzero(ok)[np.argmin(d[ok])])
+    free[large] = False
+    shift = centres[large] - predicted[0]
+    found = [large]
+    for k in (1, 2):
+        d = np.linalg.norm(centres - (predicted[k] + shift), axis=1)
+        r_ratio = blob_r / (radii_cells[k] * cell_px)
+        ok = free & (d < small_window * cell_px) & (r_ratio > 0.4) & (r_ratio < 2.5)
+        found.append(int(np.flatnonzero(ok)[np.argmin(d[ok])]) if ok.any() else -1)
+        if found[-1] >= 0:
+            free[found[-1]] = False
+    return found
+
+
+def _fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
+    """RMS distance (in cells at the first point) between points and their fitted positions; 0 below 6."""
+    if len(grid_points) < 6:
+        return 0.0
+    projected, cell_px = _predict(H, grid_points)
+    error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
+    return float(error) if np.isfinite(error) else np.inf
 
 
 def _fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
@@ -326,13 +357,11 @@ def _fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
 
 
 def _predict(H: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
-    """Image position of grid point uv through H, and the local size of one cell there (px)."""
-    p = grid_sampling.project(H[None], np.array([uv, uv + [1.0, 0.0], uv + [0.0, 1.0]]))[0]
-    a, b = p[1] - p[0], p[2] - p[0]
+    """Image positions (K, 2) of grid points uv (K, 2) through H, and the size of one cell (px) at the first."""
+    p = grid_sampling.project(H[None], np.concatenate([uv, uv[:1] + [[1.0, 0.0], [0.0, 1.0]]]))[0]
+    a, b = p[-2] - p[0], p[-1] - p[0]
     cell_px = float(np.sqrt(abs(a[0] * b[1] - a[1] * b[0])))
-    return p[0], cell_px if np.all(np.isfinite(p)) else np.nan
-
-
+    return p[:-2], cell_px if np.all(np.isfinite(p)) and cell_px > 0 else np.nan
 def missing_corner_cells(layout: MarkerLayout, present_corners: np.ndarray) -> np.ndarray:
     """(N, N) bool: cells likely hidden, given which corners' circles were not found.
 

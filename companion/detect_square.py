@@ -85,38 +85,60 @@ class SquareFinder:
         self.params = params
         self._aruco = make_aruco_detector(layout, params)
         self._inner_corners = layout.inner_corners_cells
-        fixed = layout.border_mask | grid_sampling.gap_ring_mask(layout)
-        self._fixed_cells = np.argwhere(fixed)  # (F, 2) rows, columns
-        self._fixed_is_border = layout.border_mask[fixed]
-        self._fixed_points = self._fixed_cells[:, ::-1] + 0.5  # cell centres (u, v)
+        # one sample at the centre of every border, gap-ring and codeword cell
+        border, gap, codeword = layout.border_mask, grid_sampling.gap_ring_mask(layout), layout.codeword_mask
+        probed = border | gap | codeword
+        self._is_border, self._is_gap, self._is_codeword = border[probed], gap[probed], codeword[probed]
+        self._probe_points = np.argwhere(probed)[:, ::-1] + 0.5  # (u, v) cell centres
 
     def find(self, gray: np.ndarray) -> SquareCandidates:
         corners, _, rejected = self._aruco.detectMarkers(gray)
         accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
         others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if self.params.decode_rejected and len(others):
-            others = others[_mean_side(others) >= self.params.min_side_px]
+            others = others[(_mean_side(others) >= self.params.min_side_px) & ~self._within(others, accepted)]
             others = others[self.marker_like(gray, others)] if len(others) else others
         else:
             others = others[:0]
         return SquareCandidates(np.concatenate([accepted, others]),
                                 np.r_[np.ones(len(accepted), bool), np.zeros(len(others), bool)])
 
+    def _within(self, quads: np.ndarray, markers: np.ndarray) -> np.ndarray:
+        """(M,) bool: quad centres inside the whole grid of an identified marker (its own cells)."""
+        inside = np.zeros(len(quads), bool)
+        if len(markers) == 0 or len(quads) == 0:
+            return inside
+        n = self.layout.n_cells
+        H = grid_sampling.homographies_from_quads(self._inner_corners, markers)
+        outline = grid_sampling.project(H, np.array([[0, 0], [n, 0], [n, n], [0, n]], float))  # (A, 4, 2)
+        centres = quads.mean(axis=1)  # (M, 2)
+        # inside a convex clockwise polygon: on the right of (or on) every edge
+        edge = np.roll(outline, -1, axis=1) - outline  # (A, 4, 2)
+        to_point = centres[:, None, None, :] - outline[None]  # (M, A, 4, 2)
+        cross = edge[None, ..., 0] * to_point[..., 1] - edge[None, ..., 1] * to_point[..., 0]
+        return (cross >= 0).all(axis=2).any(axis=1)
+
     def marker_like(self, gray: np.ndarray, quads: np.ndarray) -> np.ndarray:
-        """(M,) bool: quads whose fixed cells read as an RS marker's (one sample per cell)."""
+        """(M,) bool: quads that read like an RS marker at one sample per cell.
+
+        The border must read black and the gap ring white (``min_fixed_agreement``
+        of their cells), with ``min_contrast``; and the codeword cells must be
+        mixed (every marker has 35-65 % black codeword cells; a blob over the
+        data moves that by ~10 %): a plain dark or light square is no marker.
+        """
         H = grid_sampling.homographies_from_quads(self._inner_corners, quads)
-        values, inside = grid_sampling.sample_image(gray, grid_sampling.project(H, self._fixed_points))
-        border = values[:, self._fixed_is_border]
-        gap = values[:, ~self._fixed_is_border]
+        values, _ = grid_sampling.sample_image(gray, grid_sampling.project(H, self._probe_points))
+        border, gap, codeword = values[:, self._is_border], values[:, self._is_gap], values[:, self._is_codeword]
         black = grid_sampling.nan_median_rows(border)
         white = grid_sampling.nan_median_rows(gap)
         with np.errstate(invalid="ignore"):
             mid = (black + white)[:, None] / 2
             border_black = np.mean(border < mid, axis=1)
             gap_white = np.mean(gap > mid, axis=1)
+            dark_codeword = np.mean(codeword < mid, axis=1)
         p = self.params
         return ((white - black >= p.min_contrast) & (border_black >= p.min_fixed_agreement)
-                & (gap_white >= p.min_fixed_agreement))
+                & (gap_white >= p.min_fixed_agreement) & (dark_codeword >= 0.15) & (dark_codeword <= 0.85))
 
 
 def _mean_side(quads: np.ndarray) -> np.ndarray:
