@@ -329,7 +329,7 @@ class MavlinkLink:
                 log.warning("link: flight controller has system id %d but we send as %d",
                             self.fc_system_id, self.params.system_id)
             # A FC that appears (or reappears after a reboot) gets the origin before any vision.
-            self._begin_handshake()
+            self._begin_handshake(now_s)
 
     def _on_origin(self, message) -> None:
         origin = Origin(message.latitude * 1e-7, message.longitude * 1e-7, message.altitude * 1e-3)
@@ -347,9 +347,9 @@ class MavlinkLink:
 
     # ------------------------------------------------------- periodic
 
-    def _begin_handshake(self) -> None:
+    def _begin_handshake(self, now_s: float | None = None) -> None:
         self.counters.handshakes += 1
-        self._handshake_started_s = time.monotonic()
+        self._handshake_started_s = time.monotonic() if now_s is None else now_s
         self._last_origin_sent_s = -math.inf
         if self.params.origin is None:
             log.warning("link: no geodetic origin configured: streaming without SET_GPS_GLOBAL_ORIGIN "
@@ -360,12 +360,22 @@ class MavlinkLink:
 
     def _tick(self) -> None:
         now_s = time.monotonic()
+        if self.state is LinkState.STREAMING and self._fc_went_silent():
+            # Hold vision until it is back (bounded like at start): a rebooted FC must get the origin first.
+            log.warning("link: flight controller silent for %.1f s; holding vision until it returns (at most %.1f s)",
+                        self.params.fc_timeout_s, self.params.origin_wait_s)
+            self._begin_handshake(now_s)
         if self.state is LinkState.HANDSHAKE:
             self._handshake_step(now_s)
         if self._statustexts and now_s - self._last_statustext_s >= self.params.statustext_interval_s:
             severity, text = self._statustexts.popleft()
             if self._send(mm.statustext(severity, text)):
                 self._last_statustext_s = now_s
+
+    def _fc_went_silent(self) -> bool:
+        """True when a FC seen since the last handshake began has stopped sending heartbeats."""
+        return (self.params.origin is not None and self._last_fc_heartbeat_s >= self._handshake_started_s
+                and not self.fc_seen)
 
     def _handshake_step(self, now_s: float) -> None:
         if self.fc_seen and now_s - self._last_origin_sent_s >= self.params.origin_retry_s:

@@ -276,11 +276,11 @@ def test_sigterm_mid_run_with_the_peer_going_away_and_coming_back(tmp_path, peer
     port = free_port()
     first = peers(port, "--origin-reply", "on_set")
     config = write_config(tmp_path, HOVER, port, source={"loop": True},
-                          mavlink={"fc_timeout_s": 0.8, "origin_wait_s": 3.0})
+                          mavlink={"fc_timeout_s": 1.5, "origin_wait_s": 3.0})
     process = start_daemon(config, env={"NOTIFY_SOCKET": notify_path, "WATCHDOG_USEC": "400000"})
     first.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=15)
     first.stop()
-    time.sleep(1.2)  # longer than fc_timeout_s
+    time.sleep(2.0)  # longer than fc_timeout_s
     second = peers(port, "--origin-reply", "on_set")
     vision = second.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=15)
     origin = second.records("SET_GPS_GLOBAL_ORIGIN")

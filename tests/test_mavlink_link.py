@@ -171,13 +171,15 @@ def test_statustext_is_rate_limited_and_ordered(peers, links):
 def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links):
     port = free_port()
     first = peers(port, "--origin-reply", "on_set", name="first")
-    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, fc_timeout_s=0.6,
+    # fc_timeout_s above the peer's 1 Hz heartbeat period, as in flight (default 3 s)
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, fc_timeout_s=1.5,
                  heartbeat_interval_s=0.2, origin_retry_s=0.2)
     publisher = Publisher(link)
     first.wait_for("VISION_POSITION_ESTIMATE", count=5)
     first.stop()
-    time.sleep(1.0)  # longer than fc_timeout_s: the FC is gone
+    time.sleep(2.0)  # longer than fc_timeout_s: the FC is gone
     assert not link.fc_seen
+    assert link.state is LinkState.HANDSHAKE  # vision held until the FC is back and has the origin
     second = peers(port, "--origin-reply", "on_set", name="second")
     vision = second.wait_for("VISION_POSITION_ESTIMATE", count=5)
     publisher.stop()
