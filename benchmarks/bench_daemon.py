@@ -74,8 +74,9 @@ class UdpSink:
         self.sock.close()
 
 
-# The committed warehouse_aisle flight: along aisle 1, looking at the racks.
-AISLE_WAYPOINTS = [(3.2, 5.6, 1.8, -40.0), (6.0, 5.2, 2.0, -50.0), (9.5, 5.4, 2.1, -45.0), (11.5, 5.0, 1.9, -60.0)]
+# The committed warehouse_aisle flight (along aisle 1, looking at the racks), read from its sequence.yaml.
+AISLE_WAYPOINTS = [tuple(p) for p in yaml.safe_load(
+    (REPO / "tests" / "data" / "sequences" / "warehouse_aisle" / "sequence.yaml").read_text())["trajectory"]["points"]]
 
 
 def render_sequence(folder: Path, width: int, height: int, waypoints) -> Path:
