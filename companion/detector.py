@@ -116,9 +116,10 @@ class Detector:
         self.square = SquareFinder(self.layout, SquareParams(
             error_correction_rate=params.aruco_error_correction_rate,
             decode_rejected=params.decode_rejected, min_contrast=params.min_contrast,
-            threshold_windows_px=params.aruco_threshold_windows_px))
+            threshold_windows_px=params.aruco_threshold_windows_px), screen=self.decoder.plausible)
         self.circle_params = CircleParams()
         self.edges = EdgeRefiner(self.layout, min_contrast=params.min_contrast)
+        self.probe = grid_sampling.CellProbe(self.layout)
         self._border = self.layout.border_mask
         self._gap = grid_sampling.gap_ring_mask(self.layout)
         self._codeword = self.layout.codeword_mask
@@ -196,6 +197,11 @@ class Detector:
             H, _ = cv2.findHomography(grid_points, candidate.circles_px, 0)
             if H is not None and _circle_fit_error_cells(H, grid_points, candidate.circles_px) <= 0.3:
                 fitted.append((candidate, H, (grid_points, candidate.circles_px)))
+        if fitted:  # a first look at one sample per cell: a wrong pairing of corners reads as no marker
+            reading = self.probe.read(gray, np.stack([h for _, h, _ in fitted]))
+            plausible = ((reading.contrast >= self.params.min_contrast) & (reading.border_black >= 0.6)
+                         & (reading.gap_white >= 0.6) & self.decoder.plausible(reading.grid))
+            fitted = [f for f, ok in zip(fitted, plausible) if ok]
         if not fitted:
             return []
         fits = self.edges.refine_homographies(gray, np.stack([h for _, h, _ in fitted]), [a for _, _, a in fitted])
@@ -240,7 +246,8 @@ def _circle_fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: n
     p = grid_sampling.project(H[None], np.array([centre, centre + [1.0, 0.0], centre + [0.0, 1.0]]))[0]
     a, b = p[1] - p[0], p[2] - p[0]
     cell_px = np.sqrt(abs(a[0] * b[1] - a[1] * b[0]))
-    error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
+    with np.errstate(divide="ignore", invalid="ignore"):
+        error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
     return float(error) if np.isfinite(error) else np.inf
 
 

@@ -27,6 +27,7 @@ from companion.marker import MarkerLayout
 
 EDGE_STEP_CELLS = 0.5
 OUTLIER_CELLS = 0.12
+SQUARE_HALF_WIDTH_CELLS = 0.35  # square path: ArUco's corners are within a few tenths of a cell
 EDGES = 4
 
 
@@ -36,10 +37,12 @@ class EdgePoints:
 
     px: (M, E, 2) image points on the edges, NaN where the profile was rejected.
     edge: (E,) which edge each sample belongs to (0 top, 1 right, 2 bottom, 3 left).
+    profile: (E,) index of each sample in the refiner's full profile list.
     """
 
     px: np.ndarray
     edge: np.ndarray
+    profile: np.ndarray
 
     @property
     def valid(self) -> np.ndarray:
@@ -58,8 +61,11 @@ class EdgeFit:
 class EdgeRefiner:
     """Edge profiles of one layout's inner square, and the fits built on them."""
 
-    def __init__(self, layout: MarkerLayout, min_contrast: float = 20.0):
+    def __init__(self, layout: MarkerLayout, min_contrast: float = 20.0, square_stride: int = 1,
+                 square_samples: int = 11, circles_stride: int = 2, circles_samples: int = 15):
         self.min_contrast = min_contrast
+        self.square_stride, self.square_samples = square_stride, square_samples
+        self.circles_stride, self.circles_samples = circles_stride, circles_samples
         lo, hi = layout.inner_origin, layout.inner_origin + layout.inner_cells
         self._lo, self._hi = float(lo), float(hi)
         along = np.arange(lo + EDGE_STEP_CELLS, hi, EDGE_STEP_CELLS)
@@ -77,11 +83,16 @@ class EdgeRefiner:
     # ------------------------------------------------------------ edge points
 
     def edge_points(self, gray: np.ndarray, H: np.ndarray, half_width_cells: float = 0.6,
-                    samples: int = 21) -> EdgePoints:
-        """Mid-level crossings across the four edges of M grids (H: (M, 3, 3) grid -> image)."""
-        m, e = len(H), len(self._points)
+                    samples: int = 21, stride: int = 1) -> EdgePoints:
+        """Mid-level crossings across the four edges of M grids (H: (M, 3, 3) grid -> image).
+
+        stride: use every stride-th profile along each edge (2: one per cell).
+        """
+        keep = (np.arange(len(self._points)).reshape(EDGES, -1)[:, ::stride]).ravel()
+        points, normals, edge = self._points[keep], self._normals[keep], self._edge[keep]
+        m, e = len(H), len(points)
         offsets = np.linspace(-half_width_cells, half_width_cells, samples)  # inside (black) -> outside (white)
-        grid = (self._points[:, None, :] + offsets[None, :, None] * self._normals[:, None, :]).reshape(-1, 2)
+        grid = (points[:, None, :] + offsets[None, :, None] * normals[:, None, :]).reshape(-1, 2)
         values, inside = grid_sampling.sample_image(gray, grid_sampling.project(H, grid))
         values = values.reshape(m, e, samples)
         inside = inside.reshape(m, e, samples).all(axis=2)
@@ -101,12 +112,12 @@ class EdgeRefiner:
             # linear interpolation of the crossing between samples k - 1 and k
             frac = np.clip((mid - before) / (after - before), 0.0, 1.0)
         offset = offsets[k - 1] + frac * (offsets[1] - offsets[0])
-        on_edge = self._points[None] + offset[..., None] * self._normals[None]  # (M, E, 2) grid
+        on_edge = points[None] + offset[..., None] * normals[None]  # (M, E, 2) grid
         px = (np.concatenate([on_edge, np.ones((m, e, 1))], axis=2) @ np.transpose(H, (0, 2, 1)))
         with np.errstate(divide="ignore", invalid="ignore"):
             px = px[..., :2] / px[..., 2:3]
         px[~good] = np.nan
-        return EdgePoints(px, self._edge)
+        return EdgePoints(px, edge, keep)
 
     # ---------------------------------------------------------- square path
 
@@ -114,7 +125,7 @@ class EdgeRefiner:
                               min_points_per_edge: int = 5) -> np.ndarray:
         """(M, 4, 2) inner corners from line fits to the edges; a corner keeps its input value
         unless both of its edges have ``min_points_per_edge`` good points."""
-        points = self.edge_points(gray, H, half_width_cells=0.35, samples=15)
+        points = self.edge_points(gray, H, SQUARE_HALF_WIDTH_CELLS, self.square_samples, self.square_stride)
         lines, enough = _fit_lines(points, min_points_per_edge)  # (M, 4, 3), (M, 4)
         # corner i is where edge i - 1 (the one ending there) meets edge i (the one starting there)
         previous = np.roll(lines, 1, axis=1)
@@ -137,14 +148,17 @@ class EdgeRefiner:
         """
         fits = [EdgeFit(h, 0, np.nan) for h in H]
         for _ in range(iterations):
-            points = self.edge_points(gray, np.stack([f.H for f in fits]))
-            fits = [self._refit(fit, points.px[i], points.valid[i], *anchors[i]) for i, fit in enumerate(fits)]
+            points = self.edge_points(gray, np.stack([f.H for f in fits]), samples=self.circles_samples,
+                                      stride=self.circles_stride)
+            axis, value = self._axis[points.profile], self._value[points.profile]
+            fits = [self._refit(fit, points.px[i], axis[points.valid[i]], value[points.valid[i]],
+                                points.valid[i], *anchors[i]) for i, fit in enumerate(fits)]
         return fits
 
-    def _refit(self, fit: EdgeFit, px: np.ndarray, valid: np.ndarray, anchors_grid: np.ndarray,
-               anchors_px: np.ndarray) -> EdgeFit:
-        """One candidate's homography from its anchors and its good edge points (E, 2)."""
-        on_edge_px, axis, value = px[valid], self._axis[valid], self._value[valid]
+    def _refit(self, fit: EdgeFit, px: np.ndarray, axis: np.ndarray, value: np.ndarray, valid: np.ndarray,
+               anchors_grid: np.ndarray, anchors_px: np.ndarray) -> EdgeFit:
+        """One candidate's homography from its anchors and its good edge points (px[valid] on lines axis = value)."""
+        on_edge_px = px[valid]
         if len(on_edge_px) < 4:
             return fit
         G = _solve(anchors_grid, anchors_px, on_edge_px, axis, value)

@@ -113,6 +113,15 @@ class GridDecoder:
         return Ranking(order[:, 0], order[:, 1], d[rows, order[:, 0]].round().astype(int),
                        d[rows, order[:, 1]].round().astype(int), known.sum(1).astype(int))
 
+    def plausible(self, grids: np.ndarray, max_fraction: float = 0.3) -> np.ndarray:
+        """(M,) bool: grids (read roughly, e.g. one sample per cell) within ``max_fraction`` of their
+        known codeword cells of some word; a cheap screen before careful sampling and decoding."""
+        grids = self._as_grids(grids)
+        if len(grids) == 0:
+            return np.zeros(0, bool)
+        ranking = self.rank(grids)
+        return (ranking.known > 0) & (ranking.d1 <= max_fraction * ranking.known)
+
     def decode(self, grids: np.ndarray) -> list[DecodeResult | None]:
         """Decode M sampled grids (M, N, N) int8 (1 black, 0 white, -1 unknown), each on its own."""
         grids = self._as_grids(grids)

@@ -97,13 +97,12 @@ def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarr
 class CellSamples:
     """Intensity statistics of every cell of M sampled grids.
 
-    mean, spread: (M, N, N) float32, mean and max - min over the cell's
-        sub-samples (NaN where a sub-sample fell outside the image).
+    mean: (M, N, N) float32, mean over the cell's sub-samples (NaN where a
+        sub-sample fell outside the image).
     inside: (M, N, N) bool, every sub-sample of the cell is inside the image.
     """
 
     mean: np.ndarray
-    spread: np.ndarray
     inside: np.ndarray
 
 
@@ -135,10 +134,7 @@ def sample_cells(gray: np.ndarray, H: np.ndarray, n_cells: int,
     values, inside = sample_image(gray, project(H, cell_sample_points(n_cells, offsets)))
     values = values.reshape(m, n_cells, n_cells, s)
     inside_cells = inside.reshape(m, n_cells, n_cells, s).all(axis=-1)
-    with np.errstate(invalid="ignore"):
-        mean = values.mean(axis=-1)
-        spread = values.max(axis=-1) - values.min(axis=-1)
-    return CellSamples(mean, spread, inside_cells)
+    return CellSamples(values.mean(axis=-1), inside_cells)
 
 
 @dataclass(frozen=True)
@@ -222,6 +218,55 @@ def quiet_nan_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         yield
+
+
+class CellProbe:
+    """One sample at the centre of every border, gap-ring and codeword cell: a cheap first look.
+
+    ``read(gray, H)`` for M homographies gives per candidate the contrast
+    (gap-ring median - border median), the fractions of readable border
+    cells below and gap-ring cells above the midpoint, and the fraction of
+    codeword cells below it; a candidate that is no marker fails here before
+    any expensive step.
+    """
+
+    def __init__(self, layout: MarkerLayout):
+        border, gap, codeword = layout.border_mask, gap_ring_mask(layout), layout.codeword_mask
+        self._probed = border | gap | codeword
+        self._is_border, self._is_gap = border[self._probed], gap[self._probed]
+        self._is_codeword = codeword[self._probed]
+        self._points = np.argwhere(self._probed)[:, ::-1] + 0.5  # (u, v) cell centres
+
+    def read(self, gray: np.ndarray, H: np.ndarray) -> "ProbeReading":
+        values, _ = sample_image(gray, project(H, self._points))
+        border, gap, codeword = values[:, self._is_border], values[:, self._is_gap], values[:, self._is_codeword]
+        black, white = nan_median_rows(border), nan_median_rows(gap)
+        with np.errstate(invalid="ignore"):
+            mid = (black + white)[:, None] / 2
+            dark = values < mid
+        grid = np.full((len(H),) + self._probed.shape, UNKNOWN, np.int8)
+        grid[:, self._probed] = np.where(np.isfinite(values), dark, UNKNOWN)
+        return ProbeReading(white - black, _fraction(dark[:, self._is_border], border),
+                            _fraction(~dark[:, self._is_gap] & np.isfinite(gap), gap),
+                            _fraction(dark[:, self._is_codeword], codeword), grid)
+
+
+@dataclass(frozen=True)
+class ProbeReading:
+    """Per candidate (M,): contrast, border_black, gap_white, dark_codeword (see ``CellProbe``);
+    grid (M, N, N) int8: the probed cells read at one sample each (others unknown)."""
+
+    contrast: np.ndarray
+    border_black: np.ndarray
+    gap_white: np.ndarray
+    dark_codeword: np.ndarray
+    grid: np.ndarray
+
+
+def _fraction(condition: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(M,) share of the readable (finite) values meeting the condition, per row."""
+    readable = np.isfinite(values)
+    return (condition & readable).sum(axis=1) / np.maximum(readable.sum(axis=1), 1)
 
 
 def erase_near_bad_fixed_cells(grids: np.ndarray, border: np.ndarray, gap: np.ndarray,
