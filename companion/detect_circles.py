@@ -53,6 +53,8 @@ class CircleParams:
         "auto": contours unless more than ``max_speck_fraction`` of the
         pixels are isolated specks (what a 3 x 3 median removes; measured:
         under 0.8 % on ordinary frames, over 1.6 % on noisy ones).
+    max_blobs: keep at most this many blobs (the darkest), a bound on the
+        work a speckled texture causes (a marker has 12 circles).
     min_area_px: smallest blob (a small circle of a 40 px marker is ~12 px).
     max_aspect: bounding-box elongation allowed (tilted circles are ellipses).
     min_fill: blob area over bounding-box area.
@@ -70,6 +72,7 @@ class CircleParams:
     pre_blur: bool = False
     blob_method: str = "auto"
     max_speck_fraction: float = 0.01
+    max_blobs: int = 300
     min_area_px: int = 5
     max_area_fraction: float = 0.01
     max_aspect: float = 3.0
@@ -108,7 +111,12 @@ def find_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
                 & (np.maximum(w, h) <= params.max_aspect * np.minimum(w, h))
                 & (area >= params.min_fill * w * h))
     blobs = Blobs(centres[shape_ok], area[shape_ok].astype(np.float64), np.maximum(w, h)[shape_ok] / 2.0)
-    return blobs.subset(_ring_test(smooth, blobs, params))
+    passed, darkness = _ring_test(smooth, blobs, params)
+    keep = np.flatnonzero(passed)
+    if len(keep) > params.max_blobs:
+        # a speckled texture: keep the darkest spots (relative to their rings), a bound on later work
+        keep = keep[np.argsort(darkness[keep], kind="stable")[:params.max_blobs]]
+    return blobs.subset(np.sort(keep))
 
 
 def dark_pixels(gray: np.ndarray, params: CircleParams) -> np.ndarray:
@@ -181,10 +189,10 @@ def _component_table(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return centroids[1:], stats[1:, 4].astype(np.float64), stats[1:, 2], stats[1:, 3]
 
 
-def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> np.ndarray:
-    """(M,) bool: the blob centre is much darker than a bright ring around it."""
+def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) bool: the blob centre is much darker than a bright ring around it; (M,) centre / ring median."""
     if len(blobs) == 0:
-        return np.zeros(0, bool)
+        return np.zeros(0, bool), np.zeros(0)
     radius = params.ring_scale * blobs.extents_px + 0.5
     ring = blobs.centres_px[:, None, :] + radius[:, None, None] * RING_DIRECTIONS[None]
     # a ring point past the image edge reads the edge pixel (circles near the border stay testable)
@@ -195,9 +203,12 @@ def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> np.nda
     centre, ring_values = values[:, 0], np.sort(values[:, 1:], axis=1)
     ring_median = (ring_values[:, 3] + ring_values[:, 4]) / 2  # of 8 sorted samples (np.median is 10x slower)
     contrast = ring_median - centre
-    return ((contrast >= params.min_ring_contrast)
-            & (centre <= params.max_darkness_ratio * ring_median)
-            & (ring_values[:, params.ring_dark_allowed] - centre >= 0.5 * contrast))
+    passed = ((contrast >= params.min_ring_contrast)
+              & (centre <= params.max_darkness_ratio * ring_median)
+              & (ring_values[:, params.ring_dark_allowed] - centre >= 0.5 * contrast))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        darkness = centre / ring_median
+    return passed, darkness
 
 
 @dataclass(frozen=True)
@@ -215,13 +226,15 @@ class Triples:
         return len(self.index)
 
 
-def corner_triples(blobs: Blobs, layout: MarkerLayout) -> Triples:
+def corner_triples(blobs: Blobs, layout: MarkerLayout, max_triples: int = 32) -> Triples:
     """Find (large, small, small) blob triples shaped like one corner of the layout.
 
     Face-on, the small circles are 2 cells from the large one (``spacing``
     over the large radius: 2.5 for p = 2) at half its radius, at right angles.
     Under perspective and tilt up to ~60 deg the tests below stay loose; the
-    homography fit and the decode are the strict checks.
+    homography fit and the decode are the strict checks. At most
+    ``max_triples`` (the most corner-like) are kept: eight markers' worth, and a
+    bound on the work a dotted texture can cause.
     """
     large_r, small_r = layout.circles[0, 2], layout.circles[1, 2]
     spacing = np.linalg.norm(layout.circles[1, :2] - layout.circles[0, :2]) / large_r
@@ -265,6 +278,11 @@ def corner_triples(blobs: Blobs, layout: MarkerLayout) -> Triples:
     ok = ((np.abs(cos) < 0.8) & (n1 / n2 < 2.5) & (n2 / n1 < 2.5)
           & (small_ratio < 2.5) & (small_ratio > 1 / 2.5))
     t, cross = t[ok], cross[ok]
+    if len(t) > max_triples:
+        # a dotted texture makes thousands; keep the most corner-like (right angle, equal arms and smalls)
+        score = np.abs(cos[ok]) + np.abs(np.log(n1[ok] / n2[ok])) + np.abs(np.log(small_ratio[ok]))
+        best = np.argsort(score, kind="stable")[:max_triples]
+        t, cross = t[best], cross[best]
     # handedness: seen from the front, (first edge) x (second edge) > 0 in image coordinates
     t[cross < 0] = t[cross < 0][:, [0, 2, 1]]
     return Triples(t, c[t])
