@@ -1,7 +1,9 @@
 """The RS marker detector on rendered frames: both paths, occlusions, rotations, rejections."""
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,6 +16,10 @@ from companion.marker import UNKNOWN, MarkerLayout
 
 W, H = 640, 480
 SIZE_M = 0.15
+GOLDEN = sorted((Path(__file__).parent / "data" / "detector").glob("*.json"))
+# max corner error against the renderer's ground truth: the square path reads its
+# corners from the edges; the circles path extrapolates hidden corners
+GOLDEN_TOLERANCE_PX = {"square": 0.4, "circles": 0.75}
 
 
 def facing_pose(distance_m: float, spin_deg: float = 0.0, tilt_deg: float = 0.0,
@@ -116,6 +122,76 @@ def test_stage_times_are_reported(layout, detector):
     detector.detect(image)
     assert {"square", "square_decode"} <= set(detector.last_stage_ms)
     assert all(ms >= 0 for ms in detector.last_stage_ms.values())
+
+
+# ------------------------------------------------------------ golden frames
+
+def test_golden_frames_exist_for_every_case():
+    notes = {path.stem for path in GOLDEN}
+    assert {"square_rotations", "circles_rotations", "strip_1_8", "strip_1_4", "strip_1_4_parity4", "blob",
+            "marker_free_clutter", "other_families", "too_occluded"} <= notes
+
+
+@pytest.mark.parametrize("golden", GOLDEN, ids=lambda path: path.stem)
+def test_golden_frame(golden):
+    expected = json.loads(golden.read_text())
+    image = cv2.imread(str(golden.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
+    detector = Detector(DetectorParams(parity=expected["parity"]))
+    found = detector.detect(image)
+    assert sorted(d.id for d in found) == sorted(m["id"] for m in expected["markers"]), expected["note"]
+    layout = detector.layout
+    for marker in expected["markers"]:
+        d = by_id(found)[marker["id"]]
+        assert (d.symbol, d.path) == (marker["symbol"], marker["path"])
+        error = np.abs(d.corners_px - np.array(marker["corners"])).max()
+        assert error < GOLDEN_TOLERANCE_PX[d.path], (marker["symbol"], error)
+        if marker["occlusion"] != "none":
+            assert d.corrected >= 1 or marker["occlusion"] == "strip_1_8"  # a 1/8 strip may hide parity only
+        if d.path == "circles":
+            assert_circles_consistent(d, layout)
+
+
+def assert_circles_consistent(d, layout):
+    """circle_ids are distinct layout circles on 2+ corners, and circles_px lie where the
+    detection's own corners put them (within a quarter cell)."""
+    ids = np.asarray(d.circle_ids)
+    assert len(ids) >= 5 and len(set(ids.tolist())) == len(ids) and ids.min() >= 0 and ids.max() < 12
+    assert len(set((ids // 3).tolist())) >= 2
+    H_grid, _ = cv2.findHomography(layout.inner_corners_cells, d.corners_px, 0)
+    expected = cv2.perspectiveTransform(layout.circles[ids, :2].reshape(1, -1, 2), H_grid)[0]
+    cell_px = np.linalg.norm(d.corners_px[1] - d.corners_px[0]) / layout.inner_cells
+    assert np.linalg.norm(expected - d.circles_px, axis=1).max() < 0.25 * cell_px
+
+
+# ------------------------------------------------------------- circles path
+
+def test_circles_path_reads_a_marker_cut_by_the_image_edge(layout, detector):
+    # a quarter of the grid lies left of the frame: its cells are erasures, not errors
+    texture = render.rs_marker_texture(layout, 21)
+    image, (truth,) = render_scene([(texture, facing_pose(0.9, 15, 10, offset_px=(-300, 0)))])
+    assert not truth.corners_visible.all()
+    (d,) = detector.detect(image)
+    assert (d.id, d.path) == (21, "circles") and d.corrected >= 1
+    visible = truth.corners_visible
+    assert np.abs(d.corners_px[visible] - truth.corners_px[visible]).max() < 0.5
+    assert_circles_consistent(d, layout)
+
+
+def test_circles_mode_gates_the_occluded_path(layout):
+    # one clean marker and one under a strip: by default the circles path does not run in a frame
+    # where the square path found something; "always" finds both; "never" never runs it
+    clean_texture, strip_texture = render.rs_marker_texture(layout, 3), render.rs_marker_texture(layout, 40)
+    T_strip = facing_pose(1.0, 30, 15, offset_px=(150, 0))
+    strip = render.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
+    image, _ = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
+                             (strip_texture, T_strip)], occluders=[strip])
+    found = {mode: {(d.id, d.path) for d in Detector(DetectorParams(circles=mode)).detect(image)}
+             for mode in ("when_square_empty", "always", "never")}
+    assert found["when_square_empty"] == found["never"] == {(3, "square")}
+    assert found["always"] == {(3, "square"), (40, "circles")}
+    strip_only, _ = render_scene([(strip_texture, T_strip)], occluders=[strip])
+    assert [(d.id, d.path) for d in Detector().detect(strip_only)] == [(40, "circles")]
+    assert Detector(DetectorParams(circles="never")).detect(strip_only) == []
 
 
 # ------------------------------------------------------------------- decoder
