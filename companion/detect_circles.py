@@ -374,7 +374,8 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, mi
                 added = [c for c, b in zip(circles, found) if b >= 0]
                 blobs_added = [b for b in found if b >= 0]
                 H_new = _fit(grid[ids + added], centres[index + blobs_added])
-                if _fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]) <= 0.3:
+                checkable = len(ids) + len(added) >= 6  # below six points the fit is affine and always "fits"
+                if not checkable or fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]) <= 0.3:
                     ids, index, H = ids + added, index + blobs_added, H_new
                     in_candidate[blobs_added] = True
                     break
@@ -418,10 +419,8 @@ def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used,
     return found
 
 
-def _fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
-    """RMS distance (in cells at the first point) between points and their fitted positions; 0 below 6."""
-    if len(grid_points) < 6:
-        return 0.0
+def fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
+    """RMS distance between image points and their grid points mapped by H, in cells (at the first point)."""
     projected, cell_px = _predict(H, grid_points)
     with np.errstate(divide="ignore", invalid="ignore"):
         error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px

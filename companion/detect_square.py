@@ -47,6 +47,9 @@ class SquareParams:
         larger side (OpenCV: 0.03). 0.08 is a 13 px inner side at 640 px,
         26 px at 1280 px (under 3 px per cell: too small to read the grid
         anyway); skipping the many small contours saves 5-15 %.
+    threshold_constant: ArUco's adaptive-threshold offset (OpenCV: 7). 5
+        keeps small markers in dim frames (low light 97.8 -> 99.3 % here) at
+        the same speed on ordinary frames.
     """
 
     error_correction_rate: float = 0.6
@@ -56,6 +59,7 @@ class SquareParams:
     min_side_px: float = 20.0
     threshold_windows_px: tuple[int, int, int] = (7, 27, 20)
     min_perimeter_rate: float = 0.08
+    threshold_constant: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +84,7 @@ def make_aruco_detector(layout: MarkerLayout, params: SquareParams) -> cv2.aruco
     aruco_params.adaptiveThreshWinSizeMin, aruco_params.adaptiveThreshWinSizeMax, \
         aruco_params.adaptiveThreshWinSizeStep = params.threshold_windows_px
     aruco_params.minMarkerPerimeterRate = params.min_perimeter_rate
+    aruco_params.adaptiveThreshConstant = params.threshold_constant
     return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), aruco_params)
 
 
@@ -110,18 +115,10 @@ class SquareFinder:
 
     def _within(self, quads: np.ndarray, markers: np.ndarray) -> np.ndarray:
         """(M,) bool: quad centres inside the whole grid of an identified marker (its own cells)."""
-        inside = np.zeros(len(quads), bool)
-        if len(markers) == 0 or len(quads) == 0:
-            return inside
-        n = self.layout.n_cells
+        if len(markers) == 0:
+            return np.zeros(len(quads), bool)
         H = grid_sampling.homographies_from_quads(self._inner_corners, markers)
-        outline = grid_sampling.project(H, np.array([[0, 0], [n, 0], [n, n], [0, n]], float))  # (A, 4, 2)
-        centres = quads.mean(axis=1)  # (M, 2)
-        # inside a convex clockwise polygon: on the right of (or on) every edge
-        edge = np.roll(outline, -1, axis=1) - outline  # (A, 4, 2)
-        to_point = centres[:, None, None, :] - outline[None]  # (M, A, 4, 2)
-        cross = edge[None, ..., 0] * to_point[..., 1] - edge[None, ..., 1] * to_point[..., 0]
-        return (cross >= 0).all(axis=2).any(axis=1)
+        return grid_sampling.inside_grids(quads.mean(axis=1), H, self.layout.n_cells)
 
     def marker_like(self, gray: np.ndarray, quads: np.ndarray) -> np.ndarray:
         """(M,) bool: quads that read like an RS marker at one sample per cell.

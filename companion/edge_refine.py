@@ -67,7 +67,7 @@ class EdgeRefiner:
         self.square_stride, self.square_samples = square_stride, square_samples
         self.circles_stride, self.circles_samples = circles_stride, circles_samples
         lo, hi = layout.inner_origin, layout.inner_origin + layout.inner_cells
-        self._lo, self._hi = float(lo), float(hi)
+        self.inner_cells = layout.inner_cells
         along = np.arange(lo + EDGE_STEP_CELLS, hi, EDGE_STEP_CELLS)
         k = len(along)
         top = np.column_stack([along, np.full(k, lo)])
@@ -122,10 +122,14 @@ class EdgeRefiner:
     # ---------------------------------------------------------- square path
 
     def refine_square_corners(self, gray: np.ndarray, H: np.ndarray, corners_px: np.ndarray,
-                              min_points_per_edge: int = 5) -> np.ndarray:
+                              min_points_per_edge: int = 5, half_width_cells: float = SQUARE_HALF_WIDTH_CELLS,
+                              samples: int | None = None) -> np.ndarray:
         """(M, 4, 2) inner corners from line fits to the edges; a corner keeps its input value
-        unless both of its edges have ``min_points_per_edge`` good points."""
-        points = self.edge_points(gray, H, SQUARE_HALF_WIDTH_CELLS, self.square_samples, self.square_stride)
+        unless both of its edges have ``min_points_per_edge`` good points.
+
+        half_width_cells: how far across each edge to look (corners off by up to about that much).
+        """
+        points = self.edge_points(gray, H, half_width_cells, samples or self.square_samples, self.square_stride)
         lines, enough = _fit_lines(points, min_points_per_edge)  # (M, 4, 3), (M, 4)
         # corner i is where edge i - 1 (the one ending there) meets edge i (the one starting there)
         previous = np.roll(lines, 1, axis=1)
@@ -134,7 +138,9 @@ class EdgeRefiner:
         with np.errstate(divide="ignore", invalid="ignore"):
             refined = meet[..., :2] / meet[..., 2:3]
         moved = np.linalg.norm(refined - corners_px, axis=2)
-        ok &= np.isfinite(moved) & (moved < 2.0)  # a fit this far off is a bad fit, not a better corner
+        cell_px = np.linalg.norm(corners_px - np.roll(corners_px, -1, axis=1), axis=2).mean(axis=1) / self.inner_cells
+        # a corner moved further than the profiles reach is a bad fit, not a better corner
+        ok &= np.isfinite(moved) & (moved < np.maximum(1.5 * half_width_cells * cell_px, 1.0)[:, None])
         return np.where(ok[..., None], refined, corners_px)
 
     # --------------------------------------------------------- circles path

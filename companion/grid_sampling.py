@@ -156,6 +156,18 @@ class GridLevels:
         return self.white - self.black
 
 
+def inside_grids(points_px: np.ndarray, H: np.ndarray, n_cells: int) -> np.ndarray:
+    """(K,) bool: image points inside the whole N x N grid outline of any of M grids (H: (M, 3, 3))."""
+    if len(points_px) == 0 or len(H) == 0:
+        return np.zeros(len(points_px), bool)
+    outline = project(H, np.array([[0, 0], [n_cells, 0], [n_cells, n_cells], [0, n_cells]], float))  # (M, 4, 2)
+    # inside a convex clockwise polygon: on the right of (or on) every edge
+    edge = np.roll(outline, -1, axis=1) - outline
+    to_point = points_px[:, None, None, :] - outline[None]  # (K, M, 4, 2)
+    cross = edge[None, ..., 0] * to_point[..., 1] - edge[None, ..., 1] * to_point[..., 0]
+    return (cross >= 0).all(axis=2).any(axis=1)
+
+
 def gap_ring_mask(layout: MarkerLayout) -> np.ndarray:
     """(N, N) bool: the one-cell white ring just outside the inner black square."""
     n, o = layout.n_cells, layout.inner_origin
