@@ -449,9 +449,11 @@ def _predict(H: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
     w = pts @ H[2, :2] + H[2, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         p = (pts @ H[:2, :2].T + H[:2, 2]) / w[:, None]
+    if not np.all(np.isfinite(p)):
+        return p[:-2], np.nan
     a, b = p[-2] - p[0], p[-1] - p[0]
     cell_px = float(np.sqrt(abs(a[0] * b[1] - a[1] * b[0])))
-    return p[:-2], cell_px if np.all(np.isfinite(p)) and cell_px > 0 else np.nan
+    return p[:-2], cell_px if cell_px > 0 else np.nan
 
 
 def missing_corner_cells(layout: MarkerLayout, present_corners: np.ndarray) -> np.ndarray:
