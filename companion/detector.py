@@ -22,7 +22,7 @@ Nothing is reported unless it decodes to a dictionary marker.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -34,6 +34,7 @@ from companion.detect_square import SquareFinder, SquareParams
 from companion.edge_refine import EdgeRefiner
 from companion.grid_decode import DEFAULT_FALSE_ACCEPT_BOUND, GridDecoder
 from companion.marker import MarkerLayout
+from companion.marker_refine import MarkerRefiner
 from companion.types import Detection
 
 CIRCLES_MODES = ("when_square_empty", "always", "never")
@@ -114,6 +115,7 @@ class Detector:
             threshold_windows_px=params.aruco_threshold_windows_px), screen=self.decoder.plausible)
         self.circle_params = CircleParams()
         self.edges = EdgeRefiner(self.layout, min_contrast=params.min_contrast)
+        self.refiner = MarkerRefiner(self.layout)
         self.probe = grid_sampling.CellProbe(self.layout)
         self._border = self.layout.border_mask
         self._gap = grid_sampling.gap_ring_mask(self.layout)
@@ -128,11 +130,18 @@ class Detector:
         clock.lap("square")
         detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
         clock.lap("square_decode")
+        detections = [self._aligned(gray, d) for d in detections]
+        clock.lap("square_align")
         mode = self.params.circles
         if mode == "always" or (mode == "when_square_empty" and not detections):
             detections += self._circles_path(gray, detections, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
+
+    def _aligned(self, gray: np.ndarray, detection: Detection) -> Detection:
+        """Square-path corners aligned on the decoded marker's whole pattern (see marker_refine)."""
+        fit = self.refiner.refine(gray, detection.id, detection.corners_px)
+        return replace(detection, corners_px=fit.corners_px) if fit.refined else detection
 
     def _decode_quads(self, gray: np.ndarray, quads: np.ndarray, from_aruco: np.ndarray) -> list[Detection]:
         """Sample, classify and decode M candidate inner squares (M, 4, 2) (clockwise corners)."""
