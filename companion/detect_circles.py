@@ -6,20 +6,21 @@ along the two grid edges, with half its radius. A marker whose black border
 is hidden (a strip over one side, a corner patch) still shows at least two
 corners, so at least six circles, which fix the grid homography.
 
-1. ``find_blobs``: one adaptive threshold and one connected-components pass
-   inside OpenCV, then vectorised filters on the component table (area,
-   aspect, fill) and on a ring of 8 samples around each blob (a circle is a
+1. ``find_blobs``: one local-mean threshold inside OpenCV, a table of the
+   dark blobs (outer contours reduced with vectorised numpy, or OpenCV's
+   connected components on speckled frames), vectorised filters on it (area,
+   aspect, fill) and a ring of 8 samples around each blob (a circle is a
    dark, compact spot on white paper: the ring is bright all round, and the
-   spot is much darker than the ring). No contour is ever converted to
-   Python.
+   spot is much darker than the ring). No per-blob Python loop.
 2. ``corner_triples``: (large, small, small) blobs at the layout's relative
    positions and size ratio, oriented by the handedness of the printed face.
 3. ``assemble_candidates``: from each triple (called corner 0; the decoder
    resolves the true rotation), the other corners' circles are predicted and
    matched blob by blob, so a corner that lost a small circle still counts.
-4. The homography from the circle centres is then refined on the inner
-   square's visible edges (``edge_refine``) and the grid sampled and decoded
-   by the detector with erasures where the image shows no marker.
+4. The detector then fits the homography to the circle centres, refines it
+   on the inner square's visible edges (``edge_refine``), and samples and
+   decodes the grid with erasures where the image shows no marker
+   (``missing_corner_cells``, ``grid_sampling.erase_near_bad_fixed_cells``).
 """
 from __future__ import annotations
 

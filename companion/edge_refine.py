@@ -10,7 +10,7 @@ out of the image, too little contrast) is dropped.
   adjacent lines meet (``refine_square_corners``), batched over markers.
 * Circles path: the circle-only homography extrapolates poorly (two corners
   on one side of a half-hidden marker); the edge points pin it
-  (``refine_homography``). A point p on the grid line v = c gives one
+  (``refine_homographies``). A point p on the grid line v = c gives one
   equation linear in the image -> grid homography G:  g2 . p - c g3 . p = 0
   (u = c: g1 . p - c g3 . p = 0); a circle centre gives two. G is the null
   vector of the stacked, normalised system; points far from the first fit

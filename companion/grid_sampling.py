@@ -11,8 +11,6 @@ origin at the grid's outer top-left corner, u right, v down) to image pixels
 """
 from __future__ import annotations
 
-import warnings
-from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -139,17 +137,10 @@ def sample_cells(gray: np.ndarray, H: np.ndarray, n_cells: int,
 
 @dataclass(frozen=True)
 class GridLevels:
-    """Each candidate's own black and white levels, read from its fixed cells.
-
-    black, white: (M,) float32 medians of the border cells and of the gap ring.
-    border_black, gap_white: (M,) fraction of readable border cells darker
-        than the midpoint and of readable gap-ring cells brighter than it.
-    """
+    """Each candidate's own black and white levels: (M,) medians of its border cells and its gap ring."""
 
     black: np.ndarray
     white: np.ndarray
-    border_black: np.ndarray
-    gap_white: np.ndarray
 
     @property
     def contrast(self) -> np.ndarray:
@@ -178,18 +169,11 @@ def gap_ring_mask(layout: MarkerLayout) -> np.ndarray:
 
 
 def grid_levels(cells: CellSamples, border: np.ndarray, gap: np.ndarray) -> GridLevels:
-    """Black/white levels and fixed-cell agreement of M grids (border, gap: (N, N) bool masks)."""
-    border_values = cells.mean[:, border]
-    gap_values = cells.mean[:, gap]
-    black = nan_median_rows(border_values)
-    white = nan_median_rows(gap_values)
-    with np.errstate(invalid="ignore"):
-        mid = (black + white)[:, None] / 2
-        border_known = np.isfinite(border_values)
-        gap_known = np.isfinite(gap_values)
-        border_black = (border_known & (border_values < mid)).sum(1) / np.maximum(border_known.sum(1), 1)
-        gap_white = (gap_known & (gap_values > mid)).sum(1) / np.maximum(gap_known.sum(1), 1)
-    return GridLevels(black, white, border_black, gap_white)
+    """Black and white levels of M grids from their border and gap-ring cells ((N, N) bool masks).
+
+    Medians of the readable cells, so a partly hidden border or ring still gives the marker's own levels.
+    """
+    return GridLevels(nan_median_rows(cells.mean[:, border]), nan_median_rows(cells.mean[:, gap]))
 
 
 def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity: float) -> np.ndarray:
@@ -222,14 +206,6 @@ def nan_median_rows(values: np.ndarray) -> np.ndarray:
     median = (ordered[rows, lo] + ordered[rows, hi]) / 2
     median[count == 0] = np.nan
     return median
-
-
-@contextmanager
-def quiet_nan_warnings():
-    """Silence numpy's 'All-NaN slice' RuntimeWarning (an all-unreadable candidate) inside a block."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        yield
 
 
 class CellProbe:
