@@ -19,11 +19,12 @@ from typing import Any
 from companion.camera import CameraModel
 from companion.facility_map import FacilityMap, geodetic_origin, load_map
 from companion.fusion import FusionParams
+from companion.pose import PoseParams
 from companion.mavlink_link import LinkParams, Origin
 from companion.source import SEQUENCE_FILE, read_sequence_info
 from companion.yaml_input import Where, read_yaml
 
-TOP_KEYS = {"source", "camera", "map", "detector", "fusion", "mavlink", "status"}
+TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status"}
 SOURCE_KINDS = ("replay", "v4l2")
 REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
 V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
@@ -66,6 +67,7 @@ class Config:
     camera: CameraModel
     facility_map: FacilityMap
     detector: dict[str, Any]
+    pose: PoseParams
     fusion: FusionParams
     mavlink: LinkParams
     status_interval_s: float = 0.5
@@ -104,7 +106,8 @@ def config_from_dict(data, path) -> Config:
         camera=camera,
         facility_map=facility_map,
         detector=where.sub("detector").mapping(data.get("detector"), "detector parameters"),
-        fusion=_fusion(data.get("fusion"), where.sub("fusion")),
+        pose=_parameters(data.get("pose"), where.sub("pose"), PoseParams, "pose parameters"),
+        fusion=_parameters(data.get("fusion"), where.sub("fusion"), FusionParams, "fusion parameters"),
         mavlink=_mavlink(data.get("mavlink"), where.sub("mavlink"), facility_map),
         status_interval_s=status_where.number(status, "interval_s", 0.5, minimum=0.05),
     )
@@ -194,13 +197,13 @@ def _sequence_map_path(name, info_path: Path) -> Path:
     raise where.error(f"{name} found neither in {info_path.parent} nor in a folder above it", "map")
 
 
-def _fusion(section, where: Where) -> FusionParams:
-    section = where.mapping(section, "fusion parameters")
-    known = {f.name for f in dataclasses.fields(FusionParams)}
-    where.reject_unknown(section, known)
+def _parameters(section, where: Where, params_type, what: str):
+    """A section whose keys are the fields of a parameters dataclass (all optional)."""
+    section = where.mapping(section, what)
+    where.reject_unknown(section, {f.name for f in dataclasses.fields(params_type)})
     try:
-        return FusionParams(**section)
-    except ValueError as error:
+        return params_type(**section)
+    except (TypeError, ValueError) as error:
         raise where.error(str(error)) from None
 
 

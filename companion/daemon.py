@@ -174,7 +174,7 @@ class Daemon:
         self.link = MavlinkLink(config.mavlink)
         self.pipeline = Pipeline(
             Detector(detector_params),
-            PoseSolver(config.facility_map, config.camera),
+            PoseSolver(config.facility_map, config.camera, config.pose),
             PoseFilter(config.fusion),
             self.link,
             T_map_ned=frames.invert_transform(config.facility_map.T_ned_map),

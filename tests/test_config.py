@@ -103,6 +103,7 @@ def test_commented_raspberry_pi_example_is_a_valid_config(site):
     storage.write("image_height", 480)
     storage.release()
     config = load_config(example)
+    assert config.pose.corner_sigma_px == 0.2
     assert isinstance(config.source, V4L2Config) and config.source.pixel_format == "MJPG"
     assert config.mavlink.connection == "/dev/ttyAMA0,921600"
     assert config.camera.K[0, 0] == 600.0
@@ -124,6 +125,7 @@ def test_commented_raspberry_pi_example_is_a_valid_config(site):
      "missing"),
     (lambda d: d["fusion"].update(gate_chi2=-1), "fusion", "gate_chi2"),
     (lambda d: d["fusion"].update(gate=3), "fusion.gate", "unknown key"),
+    (lambda d: d.update(pose={"corner_sigma": 0.2}), "pose.corner_sigma", "unknown key"),
     (lambda d: d["status"].update(interval_s="fast"), "status.interval_s", "number"),
     (lambda d: d.update(map="../maps/missing.yaml"), "map", "does not exist"),
     (lambda d: d.update(source={"kind": "v4l2"}, camera=None) or d.pop("camera"), "camera", "missing"),
