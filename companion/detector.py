@@ -13,6 +13,9 @@ Stages (one module each, run in this order):
    marker's own border (black) and gap ring (white) levels.
 3. ``grid_decode``: bounded-distance decoding of the whole codeword, then
    algebraic RS; anything that does not decode is dropped.
+   (``edge_refine`` gives every candidate sub-pixel corners from its edges
+   before sampling; ``marker_refine`` then aligns each decoded square-path
+   marker's whole pattern to the image for its final corners.)
 4. ``detect_circles`` (the occluded path): where the square path found
    nothing, corner circles are grouped into grids, sampled with occluded and
    out-of-image cells as erasures, and decoded the same way.
