@@ -160,16 +160,27 @@ class Pipeline:
             self.link.statustext(f"companion: {text}", severity)
 
 
+def detector_params_for(config: Config) -> DetectorParams:
+    """The config's detector section, with the marker layout (parity, dictionary) taken from the map."""
+    facility_map = config.facility_map
+    layout = {"parity": facility_map.parity, "dictionary": facility_map.dictionary}
+    for key, value in layout.items():
+        if key in config.detector and config.detector[key] != value:
+            raise ConfigError(f"{config.path}: detector.{key}: {config.detector[key]!r} differs from the map's "
+                              f"{value!r} ({facility_map.path})")
+    try:
+        return DetectorParams(**{**config.detector, **layout})
+    except (TypeError, ValueError) as error:
+        raise ConfigError(f"{config.path}: detector: {error}") from None
+
+
 class Daemon:
     """Builds the stages from a Config and runs the threads until stopped."""
 
     def __init__(self, config: Config, status_stream=None, record_frames: int = 2000):
         self.config = config
         self.status_stream = status_stream
-        try:
-            detector_params = DetectorParams(**config.detector)
-        except (TypeError, ValueError) as error:
-            raise ConfigError(f"{config.path}: detector: {error}") from None
+        detector_params = detector_params_for(config)
         self.source = make_source(config)
         self.link = MavlinkLink(config.mavlink)
         self.pipeline = Pipeline(

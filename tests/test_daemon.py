@@ -321,3 +321,17 @@ def test_config_error_exits_2_naming_the_file_and_key(tmp_path):
     code, _, stderr = finish(start_daemon(config), timeout_s=30)
     assert code == 2
     assert f"{config}: mavlink: max_rate_hz" in stderr and "Traceback" not in stderr
+
+
+def test_detector_layout_comes_from_the_map_and_a_mismatch_is_named():
+    import dataclasses
+
+    from companion.config import ConfigError, load_config
+    from companion.daemon import detector_params_for
+
+    config = load_config()
+    params = detector_params_for(config)
+    assert (params.parity, params.dictionary) == (config.facility_map.parity, config.facility_map.dictionary)
+    wrong = dataclasses.replace(config, detector={"parity": 6 - config.facility_map.parity})
+    with pytest.raises(ConfigError, match=r"detector\.parity: .* differs from the map's"):
+        detector_params_for(wrong)
