@@ -76,8 +76,7 @@ class MapMarker:
 
     def corners_marker(self) -> np.ndarray:
         """(4, 3) inner-square corners TL, TR, BR, BL in the marker frame, metres."""
-        h = self.size_m / 2.0
-        return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+        return frames.marker_inner_corners_m(self.size_m)
 
     def corners_map(self) -> np.ndarray:
         """(4, 3) inner-square corners TL, TR, BR, BL in the map frame, metres."""

@@ -275,6 +275,12 @@ def grid_to_marker_m(uv_cells, inner_origin_cells: float, size_m: float) -> np.n
     return np.column_stack([x, y, np.zeros(len(uv))])
 
 
+def marker_inner_corners_m(size_m: float) -> np.ndarray:
+    """(4, 3) inner black square corners TL, TR, BR, BL in the marker frame, metres (z = 0)."""
+    h = size_m / 2.0
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
 # ------------------------------------------------------------- covariance
 
 def rotate_pose_covariance(cov_6x6: np.ndarray, R_new_old: np.ndarray) -> np.ndarray:

@@ -313,8 +313,7 @@ class PoseSolver:
         marker's points (the same test as for ambiguity); a clearly wrong
         branch cannot become the best fit and costs a refinement.
         """
-        h = observation.marker.size_m / 2.0
-        square = np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+        square = observation.marker.corners_marker()
         corners_px = observation.points_px[:4].reshape(4, 1, 2)
         count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
             square, corners_px, self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE

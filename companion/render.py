@@ -474,12 +474,6 @@ def aruco_marker_texture(dictionary, marker_id: int, px_per_cell: int = 16, quie
     return MarkerTexture(image, corners, np.zeros((0, 2)), int(marker_id), family)
 
 
-def inner_corners_marker(size_m: float) -> np.ndarray:
-    """(4, 3) inner-square corners TL, TR, BR, BL in the marker frame (conventions.md)."""
-    h = size_m / 2.0
-    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-
-
 def texture_to_marker(marker: MarkerTexture, size_m: float) -> np.ndarray:
     """(3, 3) affine map from texture pixel (x, y, 1) to marker-frame (x_m, y_m, 1).
 
@@ -487,7 +481,7 @@ def texture_to_marker(marker: MarkerTexture, size_m: float) -> np.ndarray:
     marker frame comes from the data, not from an axis convention here.
     """
     src = marker.inner_corners_px
-    dst = inner_corners_marker(size_m)[:, :2]
+    dst = frames.marker_inner_corners_m(size_m)[:, :2]
     # least squares for [x_m, y_m] = M [x, y, 1]; exact for a square
     design = np.column_stack([src, np.ones(4)])
     M, *_ = np.linalg.lstsq(design, dst, rcond=None)
@@ -499,7 +493,7 @@ def marker_points_marker(marker: MarkerTexture, size_m: float) -> tuple[np.ndarr
     A = texture_to_marker(marker, size_m)
     circles = np.column_stack([marker.circles_px, np.ones(len(marker.circles_px))]) @ A.T
     circles[:, 2] = 0.0
-    return inner_corners_marker(size_m), circles
+    return frames.marker_inner_corners_m(size_m), circles
 
 
 def marker_quad(marker: MarkerTexture, size_m: float, T_world_marker: np.ndarray,
@@ -653,7 +647,7 @@ def corner_occluder(marker: MarkerTexture, size_m: float, T_world_marker: np.nda
     """A patch hiding one inner corner (0 TL, 1 TR, 2 BR, 3 BL) and ``fraction`` of the side along both edges."""
     s = size_m
     reach = _outer_reach_m(marker, size_m) + 0.2 * s
-    corner_xy = inner_corners_marker(s)[corner, :2]
+    corner_xy = frames.marker_inner_corners_m(s)[corner, :2]
     inward = -np.sign(corner_xy)  # toward the marker centre
     inner = corner_xy + inward * fraction * s
     outer = corner_xy - inward * (reach - s / 2)

@@ -29,6 +29,7 @@ import yaml
 from companion import frames, render, trajectory as trajectories
 from companion.camera import CameraModel, load_camera
 from companion.facility_map import FacilityMap, load_map
+from companion.yaml_input import read_yaml
 
 DEFAULT_CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,
                   "mount": {"lever_arm_m": [0.1, 0.0, 0.05], "facing": "forward", "tilt_down_deg": 20.0}}
@@ -612,10 +613,7 @@ def read_sequence(path) -> RecordedSequence:
     """Read a sequence folder written by ``write_sequence``; errors name the file and column."""
     folder = Path(path)
     info_file = folder / "sequence.yaml"
-    try:
-        info = yaml.safe_load(info_file.read_text())
-    except OSError as error:
-        raise SimulationError(f"{info_file}: cannot read: {error.strerror}") from None
+    info = read_yaml(info_file, SimulationError, "sequence info")
     stamps = _read_csv(folder / "timestamps.csv", ("frame", "t_ns", "file"))
     truth = _read_csv(folder / "groundtruth.csv", GROUNDTRUTH_COLUMNS)
     if len(stamps) != len(truth):

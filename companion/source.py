@@ -28,9 +28,9 @@ from typing import Callable, Protocol
 
 import cv2
 import numpy as np
-import yaml
 
 from companion.types import Frame
+from companion.yaml_input import read_yaml
 
 log = logging.getLogger(__name__)
 
@@ -362,13 +362,7 @@ def read_sequence_info(folder) -> dict:
     path = Path(folder) / SEQUENCE_FILE
     if not path.is_file():
         return {}
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as error:
-        raise SourceError(f"{path}: not valid YAML ({error})") from None
-    if not isinstance(data, dict):
-        raise SourceError(f"{path}: expected a mapping at the top level")
-    return data
+    return read_yaml(path, SourceError, "sequence info")
 
 
 class ReplaySource(_ThreadedSource):

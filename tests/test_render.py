@@ -76,7 +76,7 @@ def test_ground_truth_through_lens_distortion():
     # far off-centre, where the distortion moves points by many pixels
     T = facing_marker_pose(1.2, offset_px=(-200.0, 140.0), K=K, spin_deg=17.0)
     rendering, (truth,) = render_markers(renderer, [(texture, T)])
-    ideal, _ = render.Renderer(K, np.zeros(5), W, H).project(render.inner_corners_marker(0.15) @ T[:3, :3].T
+    ideal, _ = render.Renderer(K, np.zeros(5), W, H).project(frames.marker_inner_corners_m(0.15) @ T[:3, :3].T
                                                               + T[:3, 3], np.eye(4))
     assert np.max(np.linalg.norm(ideal - truth.corners_px, axis=1)) > 10.0  # the lens matters here
     found = detect(rendering.image)
