@@ -39,9 +39,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from companion import cli  # noqa: E402
-from companion.config import config_from_dict  # noqa: E402
-from companion.daemon import Daemon  # noqa: E402
-from companion.source import open_recording  # noqa: E402
+from companion.daemon.config import config_from_dict  # noqa: E402
+from companion.daemon.service import Daemon  # noqa: E402
+from companion.capture.sources import open_recording  # noqa: E402
 
 RESOLUTIONS = [(640, 480), (1280, 720)]
 HFOV_DEG = 70.0

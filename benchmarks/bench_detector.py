@@ -3,7 +3,7 @@
     PYTHONPATH=. python benchmarks/bench_detector.py            # full run (~15 min on 2 cores)
     PYTHONPATH=. python benchmarks/bench_detector.py --quick    # smoke test (CI), ~1 min
 
-Scenes come from ``companion.render.random_marker_scene``: 1-3 markers under
+Scenes come from ``companion.sim.render.random_marker_scene``: 1-3 markers under
 random perspective (inner square 40-150 px face-on, tilt up to 50 deg, any
 in-plane rotation) on boards over clutter, half the scenes at 640x480 and
 half at 1280x720, under each condition of ``render.CONDITIONS``. Every scene
@@ -12,7 +12,7 @@ is rendered three times from the same seed and background: with RS markers
 DICT_6X6_50 markers and with AprilTag 36h11 markers of the same ids and inner
 size, so the poses match unless a marker's larger texture found no room.
 
-Detectors: ours (``companion.detector.Detector``, defaults); OpenCV
+Detectors: ours (``companion.detect.detector.Detector``, defaults); OpenCV
 ``ArucoDetector`` with sub-pixel corners and ``minDistanceToBorder = 0``, with
 the default ``errorCorrectionRate`` and with 1.0; AprilTag 3
 (``pupil_apriltags``, tag36h11, 2 threads, no decimation). A detection is a
@@ -44,9 +44,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion import render
-from companion.detector import Detector, DetectorParams
-from companion.marker import MarkerLayout
+from companion.sim import render
+from companion.detect.detector import Detector, DetectorParams
+from companion.markers.layout import MarkerLayout
 
 SIZES = ((640, 480), (1280, 720))
 FAMILIES = ("rs", "aruco", "apriltag")

@@ -1,6 +1,6 @@
 """Pose accuracy on rendered sequences: joint PnP against single-marker PnP.
 
-Renders (in memory, with ``companion.simulate``) flights through
+Renders (in memory, with ``companion.sim.simulate``) flights through
 ``maps/warehouse.yaml`` chosen to see markers at 1-6 m with the default
 camera (640x480, 70 degree field of view, forward, tilted 20 degrees down),
 or reads recorded sequence folders (``--sequence``). Every frame goes through
@@ -30,11 +30,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion import frames, simulate, trajectory
-from companion.camera import CameraModel
-from companion.facility_map import FacilityMap, load_map
+from companion.geometry import frames
+from companion.sim import simulate
+from companion.sim import trajectory
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import FacilityMap, load_map
 from companion.localize import pose_errors
-from companion.pose import PoseParams, PoseSolver
+from companion.geometry.pose import PoseParams, PoseSolver
 from companion.types import Detection
 
 REPO = Path(__file__).resolve().parents[1]
@@ -98,9 +100,9 @@ def recorded(path: Path) -> SequenceFrames:
 # --------------------------------------------------------------- detectors
 
 def make_detector(name: str):
-    """The RS detector (``companion.detector``) or OpenCV ArUco on the same inner squares."""
+    """The RS detector (``companion.detect.detector``) or OpenCV ArUco on the same inner squares."""
     if name == "rs":
-        from companion.detector import Detector
+        from companion.detect.detector import Detector
 
         return Detector()
     return ArucoDetector()
@@ -110,7 +112,7 @@ class ArucoDetector:
     """OpenCV ArUco on the dictionary's ArUco view (the RS marker's inner square), sub-pixel corners."""
 
     def __init__(self):
-        from companion.dictionary import load_dictionary
+        from companion.markers.dictionary import load_dictionary
 
         self.dictionary = load_dictionary("6x6")
         params = cv2.aruco.DetectorParameters()

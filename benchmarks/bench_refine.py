@@ -1,6 +1,6 @@
 """Sub-pixel marker corners: candidate refinements against the renderer's exact ground truth.
 
-Scenes come from ``companion.render.random_marker_scene`` (640x480, 70 degree
+Scenes come from ``companion.sim.render.random_marker_scene`` (640x480, 70 degree
 field of view, three RS markers per scene, tilts up to 60 degrees) per size
 band of the inner square and per image condition. The initial corners are
 what the detector's square path gets today: OpenCV ``ArucoDetector`` with
@@ -19,7 +19,7 @@ Each detection matched (by id) to a fully visible marker is then refined by
   to each side, corners where the lines meet; two rounds;
 * ``ecc``: ``cv2.findTransformECC`` (``MOTION_HOMOGRAPHY``) between the marker
   drawn at the image's scale and the frame, from the initial corners;
-* ``lk``: ``companion.marker_refine.MarkerRefiner`` (the package's choice:
+* ``lk``: ``companion.detect.refine.MarkerRefiner`` (the package's choice:
   inverse-compositional Lucas-Kanade on the decoded marker's edge template).
 
 Errors are Euclidean distances of each corner from the truth, in pixels;
@@ -44,10 +44,11 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from companion import frames, render
-from companion.dictionary import load_dictionary
-from companion.marker import MarkerLayout, marker_image
-from companion.marker_refine import MarkerRefiner
+from companion.geometry import frames
+from companion.sim import render
+from companion.markers.dictionary import load_dictionary
+from companion.markers.layout import MarkerLayout, marker_image
+from companion.detect.refine import MarkerRefiner
 
 IMAGE_SIZE = (640, 480)
 BANDS_PX = ((20, 45), (45, 70), (70, 100), (100, 150))
@@ -336,13 +337,13 @@ def lens_table(layout: MarkerLayout, markers: int, seed: int) -> None:
 
 def detector_table(layout: MarkerLayout, scenes: int, seed: int) -> None:
     """The detector's own square-path corners (whatever ``Detector`` does today) and lk started from them."""
-    from companion.detector import Detector
+    from companion.detect.detector import Detector
 
     detector = Detector()
     refiner = MarkerRefiner(layout)
     textures: dict = {}
     rng = np.random.default_rng(seed)
-    print("\nthe detector's square-path corners -> lk from them (companion.detector.Detector as it is today; "
+    print("\nthe detector's square-path corners -> lk from them (companion.detect.detector.Detector as it is today; "
           "corner error px, median -> median, n):")
     print(f"{'condition':<14} " + " ".join(f"{f'{lo}-{hi} px':>22}" for lo, hi in BANDS_PX))
     totals = defaultdict(list)
@@ -381,7 +382,7 @@ def detector_table(layout: MarkerLayout, scenes: int, seed: int) -> None:
 
 def occluded_table(layout: MarkerLayout, scenes: int, seed: int) -> None:
     """Detections of partly occluded markers (the detector's circles path): lk against what the detector gives."""
-    from companion.detector import Detector
+    from companion.detect.detector import Detector
 
     detector = Detector()
     refiner = MarkerRefiner(layout)

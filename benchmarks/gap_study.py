@@ -5,7 +5,7 @@ band sits right against the inner marker's black border, so black parity
 cells join the border's blob and its outer contour is no longer a square.
 This renders each of the 50 markers, with and without the gap, under random
 perspectives (inner square 40-150 px, tilt up to 50 degrees, any in-plane
-rotation) with ``companion.render.random_marker_scene``, on a plain and on a
+rotation) with ``companion.sim.render.random_marker_scene``, on a plain and on a
 cluttered background, and runs OpenCV's ``ArucoDetector`` with our custom
 dictionary (``minDistanceToBorder = 0``). Both variants see the same scenes
 (same seeds: poses, boards, background, noise), two markers per 640x480 image.
@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from companion import render
-from companion.marker import MarkerLayout
+from companion.sim import render
+from companion.markers.layout import MarkerLayout
 
 IMAGE_SIZE = (640, 480)
 MARKERS_PER_SCENE = 2

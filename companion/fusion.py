@@ -1,7 +1,7 @@
 """Kalman fusion of per-frame poses into the estimate sent to the flight controller.
 
 The only module that imports filterpy. State (8,), in the flight controller's
-local NED frame (a fixed rotation of the map frame, ``companion.frames``)::
+local NED frame (a fixed rotation of the map frame, ``companion.geometry.frames``)::
 
     x = [north_m, east_m, down_m, yaw_rad, vn_m_s, ve_m_s, vd_m_s, yaw_rate_rad_s]
 
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from companion import frames
+from companion.geometry import frames
 from companion.types import Estimate, PoseMeasurement
 
 # Indices into the state vector.

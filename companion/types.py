@@ -12,7 +12,7 @@ Conventions stated once, here, for every stage:
 * Times: integer nanoseconds on the monotonic clock (``time.monotonic_ns()``)
   of the frame's capture, in fields named ``t_ns``.
 * Frames of reference and axes (camera, body, map, NED) are defined in
-  ``companion.frames``; rigid transforms are 4x4 homogeneous matrices named
+  ``companion.geometry.frames``; rigid transforms are 4x4 homogeneous matrices named
   ``T_to_from`` (``T_map_body`` maps body coordinates into the map frame).
 """
 from __future__ import annotations
@@ -56,7 +56,7 @@ class Detection:
     circles_px: (K, 2) float64 image centres of the corner circles that
         were used (empty for the square path).
     circle_ids: (K,) int, the index of each of those circles in the
-        marker layout's circle table (``companion.marker.MarkerLayout.circles``).
+        marker layout's circle table (``companion.markers.layout.MarkerLayout.circles``).
     """
 
     symbol: str

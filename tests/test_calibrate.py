@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from companion import frames
-from companion.calibrate import Board, CalibrationError, calibrate
-from companion.camera import load_camera
-from companion.render import Renderer, TexturedQuad, make_texture, rectangle_corners
+from companion.geometry import frames
+from companion.geometry.calibration import Board, CalibrationError, calibrate
+from companion.geometry.camera import load_camera
+from companion.sim.render import Renderer, TexturedQuad, make_texture, rectangle_corners
 
 K_TRUE = np.array([[520.0, 0.0, 322.0], [0.0, 518.0, 236.0], [0.0, 0.0, 1.0]])
 DIST_TRUE = np.array([-0.12, 0.03, 0.0, 0.0, 0.0])
@@ -70,7 +70,7 @@ def test_cli_writes_a_file_the_camera_model_reads(views, tmp_path):
     for name, image in views.items():
         cv2.imwrite(str(tmp_path / name), image)
     out = tmp_path / "camera.yaml"
-    run = subprocess.run([sys.executable, "-m", "companion.cli", "calibrate", str(tmp_path), "--board", "8x5",
+    run = subprocess.run([sys.executable, "-m", "companion", "calibrate", str(tmp_path), "--board", "8x5",
                           "--square-mm", "30", "--out", str(out)], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     camera = load_camera(out)
@@ -79,6 +79,6 @@ def test_cli_writes_a_file_the_camera_model_reads(views, tmp_path):
 
 
 def test_cli_rejects_a_missing_folder(tmp_path):
-    run = subprocess.run([sys.executable, "-m", "companion.cli", "calibrate", str(tmp_path / "nowhere")],
+    run = subprocess.run([sys.executable, "-m", "companion", "calibrate", str(tmp_path / "nowhere")],
                          capture_output=True, text=True)
     assert run.returncode == 2 and "no such file or directory" in run.stderr

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import yaml
 
-from companion import frames
-from companion.camera import CameraError, CameraModel, load_camera, read_opencv_calibration
+from companion.geometry import frames
+from companion.geometry.camera import CameraError, CameraModel, load_camera, read_opencv_calibration
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "config" / "camera-example.yaml"

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from companion.config import ConfigError, ReplayConfig, V4L2Config, config_from_dict, load_config
-from companion.facility_map import load_map
-from companion.mavlink_link import Origin
+from companion.daemon.config import ConfigError, ReplayConfig, V4L2Config, config_from_dict, load_config
+from companion.geometry.facility_map import load_map
+from companion.mavlink.link import Origin
 
 REPO = Path(__file__).resolve().parent.parent
 CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import yaml
 
-from companion.facility_map import load_map
-from companion.source import open_recording
+from companion.geometry.facility_map import load_map
+from companion.capture.sources import open_recording
 from mavlink_peer import PeerProcess, free_port
 
 REPO = Path(__file__).resolve().parent.parent
@@ -72,7 +72,7 @@ def write_config(tmp_path: Path, sequence: Path, port: int, **overrides) -> Path
 
 
 def start_daemon(config: Path | None, env: dict | None = None) -> subprocess.Popen:
-    command = [sys.executable, "-m", "companion.cli", "run"] + (["--config", str(config)] if config else [])
+    command = [sys.executable, "-m", "companion", "run"] + (["--config", str(config)] if config else [])
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, **(env or {})})
 
@@ -326,8 +326,8 @@ def test_config_error_exits_2_naming_the_file_and_key(tmp_path):
 def test_detector_layout_comes_from_the_map_and_a_mismatch_is_named():
     import dataclasses
 
-    from companion.config import ConfigError, load_config
-    from companion.daemon import detector_params_for
+    from companion.daemon.config import ConfigError, load_config
+    from companion.daemon.service import detector_params_for
 
     config = load_config()
     params = detector_params_for(config)

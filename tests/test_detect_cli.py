@@ -19,7 +19,7 @@ DETECTION_KEYS = {"symbol", "id", "corners", "path", "corrected"}
 
 def run_detect(*args: str) -> subprocess.CompletedProcess:
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "companion.cli", "detect", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "companion", "detect", *args], capture_output=True,
                           text=True, env=env, timeout=120)
 
 

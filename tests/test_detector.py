@@ -9,10 +9,11 @@ import cv2
 import numpy as np
 import pytest
 
-from companion import frames, render
-from companion.detector import Detector, DetectorError, DetectorParams, DetectorParamsError
-from companion.grid_decode import GridDecoder
-from companion.marker import UNKNOWN, MarkerLayout
+from companion.geometry import frames
+from companion.sim import render
+from companion.detect.detector import Detector, DetectorError, DetectorParams, DetectorParamsError
+from companion.markers.codec import GridDecoder
+from companion.markers.layout import UNKNOWN, MarkerLayout
 
 W, H = 640, 480
 SIZE_M = 0.15

@@ -1,15 +1,18 @@
 """The frozen dictionaries: stable ids, distances as documented, identical to their generator."""
 import re
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from companion.dictionary import SYMBOLS, DictionaryError, load_dictionary
-from companion.dictionary_search import PRESETS, min_distance, search
+from companion.markers.dictionary import SYMBOLS, DictionaryError, load_dictionary
 
-SPEC = Path(__file__).resolve().parents[1] / "docs" / "marker-spec.md"
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+SPEC = DOCS / "marker-spec.md"
+sys.path.insert(0, str(DOCS / "tools"))  # the dictionary search is a development tool, not package code
+from dictionary_search import PRESETS, min_distance, search  # noqa: E402
 
 
 def test_fifty_unique_symbols_with_stable_ids():
@@ -45,6 +48,7 @@ def test_6x6_beats_opencv_dict_6x6_50():
     assert min_distance(opencv_bits) < load_dictionary("6x6").min_distance
 
 
+@pytest.mark.slow  # 6x6 alone re-runs a minute of search: CI runs it after the main suite (.ci/run)
 @pytest.mark.parametrize("size", sorted(PRESETS))
 def test_frozen_dictionary_matches_its_generator(size):
     target, seed = PRESETS[size]

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import yaml
 
-from companion import frames
-from companion.facility_map import MapError, load_map
+from companion.geometry import frames
+from companion.geometry.facility_map import MapError, load_map
 
 REPO = Path(__file__).resolve().parents[1]
 WAREHOUSE = REPO / "maps" / "warehouse.yaml"

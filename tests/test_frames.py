@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion import frames
+from companion.geometry import frames
 
 angle = st.floats(min_value=-math.pi, max_value=math.pi, allow_nan=False)
 pitch_angle = st.floats(min_value=-1.55, max_value=1.55, allow_nan=False)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from companion import frames
+from companion.geometry import frames
 from companion.fusion import FusionError, FusionParams, PoseFilter, TrackState, wrap_angle_rad
 from companion.types import PoseMeasurement
 

@@ -7,7 +7,7 @@ import pytest
 
 from companion import cli
 from companion.localize import groundtruth, localize, resources
-from companion.pose import PoseSolver
+from companion.geometry.pose import PoseSolver
 
 REPO = Path(__file__).resolve().parents[1]
 SEQUENCES = REPO / "tests" / "data" / "sequences"

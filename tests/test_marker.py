@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from companion.marker import UNKNOWN, MarkerLayout, MarkerLayoutError, marker_image
+from companion.markers.layout import UNKNOWN, MarkerLayout, MarkerLayoutError, marker_image
 
 LAYOUTS = {p: MarkerLayout(p) for p in (2, 4)}
 IDS = range(50)

@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from companion import frames, render
-from companion.dictionary import load_dictionary
-from companion.marker import MarkerLayout
-from companion.marker_refine import MarkerRefiner, MarkerRefineError, RefineParams, _Lens
+from companion.geometry import frames
+from companion.sim import render
+from companion.markers.dictionary import load_dictionary
+from companion.markers.layout import MarkerLayout
+from companion.detect.refine import MarkerRefiner, MarkerRefineError, RefineParams, _Lens
 
 W, H = 640, 480
 SIZE_M = 0.15

@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from companion import mavlink_messages as mm
-from companion.mavlink_link import LinkError, LinkParams, LinkState, MavlinkLink, Origin, parse_connection
+from companion.mavlink import messages as mm
+from companion.mavlink.link import LinkError, LinkParams, LinkState, MavlinkLink, Origin, parse_connection
 from companion.types import Estimate
 from mavlink_peer import PeerProcess, free_port
 

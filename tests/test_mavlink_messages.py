@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from companion import frames
-from companion import mavlink_messages as mm
+from companion.geometry import frames
+from companion.mavlink import messages as mm
 from companion.types import Estimate
 
 

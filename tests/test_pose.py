@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion import frames
-from companion.camera import CameraModel
-from companion.facility_map import load_map
-from companion.pose import PoseParams, PoseSolver
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import load_map
+from companion.geometry.pose import PoseParams, PoseSolver
 from companion.types import Detection
 
 REPO = Path(__file__).resolve().parents[1]
@@ -320,7 +320,7 @@ def test_position_covariance_matches_scatter_in_ned_axes():
 
 def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
     """The detection as the circles path reports it: the corner circles' centres added."""
-    from companion.marker import MarkerLayout
+    from companion.markers.layout import MarkerLayout
 
     layout = MarkerLayout(parity=FACILITY.parity)
     marker = FACILITY.markers[detection.id]

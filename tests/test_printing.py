@@ -14,10 +14,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion import cli, printing
-from companion.dictionary import load_dictionary
-from companion.marker import MarkerLayout
-from companion.pdf import PT_PER_MM
+from companion import cli
+from companion.markers import printing
+from companion.markers.dictionary import load_dictionary
+from companion.markers.layout import MarkerLayout
+from companion.markers.pdf import PT_PER_MM
 
 SYMBOLS = ["A", "B", "7", "HOME"]
 

@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from companion import frames, render
+from companion.geometry import frames
+from companion.sim import render
 
 ARUCO = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_50)
 W, H = 640, 480
@@ -385,8 +386,8 @@ def test_mip_levels_halve_exactly():
 
 
 def test_rs_marker_scenes_for_the_detector_benchmark():
-    from companion import marker
-    from companion.dictionary import load_dictionary
+    from companion.markers import layout as marker
+    from companion.markers.dictionary import load_dictionary
 
     layout = marker.MarkerLayout(parity=2)
     markers = [render.rs_marker_texture(layout, i) for i in (0, 17, 42)]

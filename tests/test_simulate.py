@@ -8,10 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from companion import cli, frames, simulate, trajectory as tj
-from companion.camera import CameraModel, load_camera
-from companion.dictionary import load_dictionary
-from companion.facility_map import load_map
+from companion import cli
+from companion.geometry import frames
+from companion.sim import simulate
+from companion.sim import trajectory as tj
+from companion.geometry.camera import CameraModel, load_camera
+from companion.markers.dictionary import load_dictionary
+from companion.geometry.facility_map import load_map
 
 REPO = Path(__file__).resolve().parents[1]
 MAP = REPO / "maps" / "warehouse.yaml"

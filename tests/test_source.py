@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.source import (CaptureSource, LatestFrame, SourceError, open_recording, v4l2_source,
+from companion.capture.sources import (CaptureSource, LatestFrame, SourceError, open_recording, v4l2_source,
                               replay_source)
 from companion.types import Frame
 

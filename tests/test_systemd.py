@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.notify import Notifier, watchdog_interval_s
+from companion.daemon.notify import Notifier, watchdog_interval_s
 
 REPO = Path(__file__).resolve().parent.parent
 UNIT = REPO / "systemd" / "companion.service"

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from companion import cli
-from companion.marker import MarkerLayout, cell_point_to_px, marker_image
+from companion.markers.layout import MarkerLayout, cell_point_to_px, marker_image
 
 HERE = Path(__file__).resolve().parent
 FONT = cv2.FONT_HERSHEY_SIMPLEX

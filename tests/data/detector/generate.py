@@ -10,7 +10,7 @@ Each NAME.png (400 x 300, 8-bit gray; markers with a 45-55 px inner square) come
 corners are the renderer's ground truth (inner square TL, TR, BR, BL of the
 upright marker, through the same camera model), not detector output; path is
 the path that must find the marker. Frames with "markers": [] must yield
-nothing. Everything is drawn by ``companion.render`` with fixed poses and seeds.
+nothing. Everything is drawn by ``companion.sim.render`` with fixed poses and seeds.
 """
 from __future__ import annotations
 
@@ -21,8 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion import frames, render
-from companion.marker import MarkerLayout
+from companion.geometry import frames
+from companion.sim import render
+from companion.markers.layout import MarkerLayout
 
 HERE = Path(__file__).resolve().parent
 W, H = 400, 300

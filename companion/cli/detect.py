@@ -1,0 +1,132 @@
+"""``companion detect IMAGE... [--json] [--draw DIR]``: find RS markers in image files.
+
+One line per image. With ``--json`` each line is a JSON object:
+
+    {"image": "a.png", "detections": [{"symbol": "A", "id": 0,
+      "corners": [[x, y], [x, y], [x, y], [x, y]], "path": "square", "corrected": 0}], "ms": 3.1}
+
+corners: the inner black square's corners TL, TR, BR, BL in the marker's
+upright orientation, pixels (centre of the top-left pixel at 0, 0); path:
+"square" or "circles" (found by its corner circles); corrected: RS symbols
+corrected or recovered from erasures; ms: detection time.
+
+Directories expand to the images directly inside them (sorted). An image
+that cannot be read is reported on stderr, skipped and counted; the exit
+status is then 1.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from companion.detect.detector import CIRCLES_MODES, Detector, DetectorParams
+from companion.types import Detection
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm", ".webp"}
+PATH_COLOURS = {"square": (40, 200, 40), "circles": (0, 140, 255)}  # BGR
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("images", nargs="+", type=Path, metavar="IMAGE",
+                        help="image files, or directories of them")
+    parser.add_argument("--json", action="store_true", help="one JSON object per image and line")
+    parser.add_argument("--draw", type=Path, metavar="DIR", help="write annotated copies of the images here")
+    parser.add_argument("--parity", type=int, choices=(2, 4), default=2, help="RS parity symbols of the markers")
+    parser.add_argument("--dictionary", default="6x6", help="marker dictionary (default 6x6)")
+    parser.add_argument("--circles", choices=CIRCLES_MODES, default=DetectorParams.circles,
+                        help="when the occluded (corner circles) path runs")
+
+
+def main(args: argparse.Namespace) -> int:
+    paths, missing = expand_images(args.images)
+    for path in missing:
+        print(f"companion detect: {path}: no such file or directory", file=sys.stderr)
+    if not paths and not missing:
+        print("companion detect: no images found in " + ", ".join(map(str, args.images)), file=sys.stderr)
+        return 2
+    detector = Detector(DetectorParams(parity=args.parity, dictionary=args.dictionary, circles=args.circles))
+    if args.draw:
+        args.draw.mkdir(parents=True, exist_ok=True)
+    failed = len(missing)
+    drawn_names: set[str] = set()
+    for path in paths:
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            print(f"companion detect: {path}: not a readable image, skipped", file=sys.stderr)
+            failed += 1
+            continue
+        start = time.perf_counter_ns()
+        detections = detector.detect(gray)
+        ms = (time.perf_counter_ns() - start) / 1e6
+        print(json_line(path, detections, ms) if args.json else text_line(path, detections, ms), flush=True)
+        if args.draw:
+            name = _unique_name(path, drawn_names)
+            cv2.imwrite(str(args.draw / name), draw(gray, detections))
+    if failed:
+        print(f"companion detect: {failed} of {len(paths) + len(missing)} images could not be read",
+              file=sys.stderr)
+    return 1 if failed else 0
+
+
+def expand_images(inputs: list[Path]) -> tuple[list[Path], list[Path]]:
+    """(image files, inputs that do not exist); directories give their images, sorted."""
+    images, missing = [], []
+    for path in inputs:
+        if path.is_dir():
+            images.extend(sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES))
+        elif path.exists():
+            images.append(path)
+        else:
+            missing.append(path)
+    return images, missing
+
+
+def detection_record(d: Detection) -> dict:
+    return {"symbol": d.symbol, "id": int(d.id), "corners": [[round(float(x), 3), round(float(y), 3)]
+                                                              for x, y in d.corners_px],
+            "path": d.path, "corrected": int(d.corrected)}
+
+
+def json_line(path: Path, detections: list[Detection], ms: float) -> str:
+    return json.dumps({"image": str(path), "detections": [detection_record(d) for d in detections],
+                       "ms": round(ms, 3)})
+
+
+def text_line(path: Path, detections: list[Detection], ms: float) -> str:
+    found = "; ".join(f"{d.symbol} (id {d.id}, {d.path}, corrected {d.corrected}) at "
+                      f"({d.corners_px[:, 0].mean():.1f}, {d.corners_px[:, 1].mean():.1f})" for d in detections)
+    return f"{path}: {found or 'no markers'} [{ms:.1f} ms]"
+
+
+def draw(gray: np.ndarray, detections: list[Detection]) -> np.ndarray:
+    """BGR copy of the image with each marker's outline (TL corner marked), symbol and circles."""
+    image = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    shift = 4
+    for d in detections:
+        colour = PATH_COLOURS.get(d.path, (255, 0, 255))
+        corners = np.round(d.corners_px * (1 << shift)).astype(np.int32)
+        cv2.polylines(image, [corners], True, colour, 2, cv2.LINE_AA, shift)
+        cv2.circle(image, tuple(corners[0]), 5 << shift, (0, 0, 255), 2, cv2.LINE_AA, shift)
+        for centre in np.round(d.circles_px * (1 << shift)).astype(np.int32):
+            cv2.circle(image, tuple(centre), 3 << shift, (255, 80, 0), 1, cv2.LINE_AA, shift)
+        label = f"{d.symbol} {d.path} c{d.corrected}"
+        origin = tuple(int(v) for v in d.corners_px.min(axis=0) - [0, 6])
+        cv2.putText(image, label, origin, cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(image, label, origin, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
+    return image
+
+
+def _unique_name(path: Path, used: set[str]) -> str:
+    """The image's name as a PNG, numbered if an earlier image already used it."""
+    name, n = f"{path.stem}.png", 1
+    while name in used:
+        n += 1
+        name = f"{path.stem}_{n}.png"
+    used.add(name)
+    return name

@@ -1,0 +1,76 @@
+"""``companion markers``: write printable RS markers (``companion.markers.printing``)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from companion.markers.dictionary import DictionaryError
+from companion.markers.layout import MarkerLayout
+from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_size_mm,
+                                        marker_svg, markers_pdf, num, resolve_marker_ids, sheet_geometry,
+                                        write_marker_png)
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    which = parser.add_mutually_exclusive_group(required=True)
+    which.add_argument("--symbols", help="comma-separated symbols, e.g. A,B,7,HOME")
+    which.add_argument("--all", action="store_true", help="all 50 symbols of the dictionary")
+    parser.add_argument("--parity", type=int, choices=(2, 4), default=2,
+                        help="Reed-Solomon parity symbols per code (default 2; 4 is the robust variant)")
+    parser.add_argument("--dictionary", choices=("5x5", "6x6", "8x8"), default=DEFAULT_DICTIONARY,
+                        help="data grid size (default 6x6)")
+    parser.add_argument("--size-mm", type=float, default=35.0,
+                        help="printed side of the inner black square in mm (default 35)")
+    parser.add_argument("--format", choices=("png", "svg", "pdf"), default="png",
+                        help="png (one file per marker + JSON sidecar), svg, or pdf sheets (default png)")
+    parser.add_argument("--out", type=Path, default=Path("markers"), help="output folder (default ./markers)")
+    parser.add_argument("--dpi", type=float, default=300.0,
+                        help="PNG resolution used to choose whole pixels per cell (default 300)")
+    parser.add_argument("--quiet-zone-cells", type=int, default=1,
+                        help="white margin around the grid in cells (default 1, as wide as the black border)")
+    parser.add_argument("--page", choices=tuple(PAGES_MM), default="a4", help="PDF page size (default a4)")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        return generate(args)
+    except (PrintingError, DictionaryError) as error:
+        print(f"companion markers: error: {error}", file=sys.stderr)
+        return 2
+
+
+def generate(args: argparse.Namespace) -> int:
+    size_mm = check_size_mm(args.size_mm)
+    if args.quiet_zone_cells < 1:
+        raise PrintingError(f"--quiet-zone-cells must be at least 1 (the quiet zone must be at least as wide "
+                            f"as the black border), not {args.quiet_zone_cells}")
+    if not args.dpi > 0:
+        raise PrintingError(f"--dpi must be positive, not {args.dpi}")
+    layout = MarkerLayout(args.parity, args.dictionary)
+    ids = resolve_marker_ids(layout, args.symbols, args.all)
+    markers = [MarkerPrint(layout, marker_id, size_mm, args.quiet_zone_cells) for marker_id in ids]
+    out_dir: Path = args.out
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    if args.format == "pdf":
+        path = out_dir / f"markers-p{layout.parity}-{args.dictionary}-{num(size_mm)}mm-{args.page}.pdf"
+        data = markers_pdf(markers, args.page)
+        path.write_bytes(data)
+        n_pages = -(-len(markers) // sheet_geometry(markers[0], args.page).per_page)
+        print(f"{path}: {len(markers)} markers on {n_pages} {args.page} page(s), inner square "
+              f"{num(size_mm)} mm, cut square {num(markers[0].outer_mm)} mm")
+        return 0
+    for marker in markers:
+        if args.format == "svg":
+            path = out_dir / f"{marker.file_stem()}.svg"
+            path.write_text(marker_svg(marker))
+            print(f"{path}: {marker.symbol} id {marker.marker_id}, {num(marker.outer_mm)} mm square, "
+                  f"inner square {num(size_mm)} mm")
+        else:
+            path, sidecar = write_marker_png(marker, args.dpi, out_dir)
+            width, height = sidecar["image_px"]
+            print(f"{path}: {marker.symbol} id {marker.marker_id}, {width}x{height} px, "
+                  f"{sidecar['px_per_cell']} px/cell, inner square {sidecar['size_mm']:.3f} mm "
+                  f"at {sidecar['dpi']:.2f} dpi")
+    return 0

@@ -1,0 +1,126 @@
+"""``companion simulate OUT --map M ...``: render a synthetic sequence (``companion.sim.simulate``)."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from companion.geometry.camera import CameraModel, load_camera
+from companion.geometry.facility_map import FacilityMap, load_map
+from companion.sim import trajectory as trajectories
+from companion.sim.simulate import (DEFAULT_CAMERA, VIDEO_CODECS, Realism, SimulationError, Simulator, build_world,
+                                    frame_times_ns, write_sequence)
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("out", help="output sequence folder (created)")
+    parser.add_argument("--map", required=True, help="facility map YAML (maps/*.yaml)")
+    parser.add_argument("--camera", help="camera file: a config with a 'camera' section, a bare camera "
+                                         "section, or an OpenCV calibration YAML (default: 640x480, "
+                                         "70 deg HFOV, forward, tilted 20 deg down)")
+    parser.add_argument("--fps", type=float, default=30.0, help="frames per second (default 30)")
+    parser.add_argument("--seed", type=int, default=0, help="seed for every random choice (default 0)")
+    parser.add_argument("--video", action="store_true", help="write video.avi instead of PNG frames")
+    parser.add_argument("--codec", choices=sorted(VIDEO_CODECS), default="mp4v",
+                        help="video codec: mp4v (small, lossy; default) or ffv1 (lossless, large)")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bar on stderr (default: on for more than 60 frames)")
+    parser.add_argument("--supersample", type=int, default=1, help="anti-aliasing factor (default 1)")
+
+    t = parser.add_argument_group("trajectory (a CSV or a pattern)")
+    t.add_argument("--trajectory", help="CSV of t_ns,x_m,y_m,z_m,qw,qx,qy,qz (T_map_body); "
+                                        "a groundtruth.csv works")
+    t.add_argument("--pattern", choices=("hover", "path", "waypoints", "lawnmower", "figure8"), default="hover")
+    t.add_argument("--duration", type=float, default=5.0, help="seconds (hover, figure8)")
+    t.add_argument("--center", type=_floats(3), default=None, help="x,y,z map metres (hover, figure8)")
+    t.add_argument("--heading", type=float, default=0.0,
+                   help="body heading, deg ccw from map +x (hover, lawnmower, figure8)")
+    t.add_argument("--start", type=_floats(3), help="x,y,z (lawnmower)")
+    t.add_argument("--end", type=_floats(3), help="x,y,z (lawnmower)")
+    t.add_argument("--sweep", type=float, default=1.0, help="side step over all passes, m (lawnmower)")
+    t.add_argument("--passes", type=int, default=2, help="number of passes (lawnmower)")
+    t.add_argument("--speed", type=float, default=1.0, help="m/s (lawnmower, waypoints, path)")
+    t.add_argument("--max-accel", type=float, default=1.0, help="m/s^2 (lawnmower, waypoints, path)")
+    t.add_argument("--waypoints", type=_waypoints,
+                   help="'x,y,z,heading;x,y,z,heading;...' (waypoints: stop at each; path: fly through)")
+    t.add_argument("--size", type=_floats(2), default=(1.5, 0.8), help="along,across half-extents, m (figure8)")
+    t.add_argument("--period", type=float, default=8.0, help="seconds per eight (figure8)")
+    t.add_argument("--drift", type=float, default=0.04, help="hover wander, m (hover)")
+
+    r = parser.add_argument_group("realism")
+    d = Realism()
+    r.add_argument("--exposure-ms", type=float, default=d.exposure_ms, help="exposure time for motion blur")
+    r.add_argument("--motion-blur", action=argparse.BooleanOptionalAction, default=d.motion_blur)
+    r.add_argument("--blur", type=float, default=d.optics_blur_sigma_px, help="optics blur sigma, px")
+    r.add_argument("--read-noise", type=float, default=d.read_noise_dn, help="read noise sigma, DN")
+    r.add_argument("--shot-noise", type=float, default=d.shot_noise_gain, help="shot noise gain, DN per DN")
+    r.add_argument("--jpeg", type=int, default=d.jpeg_quality, help="JPEG quality round trip (0: off)")
+    r.add_argument("--vignette", type=float, default=d.vignette_strength, help="corner darkening 0..1")
+    r.add_argument("--exposure-wander", type=float, default=d.exposure_wander,
+                   help="slow exposure changes, log amplitude (0: off; 0.3 is noticeable)")
+    r.add_argument("--occluders", type=int, default=d.occluders, help="people/boxes crossing the view")
+
+
+def _floats(n: int):
+    def parse(text: str):
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}") from None
+        if len(values) != n:
+            raise argparse.ArgumentTypeError(f"expected {n} comma-separated numbers, got {text!r}")
+        return values
+    return parse
+
+
+def _waypoints(text: str):
+    rows = [_floats(4)(part) for part in text.split(";") if part.strip()]
+    if len(rows) < 2:
+        raise argparse.ArgumentTypeError("need at least two waypoints 'x,y,z,heading;x,y,z,heading'")
+    return rows
+
+
+def trajectory_from_args(args, facility_map: FacilityMap) -> trajectories.Trajectory:
+    if args.trajectory:
+        return trajectories.read_trajectory_csv(args.trajectory)
+    centre = args.center
+    if centre is None:
+        positions = np.array([m.T_map_marker[:3, 3] for m in facility_map.markers.values()])
+        centre = (*positions[:, :2].mean(axis=0), 1.5)
+    if args.pattern == "hover":
+        return trajectories.hover(centre, args.heading, args.duration, args.drift, args.seed)
+    if args.pattern == "figure8":
+        return trajectories.figure_eight(centre, args.size, args.period, args.heading, args.duration)
+    if args.pattern == "lawnmower":
+        if args.start is None or args.end is None:
+            raise SimulationError("--pattern lawnmower needs --start x,y,z and --end x,y,z")
+        return trajectories.lawnmower(args.start, args.end, args.sweep, args.passes, args.heading, args.speed,
+                                      args.max_accel)
+    if args.waypoints is None:
+        raise SimulationError(f"--pattern {args.pattern} needs --waypoints 'x,y,z,heading;...'")
+    if args.pattern == "path":
+        return trajectories.smooth_path(args.waypoints, args.speed, args.max_accel)
+    return trajectories.waypoints(args.waypoints, args.speed, 0.0, args.max_accel)
+
+
+def main(args) -> int:
+    try:
+        facility_map = load_map(args.map)
+        camera = load_camera(args.camera) if args.camera else CameraModel.from_config(DEFAULT_CAMERA,
+                                                                                      "<default camera>")
+        traj = trajectory_from_args(args, facility_map)
+        if args.fps <= 0:
+            raise SimulationError(f"--fps must be positive, got {args.fps}")
+        realism = Realism(args.exposure_ms, args.motion_blur, args.blur, args.read_noise, args.shot_noise,
+                          args.jpeg, args.vignette, args.exposure_wander, args.occluders)
+        world = build_world(facility_map, args.seed)
+        simulator = Simulator(world, camera, traj, realism, args.seed, args.supersample)
+        options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
+        out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
+                             {"options": options}, args.codec)
+    except ValueError as error:
+        print(f"companion simulate: {error}", file=sys.stderr)
+        return 2
+    print(f"wrote {out} ({len(frame_times_ns(traj.duration_s, args.fps))} frames)")
+    return 0

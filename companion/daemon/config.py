@@ -1,0 +1,236 @@
+"""The daemon's YAML configuration: loading, defaults and validation.
+
+Every error is a :class:`ConfigError` naming the file, the key and what is
+wrong (``config/x.yaml: source.fps: must be >= 0.1, got 0``).
+Relative paths are resolved against the directory of the file that names
+them. The ``camera`` section is parsed by ``CameraModel.from_config``, the
+map file by ``companion.geometry.facility_map.load_map``. For a replay of a recorded
+sequence folder, ``camera`` and ``map`` may be left out: the sequence's
+``sequence.yaml`` supplies them.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import FacilityMap, geodetic_origin, load_map
+from companion.fusion import FusionParams
+from companion.geometry.pose import PoseParams
+from companion.mavlink.link import LinkParams, Origin
+from companion.capture.sources import SEQUENCE_FILE, read_sequence_info
+from companion.yaml_input import Where, read_yaml
+
+TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status"}
+SOURCE_KINDS = ("replay", "v4l2")
+REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
+V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
+MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
+            "VISION_SPEED_ESTIMATE": "send_vision_speed",
+            "ODOMETRY": "send_odometry"}
+# mavlink keys that are not LinkParams fields of the same name
+MAVLINK_SPECIAL_KEYS = {"messages", "origin"}
+LINK_FIELDS = {f.name for f in dataclasses.fields(LinkParams)} - {"origin"} - set(MESSAGES.values())
+STATUS_KEYS = {"interval_s"}
+DEFAULT_CONFIG = "config/default.yaml"
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot work: names the file, the key and the problem."""
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    path: Path
+    realtime: bool = True
+    loop: bool = False
+    fps: float | None = None
+
+
+@dataclass(frozen=True)
+class V4L2Config:
+    device: str = "/dev/video0"
+    width: int | None = None
+    height: int | None = None
+    fps: float | None = None
+    pixel_format: str | None = None
+    stall_timeout_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class Config:
+    path: Path
+    source: ReplayConfig | V4L2Config
+    camera: CameraModel
+    facility_map: FacilityMap
+    detector: dict[str, Any]
+    pose: PoseParams
+    fusion: FusionParams
+    mavlink: LinkParams
+    status_interval_s: float = 0.5
+
+
+def default_config_path() -> Path:
+    """``config/default.yaml`` from the installed package's data, else from the source tree."""
+    packaged = Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
+    if packaged.is_file():
+        return packaged
+    return Path(__file__).resolve().parents[2] / DEFAULT_CONFIG
+
+
+def load_config(path=None) -> Config:
+    """Read, resolve and validate a config file (the default one when ``path`` is None)."""
+    path = Path(path) if path is not None else default_config_path()
+    return config_from_dict(read_yaml(path, ConfigError, "config"), path)
+
+
+def config_from_dict(data, path) -> Config:
+    """Validate a parsed config; ``path`` names the file in errors and anchors relative paths."""
+    path = Path(path)
+    where = Where(str(path), ConfigError)
+    data = where.mapping(data, "the config")
+    where.reject_unknown(data, TOP_KEYS)
+    source = _source(data.get("source"), where.sub("source"))
+    sequence = _sequence_info(source, where.sub("source"))
+    camera = _camera(data, where, path, sequence)
+    facility_map = _map(data, where, sequence)
+    status_where = where.sub("status")
+    status = status_where.mapping(data.get("status"), "interval_s")
+    status_where.reject_unknown(status, STATUS_KEYS)
+    return Config(
+        path=path,
+        source=source,
+        camera=camera,
+        facility_map=facility_map,
+        detector=where.sub("detector").mapping(data.get("detector"), "detector parameters"),
+        pose=_parameters(data.get("pose"), where.sub("pose"), PoseParams, "pose parameters"),
+        fusion=_parameters(data.get("fusion"), where.sub("fusion"), FusionParams, "fusion parameters"),
+        mavlink=_mavlink(data.get("mavlink"), where.sub("mavlink"), facility_map),
+        status_interval_s=status_where.number(status, "interval_s", 0.5, minimum=0.05),
+    )
+
+
+def _source(section, where: Where) -> ReplayConfig | V4L2Config:
+    section = where.mapping(section, "kind: replay or v4l2, ...")
+    kind = section.get("kind", "replay")
+    if kind not in SOURCE_KINDS:
+        raise where.error(f"must be one of {', '.join(SOURCE_KINDS)}, got {kind!r}", "kind")
+    if kind == "replay":
+        where.reject_unknown(section, REPLAY_KEYS)
+        if "path" not in section:
+            raise where.error("missing (a sequence folder, video file or image folder)", "path")
+        replay_path = where.path(section, "path")
+        if not replay_path.exists():
+            raise where.error(f"{replay_path} does not exist", "path")
+        return ReplayConfig(
+            path=replay_path,
+            realtime=where.flag(section, "realtime", True),
+            loop=where.flag(section, "loop", False),
+            fps=where.number(section, "fps", None, minimum=0.1),
+        )
+    where.reject_unknown(section, V4L2_KEYS)
+    device = section.get("device", "/dev/video0")
+    if isinstance(device, bool) or not isinstance(device, (str, int)):
+        raise where.error(f"must be a device path or index, got {device!r}", "device")
+    pixel_format = section.get("pixel_format")
+    if pixel_format is not None and (not isinstance(pixel_format, str) or len(pixel_format) != 4):
+        raise where.error(f"must be a four-character code such as MJPG or YUYV, got {pixel_format!r}",
+                          "pixel_format")
+    return V4L2Config(
+        device=device,
+        width=where.positive(section, "width", None, integer=True),
+        height=where.positive(section, "height", None, integer=True),
+        fps=where.number(section, "fps", None, minimum=0.1),
+        pixel_format=pixel_format,
+        stall_timeout_s=where.number(section, "stall_timeout_s", 2.0, minimum=0.1),
+    )
+
+
+def _sequence_info(source, where: Where) -> tuple[dict, Path] | None:
+    """(sequence.yaml contents, its path) for a replay of a sequence folder, else None."""
+    if not isinstance(source, ReplayConfig) or not source.path.is_dir():
+        return None
+    info_path = source.path / SEQUENCE_FILE
+    try:
+        info = read_sequence_info(source.path)
+    except ValueError as error:
+        raise where.error(str(error), "path") from None
+    return (info, info_path) if info else None
+
+
+def _camera(data: dict, where: Where, path: Path, sequence) -> CameraModel:
+    if "camera" in data:
+        section, origin = data["camera"], str(path)
+    elif sequence is not None and "camera" in sequence[0]:
+        section, origin = sequence[0]["camera"], str(sequence[1])
+    else:
+        raise where.error("missing (needed unless the replayed sequence's sequence.yaml has one)", "camera")
+    return CameraModel.from_config(section, origin)
+
+
+def _map(data: dict, where: Where, sequence) -> FacilityMap:
+    if "map" in data:
+        map_path = where.path(data, "map")
+    elif sequence is not None and "map" in sequence[0]:
+        map_path = _sequence_map_path(sequence[0]["map"], sequence[1])
+    else:
+        raise where.error("missing (a facility map file, unless the replayed sequence names one)", "map")
+    if not map_path.is_file():
+        raise where.error(f"{map_path} does not exist", "map")
+    return load_map(map_path)
+
+
+def _sequence_map_path(name, info_path: Path) -> Path:
+    """A sequence's map: relative to the sequence folder, else to a folder above it (the repository)."""
+    where = Where(str(info_path), ConfigError)
+    if not isinstance(name, str) or not name:
+        raise where.error(f"must be a path, got {name!r}", "map")
+    candidate = Path(name)
+    if candidate.is_absolute():
+        return candidate
+    for folder in [info_path.parent, *info_path.parent.resolve().parents]:
+        if (folder / candidate).is_file():
+            return folder / candidate
+    raise where.error(f"{name} found neither in {info_path.parent} nor in a folder above it", "map")
+
+
+def _parameters(section, where: Where, params_type, what: str):
+    """A section whose keys are the fields of a parameters dataclass (all optional)."""
+    section = where.mapping(section, what)
+    where.reject_unknown(section, {f.name for f in dataclasses.fields(params_type)})
+    try:
+        return params_type(**section)
+    except (TypeError, ValueError) as error:
+        raise where.error(str(error)) from None
+
+
+def _mavlink(section, where: Where, facility_map: FacilityMap) -> LinkParams:
+    section = where.mapping(section, "connection, ...")
+    where.reject_unknown(section, LINK_FIELDS | MAVLINK_SPECIAL_KEYS)
+    values = {key: section[key] for key in LINK_FIELDS if key in section}
+    for key in sorted(values.keys() - {"connection"}):
+        if isinstance(LinkParams.__dataclass_fields__[key].default, int):
+            where.positive(section, key, integer=True)
+        else:
+            where.number(section, key)
+    messages = section.get("messages", ["VISION_POSITION_ESTIMATE"])
+    if not isinstance(messages, list) or not messages or any(m not in MESSAGES for m in messages):
+        raise where.error(f"must be a non-empty list of {', '.join(MESSAGES)}, got {messages!r}", "messages")
+    for message, flag in MESSAGES.items():
+        values[flag] = message in messages
+    values["origin"] = _origin(section.get("origin"), where.sub("origin"), facility_map)
+    try:
+        return LinkParams(**values)
+    except ValueError as error:
+        raise where.error(str(error)) from None
+
+
+def _origin(section, where: Where, facility_map: FacilityMap) -> Origin | None:
+    """The EKF origin: the config's, else the map's geodetic origin, else None."""
+    geodetic = facility_map.frame.geodetic_origin if section is None else geodetic_origin(section, where)
+    if geodetic is None:
+        return None
+    return Origin(geodetic.latitude_deg, geodetic.longitude_deg, geodetic.altitude_m)

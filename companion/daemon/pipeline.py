@@ -1,0 +1,128 @@
+"""The pipeline of the daemon: per frame, detect -> solve -> fuse -> publish, timing each stage."""
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.fusion import PoseFilter, TrackState
+from companion.geometry import frames
+from companion.mavlink.link import SEVERITY_INFO, SEVERITY_WARNING, MavlinkLink
+from companion.types import Estimate, Frame, PoseMeasurement
+
+log = logging.getLogger("companion")
+
+STAGES = ("detect", "pose", "fuse", "send")
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What the pipeline did with one frame (times in nanoseconds)."""
+
+    index: int
+    t_ns: int
+    stage_ns: tuple[int, int, int, int]   # detect, pose, fuse, send
+    latency_ns: int | None                 # capture -> sent; None if nothing was sent
+    markers: int
+    measurement: PoseMeasurement | None
+    estimate: Estimate | None
+
+
+@dataclass
+class PipelineStats:
+    """Rolling per-frame records plus totals; read by the status line and benchmarks."""
+
+    records: collections.deque = field(default_factory=lambda: collections.deque(maxlen=2000))
+    frames: int = 0
+    sent: int = 0
+
+    def add(self, record: FrameRecord) -> None:
+        self.records.append(record)
+        self.frames += 1
+        self.sent += record.latency_ns is not None
+
+    def recent(self, window_s: float) -> list[FrameRecord]:
+        records = list(self.records)
+        if not records:
+            return []
+        newest = records[-1].t_ns
+        return [r for r in records if newest - r.t_ns <= window_s * 1e9]
+
+    def stage_table(self) -> list[tuple[str, float, float]]:
+        """(stage, median ms, p99 ms) for each stage, the total and the capture->send latency."""
+        records = list(self.records)
+        if not records:
+            return []
+        per_stage = np.array([r.stage_ns for r in records], dtype=float) / 1e6
+        rows = [(name, *_median_p99(per_stage[:, i])) for i, name in enumerate(STAGES)]
+        rows.append(("total", *_median_p99(per_stage.sum(axis=1))))
+        latencies = [r.latency_ns / 1e6 for r in records if r.latency_ns is not None]
+        if latencies:
+            rows.append(("capture->send", *_median_p99(np.array(latencies))))
+        return rows
+
+
+def _median_p99(values: np.ndarray) -> tuple[float, float]:
+    return float(np.median(values)), float(np.percentile(values, 99))
+
+
+class Pipeline:
+    """Per frame: detect -> solve -> fuse -> publish, timing each stage."""
+
+    def __init__(self, detector, solver, pose_filter: PoseFilter, link: MavlinkLink | None, T_map_ned: np.ndarray):
+        self.detector = detector
+        self.solver = solver
+        self.pose_filter = pose_filter
+        self.link = link
+        self.T_map_ned = T_map_ned
+        self.stats = PipelineStats()
+        self._previous_state = pose_filter.state
+
+    def process(self, frame: Frame) -> FrameRecord:
+        t0 = time.perf_counter_ns()
+        detections = self.detector.detect(frame.image)
+        t1 = time.perf_counter_ns()
+        measurement = self.solver.solve(detections, frame.t_ns, self._prior()) if detections else None
+        t2 = time.perf_counter_ns()
+        estimate = self.pose_filter.step(frame.t_ns, measurement)
+        t3 = time.perf_counter_ns()
+        sent = False
+        if estimate is not None and self.link is not None:
+            sent = self.link.publish(estimate)
+        t4 = time.perf_counter_ns()
+        latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
+        self._report_state_change()
+        record = FrameRecord(frame.index, frame.t_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), latency_ns,
+                             len(detections), measurement, estimate)
+        self.stats.add(record)
+        return record
+
+    def _prior(self) -> np.ndarray | None:
+        """The fused pose as T_map_body, to help the solver pick between ambiguous fits."""
+        estimate = self.stats.records[-1].estimate if self.stats.records else None
+        if estimate is None:
+            return None
+        R = frames.rotation_from_euler_321(estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)
+        return self.T_map_ned @ frames.make_transform(R, estimate.position_ned_m)
+
+    def _report_state_change(self) -> None:
+        state, previous = self.pose_filter.state, self._previous_state
+        self._previous_state = state
+        if state is previous:
+            return
+        counters = self.pose_filter.counters
+        if previous is TrackState.ACQUIRING and state is TrackState.TRACKING:
+            if counters.acquisitions == 1:
+                text, severity = "tracking markers", SEVERITY_INFO
+            else:
+                text, severity = f"re-acquired (reset {self.pose_filter.reset_counter})", SEVERITY_INFO
+        elif state is TrackState.ACQUIRING:
+            text, severity = "markers lost", SEVERITY_WARNING
+        else:
+            return  # tracking <-> coasting flickers frame to frame: not worth a message
+        log.log(logging.WARNING if severity == SEVERITY_WARNING else logging.INFO, "%s", text)
+        if self.link is not None:
+            self.link.statustext(f"companion: {text}", severity)

@@ -1,0 +1,224 @@
+"""``companion run``: the positioning daemon.
+
+Threads::
+
+    capture/replay --(newest frame)--> pipeline --(publish)--> link ---> flight controller
+                                        detect, solve, fuse        heartbeat, handshake, TIMESYNC
+
+* the source's thread (``companion.capture.sources``) captures frames and hands over
+  only the newest one;
+* ``pipeline`` detects markers, solves the pose, fuses it and sends the
+  estimate from the same thread (no queue between fusion and the socket);
+* ``link`` and ``heartbeat`` (``companion.mavlink.link``) keep the MAVLink
+  connection, the origin handshake and TIMESYNC answers;
+* the main thread prints the one-line status, feeds systemd's watchdog and
+  waits for SIGTERM/SIGINT or the end of a replay, then stops everything in
+  order: pipeline, source (camera released), link (socket closed).
+
+With no ``--config`` it runs the embedded default: the bundled recorded
+sequence and ``maps/warehouse.yaml``, MAVLink to ``udpout:127.0.0.1:14550``.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import os
+import sys
+import threading
+import time
+
+import numpy as np
+
+from companion.geometry import frames
+from companion.daemon.config import Config, ConfigError, ReplayConfig
+from companion.detect.detector import Detector, DetectorParams
+from companion.fusion import PoseFilter
+from companion.mavlink.link import MavlinkLink
+from companion.daemon.notify import Notifier
+from companion.daemon.pipeline import Pipeline
+from companion.geometry.pose import PoseSolver
+from companion.capture.sources import FrameSource, replay_source, v4l2_source
+
+log = logging.getLogger("companion")
+
+# The pipeline loop must have turned this recently for the watchdog to be fed.
+PIPELINE_STALL_S = 5.0
+SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
+
+
+def detector_params_for(config: Config) -> DetectorParams:
+    """The config's detector section, with the marker layout (parity, dictionary) taken from the map."""
+    facility_map = config.facility_map
+    layout = {"parity": facility_map.parity, "dictionary": facility_map.dictionary}
+    for key, value in layout.items():
+        if key in config.detector and config.detector[key] != value:
+            raise ConfigError(f"{config.path}: detector.{key}: {config.detector[key]!r} differs from the map's "
+                              f"{value!r} ({facility_map.path})")
+    try:
+        return DetectorParams(**{**config.detector, **layout})
+    except (TypeError, ValueError) as error:
+        raise ConfigError(f"{config.path}: detector: {error}") from None
+
+
+class Daemon:
+    """Builds the stages from a Config and runs the threads until stopped."""
+
+    def __init__(self, config: Config, status_stream=None, record_frames: int = 2000):
+        self.config = config
+        self.status_stream = status_stream
+        detector_params = detector_params_for(config)
+        self.source = make_source(config)
+        self.link = MavlinkLink(config.mavlink)
+        self.pipeline = Pipeline(
+            Detector(detector_params),
+            PoseSolver(config.facility_map, config.camera, config.pose),
+            PoseFilter(config.fusion),
+            self.link,
+            T_map_ned=frames.invert_transform(config.facility_map.T_ned_map),
+        )
+        self.pipeline.stats.records = collections.deque(maxlen=record_frames)
+        self.notifier = Notifier()
+        self.stop_event = threading.Event()
+        self.failed = False
+        self._pipeline_alive_s = time.monotonic()
+        self._pipeline_thread = threading.Thread(target=self._run_pipeline, name="pipeline", daemon=True)
+
+    def run(self) -> int:
+        """Run until ``stop_event`` is set (signal, end of replay); returns the exit code."""
+        self.link.start()
+        self.source.start()
+        clock_offset_ns = getattr(self.source, "clock_offset_ns", None)
+        if clock_offset_ns is not None:
+            log.info("replay %s: recorded t_ns 0 is monotonic %d ns", self.config.source.path, clock_offset_ns)
+        self._pipeline_thread.start()
+        self.notifier.ready(status="running")
+        log.info("running: source %s, map %s, MAVLink %s", describe_source(self.config),
+                 self.config.facility_map.path, self.config.mavlink.connection)
+        try:
+            self._supervise()
+        finally:
+            self.shutdown()
+        # Non-zero after a failure, so that systemd's Restart=on-failure restarts us.
+        return 1 if self.failed else 0
+
+    def shutdown(self) -> None:
+        self.stop_event.set()
+        self.notifier.stopping()
+        if self._pipeline_thread.is_alive():
+            self._pipeline_thread.join(timeout=5.0)
+        self.source.close()
+        self.link.close()
+        self.notifier.close()
+        self._print_summary()
+
+    def _run_pipeline(self) -> None:
+        try:
+            while not self.stop_event.is_set():
+                self._pipeline_alive_s = time.monotonic()
+                frame = self.source.get(timeout_s=0.2)
+                if frame is None:
+                    if self.source.finished:
+                        log.info("source finished")
+                        self.failed |= self.source.error is not None
+                        break
+                    continue
+                self.pipeline.process(frame)
+        except Exception:
+            log.exception("pipeline failed")
+            self.failed = True
+        finally:
+            self.stop_event.set()
+
+    def _supervise(self) -> None:
+        interval_s = self.config.status_interval_s
+        watchdog_s = self.notifier.watchdog_interval_s
+        tty = self.status_stream is not None and self.status_stream.isatty()
+        next_status = next_watchdog = time.monotonic()
+        next_log = next_status + max(interval_s, 5.0)
+        while not self.stop_event.wait(0.05):
+            now = time.monotonic()
+            if not self.link.alive:
+                log.error("link threads ended unexpectedly; stopping")
+                self.failed = True
+                break
+            # Feed the watchdog only while the pipeline loop turns (with or without frames).
+            if watchdog_s and now >= next_watchdog and now - self._pipeline_alive_s < PIPELINE_STALL_S:
+                self.notifier.watchdog()
+                next_watchdog = now + watchdog_s
+            if self.status_stream is not None and now >= next_status:
+                line = self.status_line()
+                if tty:
+                    self.status_stream.write("\r\x1b[K" + line)
+                    self.status_stream.flush()
+                elif now >= next_log:
+                    self.status_stream.write(line + "\n")
+                    self.status_stream.flush()
+                    next_log = now + max(interval_s, 5.0)
+                self.notifier.status(line)
+                next_status = now + interval_s
+        if self.status_stream is not None:
+            self.status_stream.write(("\r\x1b[K" if tty else "") + self.status_line() + "\n")
+            self.status_stream.flush()
+
+    def status_line(self) -> str:
+        """fps, markers seen, pose, latency, tracking and link state on one line."""
+        recent = self.pipeline.stats.recent(1.0)
+        fps = (len(recent) - 1) / ((recent[-1].t_ns - recent[0].t_ns) * 1e-9) if len(recent) > 1 else 0.0
+        last = recent[-1] if recent else None
+        latencies = [r.latency_ns for r in recent if r.latency_ns is not None]
+        latency = f"{np.median(latencies) / 1e6:.1f} ms" if latencies else "-"
+        estimate = last.estimate if last else None
+        if estimate is not None:
+            n, e, d = estimate.position_ned_m
+            pose = f"N {n:+.2f} E {e:+.2f} D {d:+.2f} m yaw {math.degrees(estimate.yaw_rad):+.1f} deg"
+        else:
+            pose = "no pose"
+        counters = self.pipeline.pose_filter.counters
+        return (f"{fps:5.1f} fps | markers {last.markers if last else 0} | {pose} | latency {latency} | "
+                f"{self.pipeline.pose_filter.state.value} | link {self.link.state.value} | "
+                f"sent {self.pipeline.stats.sent} rejected {counters.rejected} resets {counters.resets}")
+
+    def _print_summary(self) -> None:
+        stats, source = self.pipeline.stats, self.source.counters
+        log.info("frames %d, sent %d, dropped %d, corrupt %d, camera reopens %d, link %s",
+                 stats.frames, stats.sent, source.dropped, source.corrupt, source.reopens,
+                 dict(self.link.counters.sent))
+        for name, median_ms, p99_ms in stats.stage_table():
+            log.info("stage %-14s median %7.2f ms  p99 %7.2f ms", name, median_ms, p99_ms)
+
+
+def make_source(config: Config) -> FrameSource:
+    source = config.source
+    if isinstance(source, ReplayConfig):
+        return replay_source(source.path, realtime=source.realtime, loop=source.loop, fps=source.fps)
+    return v4l2_source(source.device, source.width, source.height, source.fps, source.pixel_format,
+                       source.stall_timeout_s)
+
+
+def describe_source(config: Config) -> str:
+    source = config.source
+    if isinstance(source, ReplayConfig):
+        pace = "real time" if source.realtime else "as fast as possible"
+        return f"replay of {source.path} ({pace}{', looping' if source.loop else ''})"
+    return f"V4L2 camera {source.device}"
+
+
+# ------------------------------------------------------------------- CLI
+
+class _JournalFormatter(logging.Formatter):
+    """``<priority>name: message``: journald reads the level from the prefix."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"<{SYSLOG_PRIORITY.get(record.levelno, 6)}>{record.name}: {record.getMessage()}"
+
+
+def setup_logging() -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    if os.environ.get("JOURNAL_STREAM"):
+        handler.setFormatter(_JournalFormatter())
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.INFO)

@@ -1,0 +1,479 @@
+"""Detector stage: the occluded path. Corner circles -> marker grids, when the border is broken.
+
+Each corner of an RS marker carries one large circle and two small ones
+(``MarkerLayout.circles``): the small ones sit two cells from the large one
+along the two grid edges, with half its radius. A marker whose black border
+is hidden (a strip over one side, a corner patch) still shows at least two
+corners, so at least six circles, which fix the grid homography.
+
+1. ``find_blobs``: one local-mean threshold inside OpenCV, a table of the
+   dark blobs (outer contours reduced with vectorised numpy, or OpenCV's
+   connected components on speckled frames), vectorised filters on it (area,
+   aspect, fill) and a ring of 8 samples around each blob (a circle is a
+   dark, compact spot on white paper: the ring is bright all round, and the
+   spot is much darker than the ring). No per-blob Python loop.
+2. ``corner_triples``: (large, small, small) blobs at the layout's relative
+   positions and size ratio, oriented by the handedness of the printed face.
+3. ``assemble_candidates``: from each triple (called corner 0; the decoder
+   resolves the true rotation), the other corners' circles are predicted and
+   matched blob by blob, so a corner that lost a small circle still counts.
+4. The detector then fits the homography to the circle centres, refines it
+   on the inner square's visible edges (``edge_refine``), and samples and
+   decodes the grid with erasures where the image shows no marker
+   (``missing_corner_cells``, ``sampling.erase_near_bad_fixed_cells``).
+"""
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from companion.detect import sampling
+from companion.markers.layout import MarkerLayout
+
+RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
+RING_DIRECTIONS = np.stack([np.cos(RING_ANGLES), np.sin(RING_ANGLES)], axis=1)
+
+
+@dataclass(frozen=True)
+class CircleParams:
+    """Blob finding and grouping settings.
+
+    threshold_block_px, threshold_offset, threshold_ratio: a pixel is dark
+        when below both mean - offset and mean x ratio over the window.
+    pre_blur: 3 x 3 box blur before thresholding (fewer noise specks, but
+        merges circles with their neighbours on oblique markers; off: the
+        ring test removes the specks).
+    blob_method: "contours" (outer contours, statistics vectorised over the
+        concatenated points: 2-4x faster on ordinary frames, 4-5x slower on
+        noisy ones, whose thousands of specks each become a Python array),
+        "components" (OpenCV's connected components with statistics), or
+        "auto": contours unless more than ``max_speck_fraction`` of the
+        pixels are isolated specks (what a 3 x 3 median removes; measured:
+        under 0.8 % on ordinary frames, over 1.6 % on noisy ones).
+    max_blobs: keep at most this many blobs (the darkest), a bound on the
+        work a speckled texture causes (a marker has 12 circles).
+    min_area_px: smallest blob (a small circle of a 40 px marker is ~12 px).
+    max_aspect: bounding-box elongation allowed (tilted circles are ellipses).
+    min_fill: blob area over bounding-box area.
+    ring_scale: the test ring's radius over the blob's half extent.
+    ring_dark_allowed: ring samples (of 8) allowed to be dark (a neighbour,
+        the paper's edge).
+    max_darkness_ratio: blob centre over the ring's median intensity (black
+        ink on white paper is far below 1; sensor-noise specks are not).
+    min_ring_contrast: ring median - centre, gray levels.
+    """
+
+    threshold_block_px: int = 31
+    threshold_offset: float = 7.0
+    threshold_ratio: float = 0.75
+    pre_blur: bool = False
+    blob_method: str = "auto"
+    max_speck_fraction: float = 0.01
+    max_blobs: int = 300
+    min_area_px: int = 5
+    max_area_fraction: float = 0.01
+    max_aspect: float = 3.0
+    min_fill: float = 0.45
+    ring_scale: float = 1.4
+    ring_dark_allowed: int = 2
+    max_darkness_ratio: float = 0.7
+    min_ring_contrast: float = 10.0
+
+
+@dataclass(frozen=True)
+class Blobs:
+    """Circle-like dark blobs.
+
+    centres_px: (M, 2) float64 centroids; areas_px: (M,) float64;
+    extents_px: (M,) float64, half the larger bounding-box side.
+    """
+
+    centres_px: np.ndarray
+    areas_px: np.ndarray
+    extents_px: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.areas_px)
+
+    def subset(self, keep: np.ndarray) -> "Blobs":
+        return Blobs(self.centres_px[keep], self.areas_px[keep], self.extents_px[keep])
+
+
+def find_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
+    """Dark, compact blobs on bright surroundings in an (H, W) uint8 image."""
+    smooth = cv2.blur(gray, (3, 3)) if params.pre_blur else gray
+    binary = dark_pixels(smooth, params)
+    centres, area, w, h = (_contour_table if _use_contours(binary, params) else _component_table)(binary)
+    shape_ok = ((area >= params.min_area_px) & (area <= params.max_area_fraction * gray.size)
+                & (np.maximum(w, h) <= params.max_aspect * np.minimum(w, h))
+                & (area >= params.min_fill * w * h))
+    blobs = Blobs(centres[shape_ok], area[shape_ok].astype(np.float64), np.maximum(w, h)[shape_ok] / 2.0)
+    passed, darkness = _ring_test(smooth, blobs, params)
+    keep = np.flatnonzero(passed)
+    if len(keep) > params.max_blobs:
+        # a speckled texture: keep the darkest spots (relative to their rings), a bound on later work
+        keep = keep[np.argsort(darkness[keep], kind="stable")[:params.max_blobs]]
+    return blobs.subset(np.sort(keep))
+
+
+def dark_pixels(gray: np.ndarray, params: CircleParams) -> np.ndarray:
+    """(H, W) uint8 255 where a pixel is darker than its neighbourhood.
+
+    Darker than both mean - offset and mean x ratio over a square window: the
+    offset keeps dim, low-contrast frames working, the ratio shrinks blobs on
+    bright paper to their dark cores, so circles close to cells stay apart.
+    """
+    mean = cv2.blur(gray, (params.threshold_block_px, params.threshold_block_px))
+    limit = cv2.min(cv2.subtract(mean, params.threshold_offset),
+                    cv2.convertScaleAbs(mean, alpha=params.threshold_ratio))
+    return cv2.compare(gray, limit, cv2.CMP_LT)
+
+
+def _use_contours(binary: np.ndarray, params: CircleParams) -> bool:
+    if params.blob_method != "auto":
+        return params.blob_method == "contours"
+    specks = cv2.countNonZero(cv2.absdiff(binary, cv2.medianBlur(binary, 3)))
+    return specks <= params.max_speck_fraction * binary.size
+
+
+def _contour_table(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(centres (K, 2), areas (K,), widths (K,), heights (K,)) of the blobs' outer contours, vectorised.
+
+    All contours are concatenated once and reduced segment-wise (np.*.reduceat),
+    so the cost per contour is one array in a list, not a Python loop of
+    OpenCV calls. Area: the pixel count of the region, from the polygon
+    through its boundary pixels by Pick's theorem (A + B / 2 + 1); centre:
+    the polygon's centroid (the boundary's mean for a polygon of no area).
+    """
+    # two levels: every blob's outer boundary (even a blob inside another's hole), and the holes
+    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        empty = np.zeros(0)
+        return np.zeros((0, 2)), empty, empty, empty
+    outer = np.flatnonzero(hierarchy[0, :, 3] < 0)
+    contours = [contours[i] for i in outer]
+    lengths = np.fromiter((len(c) for c in contours), np.intp, len(contours))
+    points = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
+    ends = np.cumsum(lengths)
+    starts = ends - lengths
+    following = np.arange(1, len(points) + 1)
+    following[ends - 1] = starts  # each contour is closed
+    x, y = points[:, 0], points[:, 1]
+    xn, yn = x[following], y[following]
+    cross = x * yn - xn * y
+    # shoelace area and polygon centroid: A = sum(cross) / 2, c = sum((p + p') cross) / (6 A)
+    polygon_area = np.add.reduceat(cross, starts) / 2
+    mean_x = np.add.reduceat(x, starts) / lengths
+    mean_y = np.add.reduceat(y, starts) / lengths
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cx = np.add.reduceat((x + xn) * cross, starts) / (6 * polygon_area)
+        cy = np.add.reduceat((y + yn) * cross, starts) / (6 * polygon_area)
+    flat = np.abs(polygon_area) < 0.5
+    centres = np.column_stack([np.where(flat, mean_x, cx), np.where(flat, mean_y, cy)])
+    area = np.abs(polygon_area) + lengths / 2 + 1
+    w = np.maximum.reduceat(x, starts) - np.minimum.reduceat(x, starts) + 1
+    h = np.maximum.reduceat(y, starts) - np.minimum.reduceat(y, starts) + 1
+    return centres, area, w, h
+
+
+def _component_table(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The same table from OpenCV's connected components with statistics (16-bit labels, 2-3x faster
+    than 32-bit; 32-bit when a frame has more than 65534 components)."""
+    try:
+        _, _, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(binary, 8, cv2.CV_16U, cv2.CCL_DEFAULT)
+    except cv2.error:
+        _, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    return centroids[1:], stats[1:, 4].astype(np.float64), stats[1:, 2], stats[1:, 3]
+
+
+def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) bool: the blob centre is much darker than a bright ring around it; (M,) centre / ring median."""
+    if len(blobs) == 0:
+        return np.zeros(0, bool), np.zeros(0)
+    radius = params.ring_scale * blobs.extents_px + 0.5
+    ring = blobs.centres_px[:, None, :] + radius[:, None, None] * RING_DIRECTIONS[None]
+    # a ring point past the image edge reads the edge pixel (circles near the border stay testable)
+    h, w = smooth.shape
+    ring = np.clip(ring, 0, [w - 1, h - 1])
+    points = np.concatenate([blobs.centres_px[:, None, :], ring], axis=1)
+    values, _ = sampling.sample_image(smooth, points)
+    centre, ring_values = values[:, 0], np.sort(values[:, 1:], axis=1)
+    ring_median = (ring_values[:, 3] + ring_values[:, 4]) / 2  # of 8 sorted samples (np.median is 10x slower)
+    contrast = ring_median - centre
+    passed = ((contrast >= params.min_ring_contrast)
+              & (centre <= params.max_darkness_ratio * ring_median)
+              & (ring_values[:, params.ring_dark_allowed] - centre >= 0.5 * contrast))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        darkness = centre / ring_median
+    return passed, darkness
+
+
+@dataclass(frozen=True)
+class Triples:
+    """Corner groups: (large, small along the first edge, small along the second edge).
+
+    index: (T, 3) indices into the blobs, in the layout's circle order of a corner.
+    points_px: (T, 3, 2) their centres.
+    """
+
+    index: np.ndarray
+    points_px: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+
+def corner_triples(blobs: Blobs, layout: MarkerLayout, max_triples: int = 32) -> Triples:
+    """Find (large, small, small) blob triples shaped like one corner of the layout.
+
+    Face-on, the small circles are 2 cells from the large one (``spacing``
+    over the large radius: 2.5 for p = 2) at half its radius, at right angles.
+    Under perspective and tilt up to ~60 deg the tests below stay loose; the
+    homography fit and the decode are the strict checks. At most
+    ``max_triples`` (the most corner-like) are kept: eight markers' worth, and a
+    bound on the work a dotted texture can cause.
+    """
+    large_r, small_r = layout.circles[0, 2], layout.circles[1, 2]
+    spacing = np.linalg.norm(layout.circles[1, :2] - layout.circles[0, :2]) / large_r
+    area_ratio = (large_r / small_r) ** 2
+    c, a = blobs.centres_px, blobs.areas_px
+    if len(a) < 3:
+        return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
+    radius = np.sqrt(a / np.pi)
+    # candidate (large i, small j) pairs, in a window sorted by x so the work stays near-linear
+    reach = spacing * 1.5 * radius
+    order = np.argsort(c[:, 0], kind="stable")
+    xs = c[order, 0]
+    lo = np.searchsorted(xs, c[:, 0] - reach, "left")
+    hi = np.searchsorted(xs, c[:, 0] + reach, "right")
+    counts = hi - lo
+    i = np.repeat(np.arange(len(a)), counts)
+    j = order[np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())]
+    d = np.linalg.norm(c[j] - c[i], axis=1)
+    ratio = a[i] / a[j]
+    keep = ((ratio >= area_ratio / 2.2) & (ratio <= area_ratio * 2.2)
+            & (d >= 0.45 * spacing * radius[i]) & (d <= 1.5 * spacing * radius[i]))
+    i, j = i[keep], j[keep]
+    if len(i) < 2:
+        return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
+    # all (j1, j2) pairs sharing a large i (pairs are grouped by i already)
+    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    sizes = np.diff(np.r_[starts, len(i)])
+    triples = []
+    for start, size in zip(starts[sizes >= 2], sizes[sizes >= 2]):
+        js = j[start:start + size]
+        pairs = _pairs(int(size))
+        triples.append(np.column_stack([np.full(len(pairs), i[start]), js[pairs[:, 0]], js[pairs[:, 1]]]))
+    if not triples:
+        return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
+    t = np.concatenate(triples)
+    e1, e2 = c[t[:, 1]] - c[t[:, 0]], c[t[:, 2]] - c[t[:, 0]]
+    cross = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    n1, n2 = np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1)
+    cos = (e1 * e2).sum(axis=1) / (n1 * n2)
+    small_ratio = a[t[:, 1]] / a[t[:, 2]]
+    ok = ((np.abs(cos) < 0.8) & (n1 / n2 < 2.5) & (n2 / n1 < 2.5)
+          & (small_ratio < 2.5) & (small_ratio > 1 / 2.5))
+    t, cross = t[ok], cross[ok]
+    if len(t) > max_triples:
+        # a dotted texture makes thousands; keep the most corner-like (right angle, equal arms and smalls)
+        score = np.abs(cos[ok]) + np.abs(np.log(n1[ok] / n2[ok])) + np.abs(np.log(small_ratio[ok]))
+        best = np.argsort(score, kind="stable")[:max_triples]
+        t, cross = t[best], cross[best]
+    # handedness: seen from the front, (first edge) x (second edge) > 0 in image coordinates
+    t[cross < 0] = t[cross < 0][:, [0, 2, 1]]
+    return Triples(t, c[t])
+
+
+@lru_cache(maxsize=64)
+def _pairs(size: int) -> np.ndarray:
+    """(P, 2) index pairs (a < b) of ``size`` items (np.triu_indices, cached: it costs ~30 us a call)."""
+    pairs = np.array(list(itertools.combinations(range(size), 2)), dtype=np.intp).reshape(-1, 2)
+    pairs.flags.writeable = False
+    return pairs
+
+
+@dataclass(frozen=True)
+class CircleCandidate:
+    """A marker candidate assembled around one corner triple.
+
+    circle_ids: (K,) layout circle indices (corner 3c + slot, with the anchor
+        triple called corner 0: the true rotation is left to the decoder).
+    circles_px: (K, 2) matched blob centres; blob_index: (K,) their blob indices.
+    corners: sorted layout corners with at least one matched circle.
+    """
+
+    circle_ids: np.ndarray
+    circles_px: np.ndarray
+    blob_index: np.ndarray
+
+    @property
+    def corners(self) -> np.ndarray:
+        return np.unique(self.circle_ids // 3)
+
+
+def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, min_circles: int = 5,
+                        triple_window_cells: float = 4.0, large_window_cells: float = 1.1,
+                        small_window_cells: float = 0.7) -> list[CircleCandidate]:
+    """Grow marker candidates from corner triples by predicting the other corners.
+
+    Each triple, taken as corner 0, fixes an affine grid -> image map. The
+    other corners are visited nearest first (the two neighbours, then the
+    diagonal) and each is taken from, in order of preference:
+
+    1. a whole triple whose three circles lie, on average, within
+       ``triple_window_cells`` of their predictions (wide while only the
+       anchor is known: one corner extrapolates poorly under perspective;
+       1 cell after that);
+    2. the blob nearest the predicted large circle within
+       ``large_window_cells``, then each small circle's nearest blob within
+       ``small_window_cells`` (a corner that lost a small circle still counts).
+
+    Sizes must fit the map (a blob's radius within 0.4-2.5 x the circle's).
+    Every match refines the map (a homography from six circles on). A
+    candidate needs ``min_circles`` circles on at least two corners. The
+    blobs of a candidate with three or four corners take part in no other; a
+    two-corner candidate may be a wrong pairing, so its blobs stay free (the
+    decoder settles it; identical candidates are listed once).
+    """
+    grid = layout.circles[:, :2]
+    radius_cells = layout.circles[:, 2]
+    taken = np.zeros(len(blobs), bool)
+    blob_r = np.sqrt(blobs.areas_px / np.pi)
+    centres = blobs.centres_px
+    candidates, seen = [], set()
+    in_any = np.zeros(len(blobs), bool)
+    for t in range(len(triples)):
+        if taken[triples.index[t]].any() or in_any[triples.index[t]].all():
+            continue  # part of a settled candidate, or would only rebuild an earlier one
+        ids, index = [0, 1, 2], list(triples.index[t])
+        in_candidate = np.zeros(len(blobs), bool)
+        in_candidate[index] = True
+        H = _fit(grid[ids], centres[index])
+        for corner in (1, 3, 2):
+            circles = np.arange(3 * corner, 3 * corner + 3)
+            predicted, cell_px = _predict(H, grid[circles])
+            if not np.isfinite(cell_px):
+                break
+            # 1. a whole triple
+            window = triple_window_cells if len(ids) == 3 else 1.0
+            error = np.linalg.norm(triples.points_px - predicted[None], axis=2).mean(axis=1) / cell_px
+            r_ratio = blob_r[triples.index[:, 0]] / (radius_cells[circles[0]] * cell_px)
+            fits = ((error < window) & (r_ratio > 0.4) & (r_ratio < 2.5)
+                    & ~(taken | in_candidate)[triples.index].any(axis=1))
+            tries = [triples.index[k].tolist() for k in np.flatnonzero(fits)[np.argsort(error[fits])][:2]]
+            # 2. else circle by circle: the large one, then the small ones shifted by the large one's offset
+            if not tries:
+                found = _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
+                                      large_window_cells, small_window_cells)
+                tries = [] if found is None else [found]
+            for found in tries:
+                added = [c for c, b in zip(circles, found) if b >= 0]
+                blobs_added = [b for b in found if b >= 0]
+                H_new = _fit(grid[ids + added], centres[index + blobs_added])
+                checkable = len(ids) + len(added) >= 6  # below six points the fit is affine and always "fits"
+                if not checkable or fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]) <= 0.3:
+                    ids, index, H = ids + added, index + blobs_added, H_new
+                    in_candidate[blobs_added] = True
+                    break
+        ids_a = np.array(ids)
+        corners = len(np.unique(ids_a // 3))
+        if len(ids_a) >= min_circles and corners >= 2 and frozenset(index) not in seen:
+            seen.add(frozenset(index))
+            candidates.append(CircleCandidate(ids_a, centres[index].copy(), np.array(index)))
+            in_any[index] = True
+            if corners >= 3:
+                taken[index] = True  # three corners agreeing: these circles are this marker's
+    return candidates
+
+
+def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used, large_window, small_window):
+    """Blob indices (3,) for one corner's circles (-1: none), or None if its large circle is missing.
+
+    The large circle is the nearest blob of fitting size within
+    ``large_window`` cells of its prediction; the small ones are searched
+    within ``small_window`` of their predictions moved by the large circle's
+    offset (most of an extrapolation's error is that shift).
+    """
+    free = ~taken
+    free[used] = False
+    d = np.linalg.norm(centres - predicted[0], axis=1)
+    r_ratio = blob_r / (radii_cells[0] * cell_px)
+    ok = free & (d < large_window * cell_px) & (r_ratio > 0.4) & (r_ratio < 2.5)
+    if not ok.any():
+        return None
+    large = int(np.flatnonzero(ok)[np.argmin(d[ok])])
+    free[large] = False
+    shift = centres[large] - predicted[0]
+    found = [large]
+    for k in (1, 2):
+        d = np.linalg.norm(centres - (predicted[k] + shift), axis=1)
+        r_ratio = blob_r / (radii_cells[k] * cell_px)
+        ok = free & (d < small_window * cell_px) & (r_ratio > 0.4) & (r_ratio < 2.5)
+        found.append(int(np.flatnonzero(ok)[np.argmin(d[ok])]) if ok.any() else -1)
+        if found[-1] >= 0:
+            free[found[-1]] = False
+    return found
+
+
+def fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
+    """RMS distance between image points and their grid points mapped by H, in cells (at the first point)."""
+    projected, cell_px = _predict(H, grid_points)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
+    return float(error) if np.isfinite(error) else np.inf
+
+
+def _fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
+    """(3, 3) grid -> image: least-squares affine below 6 points, homography from 6.
+
+    Four or five points, three of them bunched in one corner, pin a
+    homography's perspective terms badly; an affine map extrapolates better
+    until a second corner is complete.
+    """
+    if len(grid_points) < 6:
+        design = np.column_stack([grid_points, np.ones(len(grid_points))])
+        # normal equations of [x y] = [u v 1] A (3 x 2); tiny, so solve directly
+        A = np.linalg.solve(design.T @ design, design.T @ image_points)
+        return np.vstack([A.T, [0.0, 0.0, 1.0]])
+    H, _ = cv2.findHomography(grid_points, image_points, 0)
+    return H if H is not None else np.full((3, 3), np.nan)
+
+
+def _predict(H: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
+    """Image positions (K, 2) of grid points uv (K, 2) through H, and the size of one cell (px) at the first."""
+    pts = np.concatenate([uv, uv[:1] + [[1.0, 0.0], [0.0, 1.0]]])
+    w = pts @ H[2, :2] + H[2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = (pts @ H[:2, :2].T + H[:2, 2]) / w[:, None]
+    if not np.all(np.isfinite(p)):
+        return p[:-2], np.nan
+    a, b = p[-2] - p[0], p[-1] - p[0]
+    cell_px = float(np.sqrt(abs(a[0] * b[1] - a[1] * b[0])))
+    return p[:-2], cell_px if cell_px > 0 else np.nan
+
+
+def missing_corner_cells(layout: MarkerLayout, present_corners: np.ndarray) -> np.ndarray:
+    """(N, N) bool: cells likely hidden, given which corners' circles were not found.
+
+    An occluder that hides a corner's circles reaches in from outside: each
+    missing corner erases its (o + 2)-cell square (parity bands, gap, border
+    and the first data row and column), and two missing corners of one side
+    erase that whole side band. Corners are in the candidate's own labels.
+    """
+    n, depth = layout.n_cells, layout.inner_origin + 2
+    corner_square = np.zeros((n, n), bool)
+    corner_square[:depth, :depth] = True
+    top_band = np.zeros((n, n), bool)
+    top_band[:depth, :] = True
+    missing = [c for c in range(4) if c not in set(np.asarray(present_corners).tolist())]
+    region = np.zeros((n, n), bool)
+    for c in missing:
+        region |= np.rot90(corner_square, -c)  # TL square turned clockwise to corner c
+        if (c + 1) % 4 in missing:
+            region |= np.rot90(top_band, -c)  # side from corner c to corner c + 1
+    return region

@@ -1,0 +1,250 @@
+"""Detector stage: sub-pixel geometry from the inner square's four outer edges.
+
+The inner black square's outer edges are straight black-to-white steps
+whatever the marker's code. Profiles across them (one ``cv2.remap`` for all
+markers) give the sub-pixel mid-level crossing at every half cell along
+every edge; a profile that is not one clean dark-to-bright step (occluded,
+out of the image, too little contrast) is dropped.
+
+* Square path: a total-least-squares line per edge, the corners where
+  adjacent lines meet (``refine_square_corners``), batched over markers.
+* Circles path: the circle-only homography extrapolates poorly (two corners
+  on one side of a half-hidden marker); the edge points pin it
+  (``refine_homographies``). A point p on the grid line v = c gives one
+  equation linear in the image -> grid homography G:  g2 . p - c g3 . p = 0
+  (u = c: g1 . p - c g3 . p = 0); a circle centre gives two. G is the null
+  vector of the stacked, normalised system; points far from the first fit
+  are dropped before the second.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.detect import sampling
+from companion.markers.layout import MarkerLayout
+
+EDGE_STEP_CELLS = 0.5
+OUTLIER_CELLS = 0.12
+SQUARE_HALF_WIDTH_CELLS = 0.35  # square path: ArUco's corners are within a few tenths of a cell
+EDGES = 4
+
+
+@dataclass(frozen=True)
+class EdgePoints:
+    """Points found on the inner square's edges of M candidates.
+
+    px: (M, E, 2) image points on the edges, NaN where the profile was rejected.
+    edge: (E,) which edge each sample belongs to (0 top, 1 right, 2 bottom, 3 left).
+    profile: (E,) index of each sample in the refiner's full profile list.
+    """
+
+    px: np.ndarray
+    edge: np.ndarray
+    profile: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return np.isfinite(self.px[..., 0])
+
+
+@dataclass(frozen=True)
+class EdgeFit:
+    """A refined homography: H (3, 3) grid -> image; edge_points used; rms_cells of the fit."""
+
+    H: np.ndarray
+    edge_points: int
+    rms_cells: float
+
+
+class EdgeRefiner:
+    """Edge profiles of one layout's inner square, and the fits built on them."""
+
+    def __init__(self, layout: MarkerLayout, min_contrast: float = 20.0, square_stride: int = 1,
+                 square_samples: int = 11, circles_stride: int = 2, circles_samples: int = 15):
+        self.min_contrast = min_contrast
+        self.square_stride, self.square_samples = square_stride, square_samples
+        self.circles_stride, self.circles_samples = circles_stride, circles_samples
+        lo, hi = layout.inner_origin, layout.inner_origin + layout.inner_cells
+        self.inner_cells = layout.inner_cells
+        along = np.arange(lo + EDGE_STEP_CELLS, hi, EDGE_STEP_CELLS)
+        k = len(along)
+        top = np.column_stack([along, np.full(k, lo)])
+        right = np.column_stack([np.full(k, hi), along])
+        bottom = np.column_stack([along[::-1], np.full(k, hi)])
+        left = np.column_stack([np.full(k, lo), along[::-1]])
+        self._points = np.concatenate([top, right, bottom, left])  # clockwise, in corner order
+        self._normals = np.repeat(np.array([[0, -1], [1, 0], [0, 1], [-1, 0]], float), k, axis=0)  # outward
+        self._edge = np.repeat(np.arange(EDGES), k)
+        self._axis = np.repeat([1, 0, 1, 0], k)  # the coordinate that is constant on the edge: 1 = v, 0 = u
+        self._value = np.repeat([lo, hi, hi, lo], k).astype(float)
+
+    # ------------------------------------------------------------ edge points
+
+    def edge_points(self, gray: np.ndarray, H: np.ndarray, half_width_cells: float = 0.6,
+                    samples: int = 21, stride: int = 1) -> EdgePoints:
+        """Mid-level crossings across the four edges of M grids (H: (M, 3, 3) grid -> image).
+
+        stride: use every stride-th profile along each edge (2: one per cell).
+        """
+        keep = (np.arange(len(self._points)).reshape(EDGES, -1)[:, ::stride]).ravel()
+        points, normals, edge = self._points[keep], self._normals[keep], self._edge[keep]
+        m, e = len(H), len(points)
+        offsets = np.linspace(-half_width_cells, half_width_cells, samples)  # inside (black) -> outside (white)
+        grid = (points[:, None, :] + offsets[None, :, None] * normals[:, None, :]).reshape(-1, 2)
+        values, inside = sampling.sample_image(gray, sampling.project(H, grid))
+        values = values.reshape(m, e, samples)
+        inside = inside.reshape(m, e, samples).all(axis=2)
+        end = max(samples // 6, 1)
+        black = values[..., :end].mean(axis=2)
+        white = values[..., -end:].mean(axis=2)
+        mid = (black + white) / 2
+        with np.errstate(invalid="ignore"):
+            above = values >= mid[..., None]
+            crossings = np.count_nonzero(above[..., 1:] != above[..., :-1], axis=2)
+            good = (inside & (white - black >= self.min_contrast) & (crossings == 1)
+                    & above[..., -1] & ~above[..., 0])
+        k = np.clip(np.argmax(above, axis=2), 1, samples - 1)  # first sample at or above the mid level
+        before = np.take_along_axis(values, (k - 1)[..., None], axis=2)[..., 0]
+        after = np.take_along_axis(values, k[..., None], axis=2)[..., 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # linear interpolation of the crossing between samples k - 1 and k
+            frac = np.clip((mid - before) / (after - before), 0.0, 1.0)
+        offset = offsets[k - 1] + frac * (offsets[1] - offsets[0])
+        on_edge = points[None] + offset[..., None] * normals[None]  # (M, E, 2) grid
+        px = (np.concatenate([on_edge, np.ones((m, e, 1))], axis=2) @ np.transpose(H, (0, 2, 1)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            px = px[..., :2] / px[..., 2:3]
+        px[~good] = np.nan
+        return EdgePoints(px, edge, keep)
+
+    # ---------------------------------------------------------- square path
+
+    def refine_square_corners(self, gray: np.ndarray, H: np.ndarray, corners_px: np.ndarray,
+                              min_points_per_edge: int = 5, half_width_cells: float = SQUARE_HALF_WIDTH_CELLS,
+                              samples: int | None = None) -> np.ndarray:
+        """(M, 4, 2) inner corners from line fits to the edges; a corner keeps its input value
+        unless both of its edges have ``min_points_per_edge`` good points.
+
+        half_width_cells: how far across each edge to look (corners off by up to about that much).
+        """
+        points = self.edge_points(gray, H, half_width_cells, samples or self.square_samples, self.square_stride)
+        lines, enough = _fit_lines(points, min_points_per_edge)  # (M, 4, 3), (M, 4)
+        # corner i is where edge i - 1 (the one ending there) meets edge i (the one starting there)
+        previous = np.roll(lines, 1, axis=1)
+        meet = np.cross(previous, lines)
+        ok = enough & np.roll(enough, 1, axis=1) & (np.abs(meet[..., 2]) > 1e-9)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            refined = meet[..., :2] / meet[..., 2:3]
+        moved = np.linalg.norm(refined - corners_px, axis=2)
+        cell_px = np.linalg.norm(corners_px - np.roll(corners_px, -1, axis=1), axis=2).mean(axis=1) / self.inner_cells
+        # a corner moved further than the profiles reach is a bad fit, not a better corner
+        ok &= np.isfinite(moved) & (moved < np.maximum(1.5 * half_width_cells * cell_px, 1.0)[:, None])
+        return np.where(ok[..., None], refined, corners_px)
+
+    # --------------------------------------------------------- circles path
+
+    def refine_homographies(self, gray: np.ndarray, H: np.ndarray, anchors: list[tuple[np.ndarray, np.ndarray]],
+                            iterations: int = 1) -> list[EdgeFit]:
+        """Refine M homographies H (M, 3, 3) (grid -> image) on their edges, batched.
+
+        anchors: per candidate, (grid (K, 2), image (K, 2)) correspondences
+        (circle centres) kept in the fit.
+        """
+        fits = [EdgeFit(h, 0, np.nan) for h in H]
+        for _ in range(iterations):
+            points = self.edge_points(gray, np.stack([f.H for f in fits]), samples=self.circles_samples,
+                                      stride=self.circles_stride)
+            axis, value = self._axis[points.profile], self._value[points.profile]
+            fits = [self._refit(fit, points.px[i], axis[points.valid[i]], value[points.valid[i]],
+                                points.valid[i], *anchors[i]) for i, fit in enumerate(fits)]
+        return fits
+
+    def _refit(self, fit: EdgeFit, px: np.ndarray, axis: np.ndarray, value: np.ndarray, valid: np.ndarray,
+               anchors_grid: np.ndarray, anchors_px: np.ndarray) -> EdgeFit:
+        """One candidate's homography from its anchors and its good edge points (px[valid] on lines axis = value)."""
+        on_edge_px = px[valid]
+        if len(on_edge_px) < 4:
+            return fit
+        G = _solve(anchors_grid, anchors_px, on_edge_px, axis, value)
+        if G is None:
+            return fit
+        keep = _line_residuals(G, on_edge_px, axis, value) < OUTLIER_CELLS
+        if 4 <= keep.sum() < len(keep):
+            refit = _solve(anchors_grid, anchors_px, on_edge_px[keep], axis[keep], value[keep])
+            G = G if refit is None else refit
+        used = keep if keep.sum() >= 4 else np.ones(len(keep), bool)
+        errors = np.r_[_line_residuals(G, on_edge_px[used], axis[used], value[used]),
+                       _grid_distances(G, anchors_px, anchors_grid)]
+        return EdgeFit(np.linalg.inv(G), int(used.sum()), float(np.sqrt(np.mean(errors ** 2))))
+
+
+def _fit_lines(points: EdgePoints, min_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares line (a, b, c), a x + b y + c = 0, per candidate and edge.
+
+    Returns lines (M, 4, 3) and enough (M, 4) bool (at least ``min_points`` points).
+    """
+    m = len(points.px)
+    px = points.px.reshape(m, EDGES, -1, 2)
+    valid = np.isfinite(px[..., 0])
+    count = valid.sum(axis=2)
+    xy = np.where(valid[..., None], px, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centre = xy.sum(axis=2) / count[..., None]
+        d = np.where(valid[..., None], px - centre[:, :, None, :], 0.0)
+        cov = np.einsum("meki,mekj->meij", d, d)
+    cov = np.nan_to_num(cov) + np.eye(2) * 1e-12
+    _, vectors = np.linalg.eigh(cov)
+    normal = vectors[..., :, 0]  # smallest eigenvalue: the line's normal
+    c = -(normal * np.nan_to_num(centre)).sum(axis=2)
+    return np.concatenate([normal, c[..., None]], axis=2), count >= min_points
+
+
+def _solve(anchors_grid, anchors_px, on_edge_px, axis, value) -> np.ndarray | None:
+    """G (3, 3) image -> grid from anchor correspondences and points on grid lines u = c or v = c."""
+    all_px = np.concatenate([anchors_px, on_edge_px])
+    centre = all_px.mean(axis=0)
+    scale = np.sqrt(2) / max(np.mean(np.linalg.norm(all_px - centre, axis=1)), 1e-9)
+    T = np.array([[scale, 0, -scale * centre[0]], [0, scale, -scale * centre[1]], [0, 0, 1.0]])
+    grid_all = np.concatenate([anchors_grid, np.column_stack([value, value])])
+    g_centre = grid_all.mean(axis=0)
+    g_scale = 1.0 / max(np.abs(grid_all - g_centre).max(), 1e-9)
+    S = np.array([[g_scale, 0, -g_scale * g_centre[0]], [0, g_scale, -g_scale * g_centre[1]], [0, 0, 1.0]])
+
+    def homogeneous(p):
+        return np.column_stack([p, np.ones(len(p))]) @ T.T
+
+    # anchor (x, y) <-> (u, v):  g1 . p - u g3 . p = 0  and  g2 . p - v g3 . p = 0
+    a = homogeneous(anchors_px)
+    ag = (np.column_stack([anchors_grid, np.ones(len(anchors_grid))]) @ S.T)[:, :2]
+    z = np.zeros_like(a)
+    rows = [np.hstack([a, z, -ag[:, :1] * a]), np.hstack([z, a, -ag[:, 1:2] * a])]
+    # edge point on u = c:  g1 . p - c g3 . p = 0;  on v = c:  g2 . p - c g3 . p = 0
+    e = homogeneous(on_edge_px)
+    ze = np.zeros_like(e)
+    line = np.where(axis == 0, (value - g_centre[0]) * g_scale, (value - g_centre[1]) * g_scale)[:, None]
+    is_u = (axis == 0)[:, None]
+    rows.append(np.where(is_u, np.hstack([e, ze, -line * e]), np.hstack([ze, e, -line * e])))
+    A = np.concatenate(rows)
+    if len(A) < 8:
+        return None
+    _, _, vt = np.linalg.svd(A)
+    G = np.linalg.inv(S) @ vt[-1].reshape(3, 3) @ T
+    if not np.all(np.isfinite(G)) or abs(G[2, 2]) < 1e-12:
+        return None
+    G = G / G[2, 2]
+    return G if abs(np.linalg.det(G)) > 1e-15 else None
+
+
+def _line_residuals(G, on_edge_px, axis, value) -> np.ndarray:
+    """(E,) distance in cells of each edge point, mapped by G, from its grid line."""
+    grid = sampling.project(G[None], on_edge_px)[0]
+    return np.abs(grid[np.arange(len(grid)), axis] - value)
+
+
+def _grid_distances(G: np.ndarray, points_px: np.ndarray, points_grid: np.ndarray) -> np.ndarray:
+    """(K,) distances in cells between image points mapped by G and their grid positions."""
+    if len(points_px) == 0:
+        return np.zeros(0)
+    return np.linalg.norm(sampling.project(G[None], points_px)[0] - points_grid, axis=1)

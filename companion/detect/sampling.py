@@ -1,0 +1,281 @@
+"""Detector stage: read a marker's N x N cell grid from the image through its homography.
+
+Everything here is batched over M candidates at once: one ``cv2.remap`` call
+samples every point of every candidate, and the cell statistics are numpy
+reductions, so the cost grows with the number of pixels read, not with a
+Python loop.
+
+Homographies map grid coordinates (u, v) in cells (``companion.markers.layout``:
+origin at the grid's outer top-left corner, u right, v down) to image pixels
+(x right, y down, pixel centres at integers).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from companion.markers.layout import UNKNOWN, MarkerLayout
+
+# Sub-cell sample offsets (fractions of a cell from its centre): a 3 x 3
+# pattern inside the middle 60 % of the cell, away from the blurred edges.
+SUB_CELL_OFFSETS = np.array([-0.2, 0.0, 0.2])
+REMAP_ROW = 16384
+
+
+def homographies_from_quads(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray:
+    """Batched 4-point homographies grid -> image.
+
+    grid_corners: (4, 2) grid (u, v) of the quad corners (shared by all).
+    image_corners: (M, 4, 2) pixel corners of M quads, same order.
+    Returns (M, 3, 3) float64 with H[2, 2] = 1 (NaN rows for degenerate quads).
+    """
+    q = np.asarray(image_corners, dtype=np.float64).reshape(-1, 4, 2)
+    m = len(q)
+    u, v = grid_corners[:, 0], grid_corners[:, 1]
+    x, y = q[..., 0], q[..., 1]
+    # x = (h0 u + h1 v + h2) / (h6 u + h7 v + 1), y likewise with h3..h5:
+    # h0 u + h1 v + h2 - x h6 u - x h7 v = x  and  h3 u + h4 v + h5 - y h6 u - y h7 v = y
+    a = np.zeros((m, 8, 8))
+    a[:, 0:4, 0] = u
+    a[:, 0:4, 1] = v
+    a[:, 0:4, 2] = 1.0
+    a[:, 0:4, 6] = -x * u
+    a[:, 0:4, 7] = -x * v
+    a[:, 4:8, 3] = u
+    a[:, 4:8, 4] = v
+    a[:, 4:8, 5] = 1.0
+    a[:, 4:8, 6] = -y * u
+    a[:, 4:8, 7] = -y * v
+    b = np.concatenate([x, y], axis=1)
+    h = np.full((m, 9), np.nan)
+    ok = np.abs(np.linalg.det(a)) > 1e-12
+    if ok.any():
+        h[ok, :8] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+        h[ok, 8] = 1.0
+    return h.reshape(m, 3, 3)
+
+
+def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Grid points through M homographies: H (M, 3, 3), uv (K, 2) -> (M, K, 2) pixels."""
+    uv1 = np.concatenate([uv, np.ones((len(uv), 1))], axis=1)
+    p = np.tensordot(H, uv1, axes=([2], [1]))  # (M, 3, K): one BLAS call (einsum/matmul broadcasting are 3-10x slower)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (p[:, :2] / p[:, 2:3]).transpose(0, 2, 1)
+
+
+def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear intensities at pixel positions.
+
+    xy: (..., 2) float pixel positions. Returns (values (...) float32, inside (...) bool);
+    points outside the image (or not finite) read as NaN and inside = False.
+    """
+    shape = xy.shape[:-1]
+    flat = xy.reshape(-1, 2).astype(np.float32)
+    h, w = gray.shape
+    x, y = flat[:, 0], flat[:, 1]
+    with np.errstate(invalid="ignore"):
+        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)  # False for NaN
+    np.nan_to_num(flat, copy=False, nan=-10.0, posinf=-10.0, neginf=-10.0)
+    # remap wants maps under 32767 columns: lay the points out in rows of REMAP_ROW
+    count = len(flat)
+    cols = max(min(count, REMAP_ROW), 1)
+    rows = -(-count // cols)
+    if rows * cols != count:
+        flat = np.concatenate([flat, np.full((rows * cols - count, 2), -10.0, np.float32)])
+    values = cv2.remap(gray, flat.reshape(rows, cols, 2), None, cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=0).reshape(-1)[:count].astype(np.float32)
+    values[~inside] = np.nan
+    return values.reshape(shape), inside.reshape(shape)
+
+
+@dataclass(frozen=True)
+class CellSamples:
+    """Intensity statistics of every cell of M sampled grids.
+
+    mean: (M, N, N) float32, mean over the cell's sub-samples (NaN where a
+        sub-sample fell outside the image).
+    inside: (M, N, N) bool, every sub-sample of the cell is inside the image.
+    """
+
+    mean: np.ndarray
+    inside: np.ndarray
+
+
+@lru_cache(maxsize=8)
+def _cell_sample_points(n_cells: int, offsets: tuple[float, ...]) -> np.ndarray:
+    points = cell_sample_points_uncached(n_cells, np.array(offsets))
+    points.flags.writeable = False
+    return points
+
+
+def cell_sample_points(n_cells: int, offsets: np.ndarray = SUB_CELL_OFFSETS) -> np.ndarray:
+    """(N * N * S, 2) grid (u, v) of the sub-samples, cell-major (row, column, sample); read-only."""
+    return _cell_sample_points(n_cells, tuple(float(o) for o in offsets))
+
+
+def cell_sample_points_uncached(n_cells: int, offsets: np.ndarray) -> np.ndarray:
+    rows, cols = np.mgrid[0:n_cells, 0:n_cells]
+    dv, du = np.meshgrid(offsets, offsets, indexing="ij")
+    u = cols[..., None] + 0.5 + du.ravel()
+    v = rows[..., None] + 0.5 + dv.ravel()
+    return np.stack([u, v], axis=-1).reshape(-1, 2)
+
+
+def sample_cells(gray: np.ndarray, H: np.ndarray, n_cells: int,
+                 offsets: np.ndarray = SUB_CELL_OFFSETS) -> CellSamples:
+    """Sample every cell of M grids: H (M, 3, 3) grid -> image."""
+    m = len(H)
+    s = len(offsets) ** 2
+    values, inside = sample_image(gray, project(H, cell_sample_points(n_cells, offsets)))
+    values = values.reshape(m, n_cells, n_cells, s)
+    inside_cells = inside.reshape(m, n_cells, n_cells, s).all(axis=-1)
+    return CellSamples(values.mean(axis=-1), inside_cells)
+
+
+@dataclass(frozen=True)
+class GridLevels:
+    """Each candidate's own black and white levels: (M,) medians of its border cells and its gap ring."""
+
+    black: np.ndarray
+    white: np.ndarray
+
+    @property
+    def contrast(self) -> np.ndarray:
+        return self.white - self.black
+
+
+def inside_grids(points_px: np.ndarray, H: np.ndarray, n_cells: int) -> np.ndarray:
+    """(K,) bool: image points inside the whole N x N grid outline of any of M grids (H: (M, 3, 3))."""
+    if len(points_px) == 0 or len(H) == 0:
+        return np.zeros(len(points_px), bool)
+    outline = project(H, np.array([[0, 0], [n_cells, 0], [n_cells, n_cells], [0, n_cells]], float))  # (M, 4, 2)
+    # inside a convex clockwise polygon: on the right of (or on) every edge
+    edge = np.roll(outline, -1, axis=1) - outline
+    to_point = points_px[:, None, None, :] - outline[None]  # (K, M, 4, 2)
+    cross = edge[None, ..., 0] * to_point[..., 1] - edge[None, ..., 1] * to_point[..., 0]
+    return (cross >= 0).all(axis=2).any(axis=1)
+
+
+def gap_ring_mask(layout: MarkerLayout) -> np.ndarray:
+    """(N, N) bool: the one-cell white ring just outside the inner black square."""
+    n, o = layout.n_cells, layout.inner_origin
+    ring = np.zeros((n, n), bool)
+    ring[o - 1:o + layout.inner_cells + 1, o - 1:o + layout.inner_cells + 1] = True
+    ring[o:o + layout.inner_cells, o:o + layout.inner_cells] = False
+    return ring
+
+
+def grid_levels(cells: CellSamples, border: np.ndarray, gap: np.ndarray) -> GridLevels:
+    """Black and white levels of M grids from their border and gap-ring cells ((N, N) bool masks).
+
+    Medians of the readable cells, so a partly hidden border or ring still gives the marker's own levels.
+    """
+    return GridLevels(nan_median_rows(cells.mean[:, border]), nan_median_rows(cells.mean[:, gap]))
+
+
+def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity: float) -> np.ndarray:
+    """(M, N, N) int8 grids: 1 black, 0 white, -1 unknown.
+
+    A cell is unknown when it is (partly) outside the image, or its mean lies
+    within ``ambiguity`` x contrast of the midpoint between the candidate's
+    black and white levels.
+    """
+    mid = ((levels.black + levels.white) / 2)[:, None, None]
+    margin = (ambiguity * levels.contrast)[:, None, None]
+    with np.errstate(invalid="ignore"):
+        grid = np.where(cells.mean < mid, 1, 0).astype(np.int8)
+        unsure = ~cells.inside | ~np.isfinite(cells.mean) | (np.abs(cells.mean - mid) < margin)
+    grid[unsure] = UNKNOWN
+    return grid
+
+
+def nan_median_rows(values: np.ndarray) -> np.ndarray:
+    """(M, K) -> (M,) median of each row's finite values (NaN for an all-NaN row).
+
+    np.nanmedian goes through masked arrays and costs ~0.5 ms a call; sorting
+    puts NaN last, so the median is read at the middle of the finite prefix.
+    """
+    ordered = np.sort(values, axis=1)
+    count = np.isfinite(ordered).sum(axis=1)
+    lo = np.maximum((count - 1) // 2, 0)
+    hi = np.maximum(count // 2, 0)
+    rows = np.arange(len(values))
+    median = (ordered[rows, lo] + ordered[rows, hi]) / 2
+    median[count == 0] = np.nan
+    return median
+
+
+class CellProbe:
+    """One sample at the centre of every border, gap-ring and codeword cell: a cheap first look.
+
+    ``read(gray, H)`` for M homographies gives per candidate the contrast
+    (gap-ring median - border median), the fractions of readable border
+    cells below and gap-ring cells above the midpoint, and the fraction of
+    codeword cells below it; a candidate that is no marker fails here before
+    any expensive step.
+    """
+
+    def __init__(self, layout: MarkerLayout):
+        border, gap, codeword = layout.border_mask, gap_ring_mask(layout), layout.codeword_mask
+        self._probed = border | gap | codeword
+        self._is_border, self._is_gap = border[self._probed], gap[self._probed]
+        self._is_codeword = codeword[self._probed]
+        self._points = np.argwhere(self._probed)[:, ::-1] + 0.5  # (u, v) cell centres
+
+    def read(self, gray: np.ndarray, H: np.ndarray) -> "ProbeReading":
+        values, _ = sample_image(gray, project(H, self._points))
+        border, gap, codeword = values[:, self._is_border], values[:, self._is_gap], values[:, self._is_codeword]
+        black, white = nan_median_rows(border), nan_median_rows(gap)
+        with np.errstate(invalid="ignore"):
+            mid = (black + white)[:, None] / 2
+            dark = values < mid
+        grid = np.full((len(H),) + self._probed.shape, UNKNOWN, np.int8)
+        grid[:, self._probed] = np.where(np.isfinite(values), dark, UNKNOWN)
+        return ProbeReading(white - black, _fraction(dark[:, self._is_border], border),
+                            _fraction(~dark[:, self._is_gap] & np.isfinite(gap), gap),
+                            _fraction(dark[:, self._is_codeword], codeword), grid)
+
+
+@dataclass(frozen=True)
+class ProbeReading:
+    """Per candidate (M,): contrast, border_black, gap_white, dark_codeword (see ``CellProbe``);
+    grid (M, N, N) int8: the probed cells read at one sample each (others unknown)."""
+
+    contrast: np.ndarray
+    border_black: np.ndarray
+    gap_white: np.ndarray
+    dark_codeword: np.ndarray
+    grid: np.ndarray
+
+
+def _fraction(condition: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(M,) share of the readable (finite) values meeting the condition, per row."""
+    readable = np.isfinite(values)
+    return (condition & readable).sum(axis=1) / np.maximum(readable.sum(axis=1), 1)
+
+
+def erase_near_bad_fixed_cells(grids: np.ndarray, border: np.ndarray, gap: np.ndarray,
+                               codeword: np.ndarray, reach_cells: int = 1) -> np.ndarray:
+    """Occlusion probes: codeword cells next to a fixed cell that reads wrong become unknown.
+
+    grids: (M, N, N) int8 classified grids. A border cell that reads white or
+    a gap-ring cell that reads black shows something in front of the marker
+    there; codeword cells within ``reach_cells`` (Chebyshev) of it are more
+    likely hidden than read, so they are erased rather than left as errors.
+    Returns a new (M, N, N) int8 array.
+    """
+    bad = (border[None] & (grids == 0)) | (gap[None] & (grids == 1))
+    n = grids.shape[-1]
+    r = reach_cells
+    padded = np.pad(bad, ((0, 0), (r, r), (r, r)))
+    near_bad = np.zeros_like(bad)
+    for dy in range(2 * r + 1):  # dilation by a (2r + 1) square, as shifted ORs
+        for dx in range(2 * r + 1):
+            near_bad |= padded[:, dy:dy + n, dx:dx + n]
+    out = grids.copy()
+    out[near_bad & codeword[None]] = UNKNOWN
+    return out
+

@@ -1,0 +1,394 @@
+"""The MAVLink link to the flight controller: connection, handshake, stream.
+
+Threads (both stop on ``close()``):
+
+* ``link`` owns the connection: opens it (reopening with backoff after a
+  transport error), reads what the flight controller (FC) sends, answers
+  TIMESYNC requests, runs the origin handshake and sends pending STATUSTEXTs;
+* ``heartbeat`` sends HEARTBEAT at 1 Hz (type 18, autopilot 8).
+
+The pipeline thread calls ``publish(estimate)``, which sends at once (lowest
+latency) when the link is streaming, and never faster than ``max_rate_hz``
+(50 Hz at most: ArduPilot drops samples closer than 20 ms), judged on capture
+times with 2 ms of tolerance for a camera running at exactly that rate.
+
+Origin handshake (ArduPilot's EKF settles at a wrong height when the origin
+arrives after vision fusion began): once a FC heartbeat is seen, send
+SET_GPS_GLOBAL_ORIGIN, wait for the FC's GPS_GLOBAL_ORIGIN (asking for it
+with MAV_CMD_REQUEST_MESSAGE and re-sending the origin every
+``origin_retry_s``), and only then stream vision. The wait is bounded by
+``origin_wait_s`` from the start of the handshake: a FC that never confirms
+is logged and the stream starts anyway. A FC seen again after it went silent
+for ``fc_timeout_s`` (a reboot) gets the handshake again.
+"""
+from __future__ import annotations
+
+import collections
+import enum
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+from companion.mavlink import messages as mm  # sets MAVLINK20 before pymavlink loads
+from pymavlink import mavutil  # noqa: E402  (after mavlink_messages on purpose)
+
+from companion.types import Estimate
+
+log = logging.getLogger(__name__)
+
+MAX_VISION_RATE_HZ = 50.0
+# ArduPilot drops vision samples closer than 20 ms.
+MIN_VISION_SPACING_NS = 20_000_000
+# Capture stamps of a camera at exactly max_rate_hz jitter by a little: let them through.
+RATE_JITTER_NS = 2_000_000
+SEVERITY_INFO = mm.mavlink2.MAV_SEVERITY_INFO
+SEVERITY_WARNING = mm.mavlink2.MAV_SEVERITY_WARNING
+NETWORK_PREFIXES = ("udpout:", "udpin:", "udp:", "tcp:", "tcpin:")
+SERIAL_PREFIXES = ("/dev/", "COM")
+
+
+class LinkError(ValueError):
+    """A connection string or link parameter that cannot work."""
+
+
+class LinkState(enum.Enum):
+    CONNECTING = "connecting"
+    HANDSHAKE = "handshake"      # waiting for the FC and its origin confirmation
+    STREAMING = "streaming"
+
+
+@dataclass(frozen=True)
+class Origin:
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+
+
+@dataclass(frozen=True)
+class LinkParams:
+    connection: str = "udpout:127.0.0.1:14550"
+    system_id: int = 1
+    component_id: int = mm.mavlink2.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY
+    origin: Origin | None = None
+    origin_wait_s: float = 5.0
+    origin_retry_s: float = 1.0
+    fc_timeout_s: float = 3.0
+    max_rate_hz: float = 30.0
+    statustext_interval_s: float = 1.0
+    heartbeat_interval_s: float = 1.0
+    reconnect_initial_s: float = 0.5
+    reconnect_max_s: float = 8.0
+    send_vision_position: bool = True
+    send_vision_speed: bool = False
+    send_odometry: bool = False
+
+    def __post_init__(self) -> None:
+        parse_connection(self.connection)
+        if not 1 <= self.system_id <= 254:
+            raise LinkError(f"system_id must be 1..254 (255 is a ground station), got {self.system_id}")
+        if not 1 <= self.component_id <= 255:
+            raise LinkError(f"component_id must be 1..255, got {self.component_id}")
+        if not 0 < self.max_rate_hz <= MAX_VISION_RATE_HZ:
+            raise LinkError(f"max_rate_hz must be in (0, {MAX_VISION_RATE_HZ:g}], got {self.max_rate_hz}")
+        for name in ("origin_wait_s", "origin_retry_s", "fc_timeout_s", "statustext_interval_s",
+                     "heartbeat_interval_s", "reconnect_initial_s", "reconnect_max_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise LinkError(f"{name} must be a number >= 0, got {value!r}")
+
+
+def parse_connection(text: str) -> tuple[str, int | None]:
+    """(pymavlink device, baud or None) from a user's connection string.
+
+    ``udpout:HOST:PORT``, ``udpin:HOST:PORT`` (``udp:`` is udpin),
+    ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``, or a serial device with its baud
+    rate: ``/dev/ttyAMA0,921600`` (57600 when no rate is given).
+    """
+    if not isinstance(text, str) or not text:
+        raise LinkError(f"connection must be a string such as udpout:127.0.0.1:14550, got {text!r}")
+    if text.startswith(NETWORK_PREFIXES):
+        kind, _, address = text.partition(":")
+        host, _, port = address.rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise LinkError(f"connection {text!r}: want {kind}:HOST:PORT with a port in 1..65535")
+        return text, None
+    if text.startswith(SERIAL_PREFIXES):
+        device, _, baud = text.partition(",")
+        if baud and not baud.isdigit():
+            raise LinkError(f"connection {text!r}: the baud rate after the comma must be a number")
+        return device, int(baud) if baud else 57600
+    raise LinkError(f"connection {text!r}: want udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, "
+                    "tcpin:HOST:PORT or a serial device such as /dev/ttyAMA0,921600")
+
+
+@dataclass
+class LinkCounters:
+    sent: collections.Counter = field(default_factory=collections.Counter)
+    received: collections.Counter = field(default_factory=collections.Counter)
+    held_back: int = 0            # estimates not sent: not streaming yet / no connection
+    rate_limited: int = 0         # estimates not sent: closer than 1 / max_rate_hz
+    timesync_replies: int = 0
+    connects: int = 0
+    transport_errors: int = 0
+    handshakes: int = 0
+    origin_confirmed: int = 0
+    origin_timeouts: int = 0
+
+
+class _TransportLost(ConnectionError):
+    pass
+
+
+class MavlinkLink:
+    """Owns the connection to the FC; see the module docstring for the threads."""
+
+    def __init__(self, params: LinkParams):
+        self.params = params
+        self.counters = LinkCounters()
+        self.state = LinkState.CONNECTING
+        self.fc_system_id: int | None = None
+        self.fc_component_id: int | None = None
+        self.confirmed_origin: Origin | None = None
+        self._connection = None
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._transport_broken = threading.Event()
+        self._statustexts: collections.deque = collections.deque(maxlen=4)
+        self._last_statustext_s = -math.inf
+        self._last_fc_heartbeat_s = -math.inf
+        self._handshake_started_s = 0.0
+        self._last_origin_sent_s = -math.inf
+        self._last_vision_t_ns: int | None = None
+        self._threads = [
+            threading.Thread(target=self._run_link, name="link", daemon=True),
+            threading.Thread(target=self._run_heartbeat, name="heartbeat", daemon=True),
+        ]
+
+    # ------------------------------------------------------------ public
+
+    def start(self) -> None:
+        for thread in self._threads:
+            thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            if thread.is_alive():
+                thread.join(timeout=5.0)
+        self._close_connection()
+
+    @property
+    def alive(self) -> bool:
+        """True while both link threads run (they only end on close() or a bug)."""
+        return all(thread.is_alive() for thread in self._threads)
+
+    @property
+    def fc_seen(self) -> bool:
+        return time.monotonic() - self._last_fc_heartbeat_s < self.params.fc_timeout_s
+
+    def publish(self, estimate: Estimate) -> bool:
+        """Send the vision messages for one estimate now; False if held back."""
+        if self.state is not LinkState.STREAMING or self._connection is None:
+            self.counters.held_back += 1
+            return False
+        min_interval_ns = max(MIN_VISION_SPACING_NS, 1e9 / self.params.max_rate_hz - RATE_JITTER_NS)
+        if self._last_vision_t_ns is not None and estimate.t_ns - self._last_vision_t_ns < min_interval_ns:
+            self.counters.rate_limited += 1
+            return False
+        self._last_vision_t_ns = estimate.t_ns
+        messages = []
+        if self.params.send_vision_position:
+            messages.append(mm.vision_position_estimate(estimate))
+        if self.params.send_vision_speed:
+            messages.append(mm.vision_speed_estimate(estimate))
+        if self.params.send_odometry:
+            messages.append(mm.odometry(estimate))
+        return all(self._send(message) for message in messages)
+
+    def statustext(self, text: str, severity: int = SEVERITY_INFO) -> None:
+        """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``."""
+        self._statustexts.append((severity, text))
+
+    # ----------------------------------------------------------- sending
+
+    def _send(self, message) -> bool:
+        with self._send_lock:
+            connection = self._connection
+            if connection is None:
+                return False
+            try:
+                connection.mav.send(message)
+            except OSError as error:
+                log.warning("link: send failed: %s", error)
+                self.counters.transport_errors += 1
+                self._transport_broken.set()
+                return False
+            self.counters.sent[message.get_type()] += 1
+        return True
+
+    def _run_heartbeat(self) -> None:
+        # The first beat goes out as soon as the connection is open: a FC that has
+        # not heard from us yet (udpout) does not know where to answer.
+        while not self._stop.is_set():
+            sent = self._send(mm.heartbeat(active=self.state is LinkState.STREAMING))
+            self._stop.wait(self.params.heartbeat_interval_s if sent else 0.05)
+
+    # ------------------------------------------------------- connection
+
+    def _open_connection(self):
+        device, baud = parse_connection(self.params.connection)
+        kwargs = dict(source_system=self.params.system_id, source_component=self.params.component_id,
+                      dialect="common", autoreconnect=False)
+        if baud is not None:
+            kwargs["baud"] = baud
+        if device.startswith(("tcp:", "tcpin:")):
+            kwargs["retries"] = 0
+        connection = mavutil.mavlink_connection(device, **kwargs)
+        # pymavlink's TCP/serial classes only print on EOF; make it an error we handle.
+        connection.handle_eof = connection.handle_disconnect = self._raise_transport_lost
+        return connection
+
+    @staticmethod
+    def _raise_transport_lost():
+        raise _TransportLost("connection closed by the peer")
+
+    def _close_connection(self) -> None:
+        with self._send_lock:
+            connection, self._connection = self._connection, None
+        if connection is not None:
+            try:
+                connection.close()
+            except OSError:
+                pass
+
+    def _run_link(self) -> None:
+        backoff_s = self.params.reconnect_initial_s
+        while not self._stop.is_set():
+            try:
+                connection = self._open_connection()
+            except Exception as error:  # pymavlink raises OSError, serial errors, ValueError
+                self.counters.transport_errors += 1
+                log.warning("link %s: cannot open (%s); retrying in %.1f s", self.params.connection, error, backoff_s)
+                self._stop.wait(backoff_s)
+                backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
+                continue
+            with self._send_lock:
+                self._connection = connection
+            self.counters.connects += 1
+            self._transport_broken.clear()
+            log.info("link %s: open", self.params.connection)
+            self._begin_handshake()
+            try:
+                self._serve(connection)
+                backoff_s = self.params.reconnect_initial_s
+            except (OSError, _TransportLost) as error:
+                self.counters.transport_errors += 1
+                log.warning("link %s: lost (%s); reconnecting in %.1f s", self.params.connection, error, backoff_s)
+            finally:
+                self._close_connection()
+                self.state = LinkState.CONNECTING
+            if not self._stop.is_set():
+                self._stop.wait(backoff_s)
+                backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
+
+    def _serve(self, connection) -> None:
+        """Read and react until stopped; raises on a transport error."""
+        while not self._stop.is_set():
+            # pymavlink's serial class swallows write errors and only marks the port dead.
+            if self._transport_broken.is_set() or getattr(connection, "portdead", False):
+                raise _TransportLost("send failed")
+            message = connection.recv_match(blocking=True, timeout=0.05)
+            if message is not None and message.get_type() != "BAD_DATA":
+                self._handle(message)
+            self._tick()
+
+    # ------------------------------------------------------ FC messages
+
+    def _handle(self, message) -> None:
+        kind = message.get_type()
+        self.counters.received[kind] += 1
+        if kind == "HEARTBEAT" and message.autopilot != mm.mavlink2.MAV_AUTOPILOT_INVALID:
+            self._on_fc_heartbeat(message)
+        elif mm.is_timesync_request(message):
+            self._send(mm.timesync_reply(message.ts1, time.monotonic_ns()))
+            self.counters.timesync_replies += 1
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            self._on_origin(message)
+
+    def _on_fc_heartbeat(self, message) -> None:
+        now_s = time.monotonic()
+        returning = now_s - self._last_fc_heartbeat_s >= self.params.fc_timeout_s
+        self._last_fc_heartbeat_s = now_s
+        if returning:
+            self.fc_system_id, self.fc_component_id = message.get_srcSystem(), message.get_srcComponent()
+            log.info("link: flight controller %d/%d seen (autopilot %d, type %d)",
+                     self.fc_system_id, self.fc_component_id, message.autopilot, message.type)
+            if self.fc_system_id != self.params.system_id:
+                log.warning("link: flight controller has system id %d but we send as %d",
+                            self.fc_system_id, self.params.system_id)
+            # A FC that appears (or reappears after a reboot) gets the origin before any vision.
+            self._begin_handshake(now_s)
+
+    def _on_origin(self, message) -> None:
+        origin = Origin(message.latitude * 1e-7, message.longitude * 1e-7, message.altitude * 1e-3)
+        self.confirmed_origin = origin
+        wanted = self.params.origin
+        if wanted is not None and (abs(origin.latitude_deg - wanted.latitude_deg) > 2e-7
+                                   or abs(origin.longitude_deg - wanted.longitude_deg) > 2e-7):
+            log.warning("link: flight controller's origin %.7f, %.7f differs from ours %.7f, %.7f "
+                        "(an origin is accepted once: reboot the FC to change it)",
+                        origin.latitude_deg, origin.longitude_deg, wanted.latitude_deg, wanted.longitude_deg)
+        if self.state is LinkState.HANDSHAKE:
+            self.counters.origin_confirmed += 1
+            log.info("link: origin confirmed by the flight controller; streaming vision")
+            self.state = LinkState.STREAMING
+
+    # ------------------------------------------------------- periodic
+
+    def _begin_handshake(self, now_s: float | None = None) -> None:
+        self.counters.handshakes += 1
+        self._handshake_started_s = time.monotonic() if now_s is None else now_s
+        self._last_origin_sent_s = -math.inf
+        if self.params.origin is None:
+            log.warning("link: no geodetic origin configured: streaming without SET_GPS_GLOBAL_ORIGIN "
+                        "(home, RTL and auto modes need one)")
+            self.state = LinkState.STREAMING
+        else:
+            self.state = LinkState.HANDSHAKE
+
+    def _tick(self) -> None:
+        now_s = time.monotonic()
+        if self.state is LinkState.STREAMING and self._fc_went_silent():
+            # Hold vision until it is back (bounded like at start): a rebooted FC must get the origin first.
+            log.warning("link: flight controller silent for %.1f s; holding vision until it returns (at most %.1f s)",
+                        self.params.fc_timeout_s, self.params.origin_wait_s)
+            self._begin_handshake(now_s)
+        if self.state is LinkState.HANDSHAKE:
+            self._handshake_step(now_s)
+        if self._statustexts and now_s - self._last_statustext_s >= self.params.statustext_interval_s:
+            severity, text = self._statustexts.popleft()
+            if self._send(mm.statustext(severity, text)):
+                self._last_statustext_s = now_s
+
+    def _fc_went_silent(self) -> bool:
+        """True when a FC seen since the last handshake began has stopped sending heartbeats."""
+        return (self.params.origin is not None and self._last_fc_heartbeat_s >= self._handshake_started_s
+                and not self.fc_seen)
+
+    def _handshake_step(self, now_s: float) -> None:
+        if self.fc_seen and now_s - self._last_origin_sent_s >= self.params.origin_retry_s:
+            first = self._last_origin_sent_s == -math.inf
+            origin = self.params.origin
+            self._send(mm.set_gps_global_origin(self.fc_system_id, origin.latitude_deg, origin.longitude_deg,
+                                                origin.altitude_m, time.monotonic_ns()))
+            if not first:
+                self._send(mm.request_gps_global_origin(self.fc_system_id, self.fc_component_id))
+            self._last_origin_sent_s = now_s
+        if now_s - self._handshake_started_s > self.params.origin_wait_s:
+            self.counters.origin_timeouts += 1
+            what = "no flight controller seen" if not self.fc_seen else "origin not confirmed"
+            log.warning("link: %s after %.1f s; streaming vision anyway", what, self.params.origin_wait_s)
+            self.statustext("companion: origin unconfirmed", SEVERITY_WARNING)
+            self.state = LinkState.STREAMING
