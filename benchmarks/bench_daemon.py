@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO))
 from companion import cli  # noqa: E402
 from companion.daemon.config import config_from_dict  # noqa: E402
 from companion.daemon.service import Daemon  # noqa: E402
-from companion.capture.sources import open_recording  # noqa: E402
+from companion.capture.replay import open_recording  # noqa: E402
 
 RESOLUTIONS = [(640, 480), (1280, 720)]
 HFOV_DEG = 70.0

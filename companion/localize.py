@@ -20,7 +20,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.geometry.pose import PoseSolution, PoseSolver
-from companion.capture.sources import ReplaySource, open_recording, read_sequence_info
+from companion.capture.replay import ReplaySource, open_recording, read_sequence_info
 
 GET_TIMEOUT_S = 1.0
 
@@ -84,7 +84,7 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
              fps: float | None = None, detector=None):
     """Yield a FrameResult per frame of the recording, in order.
 
-    Frames come from ``companion.capture.sources`` (as fast as they are consumed);
+    Frames come from ``companion.capture`` (as fast as they are consumed);
     the recorded capture time, not the replay time, stamps each result.
     """
     if detector is None:

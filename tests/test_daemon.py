@@ -21,7 +21,7 @@ import pytest
 import yaml
 
 from companion.geometry.facility_map import load_map
-from companion.capture.sources import open_recording
+from companion.capture.replay import open_recording
 from mavlink_peer import PeerProcess, free_port
 
 REPO = Path(__file__).resolve().parent.parent

@@ -8,8 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.capture.sources import (CaptureSource, LatestFrame, SourceError, open_recording, v4l2_source,
-                              replay_source)
+from companion.capture.replay import open_recording, replay_source
+from companion.capture.source import LatestFrame, SourceError
+from companion.capture.v4l2 import CaptureSource, v4l2_source
 from companion.types import Frame
 
 PERIOD_NS = 20_000_000  # 50 fps keeps the real-time tests short

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.capture.sources import SourceError
+from companion.capture.source import SourceError
 from companion.geometry import frames
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import FacilityMap, MapError

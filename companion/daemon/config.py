@@ -21,7 +21,7 @@ from companion.geometry.facility_map import FacilityMap, geodetic_origin, load_m
 from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
 from companion.mavlink.link import LinkParams, Origin
-from companion.capture.sources import SEQUENCE_FILE, read_sequence_info
+from companion.capture.replay import SEQUENCE_FILE, read_sequence_info
 from companion.yaml_input import Where, read_yaml
 
 TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status"}

@@ -5,7 +5,7 @@ Threads::
     capture/replay --(newest frame)--> pipeline --(publish)--> link ---> flight controller
                                         detect, solve, fuse        heartbeat, handshake, TIMESYNC
 
-* the source's thread (``companion.capture.sources``) captures frames and hands over
+* the source's thread (``companion.capture``) captures frames and hands over
   only the newest one;
 * ``pipeline`` detects markers, solves the pose, fuses it and sends the
   estimate from the same thread (no queue between fusion and the socket);
@@ -38,7 +38,9 @@ from companion.mavlink.link import MavlinkLink
 from companion.daemon.notify import Notifier
 from companion.daemon.pipeline import Pipeline
 from companion.geometry.pose import PoseSolver
-from companion.capture.sources import FrameSource, replay_source, v4l2_source
+from companion.capture.replay import replay_source
+from companion.capture.source import FrameSource
+from companion.capture.v4l2 import v4l2_source
 
 log = logging.getLogger("companion")
 

@@ -1,0 +1,121 @@
+"""A live V4L2 camera read by its own thread, reopened with backoff when it vanishes or stalls."""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+import threading
+
+import cv2
+
+from companion.capture.source import ThreadedSource, to_gray
+from companion.types import Frame
+
+log = logging.getLogger(__name__)
+
+
+class CaptureSource(ThreadedSource):
+    """A capture device read by its own thread, reopened with backoff when lost.
+
+    open_capture: returns an opened (or failed) cv2.VideoCapture; called
+        again after every loss. A device that fails to open, fails to read,
+        or delivers nothing for ``stall_timeout_s`` counts as lost.
+    """
+
+    thread_name = "capture"
+
+    def __init__(self, open_capture: Callable[[], cv2.VideoCapture], name: str,
+                 stall_timeout_s: float = 2.0, backoff_initial_s: float = 0.5,
+                 backoff_max_s: float = 8.0):
+        super().__init__()
+        self.name = name
+        self._open_capture = open_capture
+        self.stall_timeout_s = stall_timeout_s
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
+        self.connected = threading.Event()
+
+    def _run(self) -> None:
+        backoff_s = self.backoff_initial_s
+        index = 0
+        first_attempt = True
+        while not self._stop.is_set():
+            if not first_attempt:
+                self.counters.reopens += 1
+            first_attempt = False
+            capture = self._open_capture()
+            if not capture.isOpened():
+                capture.release()
+                log.warning("camera %s: cannot open; retrying in %.1f s", self.name, backoff_s)
+                self._stop.wait(backoff_s)
+                backoff_s = min(2 * backoff_s, self.backoff_max_s)
+                continue
+            log.info("camera %s: opened", self.name)
+            self.connected.set()
+            try:
+                index, delivered = self._read_until_lost(capture, index)
+            finally:
+                capture.release()
+                self.connected.clear()
+            if delivered:
+                backoff_s = self.backoff_initial_s
+            if not self._stop.is_set():
+                log.warning("camera %s: lost (no frame for %.1f s); reopening in %.1f s",
+                            self.name, self.stall_timeout_s, backoff_s)
+                self._stop.wait(backoff_s)
+                backoff_s = min(2 * backoff_s, self.backoff_max_s)
+
+    def _read_until_lost(self, capture: cv2.VideoCapture, index: int) -> tuple[int, bool]:
+        """Read frames until stopped or lost; returns (next index, any frame delivered)."""
+        delivered = False
+        last_frame_ns = time.monotonic_ns()
+        while not self._stop.is_set():
+            grabbed = capture.grab()
+            t_ns = time.monotonic_ns()
+            image = capture.retrieve()[1] if grabbed else None
+            gray = to_gray(image) if grabbed else None
+            if gray is None:
+                if grabbed:
+                    self.counters.corrupt += 1
+                if (time.monotonic_ns() - last_frame_ns) * 1e-9 > self.stall_timeout_s:
+                    return index, delivered
+                self._stop.wait(0.005)
+                continue
+            last_frame_ns = t_ns
+            self._publish(Frame(image=gray, t_ns=t_ns, index=index))
+            index += 1
+            delivered = True
+        return index, delivered
+
+
+def v4l2_source(device: str | int, width: int | None = None, height: int | None = None,
+                fps: float | None = None, pixel_format: str | None = None,
+                stall_timeout_s: float = 2.0) -> CaptureSource:
+    """A V4L2 camera (``/dev/videoN`` or an index) with the requested mode.
+
+    pixel_format: a FOURCC such as "MJPG" or "YUYV"; the driver may pick the
+    closest mode it has: the opened mode is logged.
+    """
+
+    def open_capture() -> cv2.VideoCapture:
+        capture = cv2.VideoCapture(device, cv2.CAP_V4L2, [
+            cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(stall_timeout_s * 1000),
+            cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(stall_timeout_s * 1000),
+        ])
+        if not capture.isOpened():
+            return capture
+        if pixel_format:
+            capture.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*pixel_format))
+        if width:
+            capture.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        if height:
+            capture.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if fps:
+            capture.set(cv2.CAP_PROP_FPS, fps)
+        # One driver buffer: a frame waiting in a queue is a frame of latency.
+        capture.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+        log.info("camera %s: %dx%d at %.1f fps", device, capture.get(cv2.CAP_PROP_FRAME_WIDTH),
+                 capture.get(cv2.CAP_PROP_FRAME_HEIGHT), capture.get(cv2.CAP_PROP_FPS))
+        return capture
+
+    return CaptureSource(open_capture, name=str(device), stall_timeout_s=stall_timeout_s)
