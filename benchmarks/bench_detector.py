@@ -3,10 +3,10 @@
     PYTHONPATH=. python benchmarks/bench_detector.py            # full run (~15 min on 2 cores)
     PYTHONPATH=. python benchmarks/bench_detector.py --quick    # smoke test (CI), ~1 min
 
-Scenes come from ``companion.sim.render.random_marker_scene``: 1-3 markers under
+Scenes come from ``companion.sim.scenes.random_marker_scene``: 1-3 markers under
 random perspective (inner square 40-150 px face-on, tilt up to 50 deg, any
 in-plane rotation) on boards over clutter, half the scenes at 640x480 and
-half at 1280x720, under each condition of ``render.CONDITIONS``. Every scene
+half at 1280x720, under each condition of ``scenes.CONDITIONS``. Every scene
 is rendered three times from the same seed and background: with RS markers
 (ours, parity 2; the strip conditions also with parity 4), with OpenCV
 DICT_6X6_50 markers and with AprilTag 36h11 markers of the same ids and inner
@@ -44,7 +44,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.sim import render
+from companion.sim import degrade
+from companion.sim import raster
+from companion.sim import scenes
 from companion.detect.detector import Detector, DetectorParams
 from companion.markers.layout import MarkerLayout
 
@@ -193,24 +195,24 @@ class Textures:
         self.apriltag_dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
         self._cache = {}
 
-    def get(self, family: str, marker_id: int, parity: int = 2) -> render.MarkerTexture:
+    def get(self, family: str, marker_id: int, parity: int = 2) -> raster.MarkerTexture:
         key = (family, marker_id, parity)
         if key not in self._cache:
             if family == "rs":
-                texture = render.rs_marker_texture(self.layouts[parity], marker_id)
+                texture = raster.rs_marker_texture(self.layouts[parity], marker_id)
             elif family == "aruco":
-                texture = render.aruco_marker_texture(self.aruco_dictionary, marker_id)
+                texture = raster.aruco_marker_texture(self.aruco_dictionary, marker_id)
             else:
-                texture = render.aruco_marker_texture(self.apriltag_dictionary, marker_id, family="apriltag")
+                texture = raster.aruco_marker_texture(self.apriltag_dictionary, marker_id, family="apriltag")
             self._cache[key] = texture
         return self._cache[key]
 
 
 def render_family(textures: Textures, family: str, ids, condition: str, seed: int, index: int, parity: int = 2):
     size = SIZES[index % len(SIZES)]
-    background = render.clutter_image(scene_rng(seed, "background", index), size)
+    background = scenes.clutter_image(scene_rng(seed, "background", index), size)
     markers = [textures.get(family, i, parity) for i in ids]
-    return render.random_marker_scene(scene_rng(seed, "scene", condition, index), size, markers,
+    return scenes.random_marker_scene(scene_rng(seed, "scene", condition, index), size, markers,
                                       condition=condition, background=background)
 
 
@@ -272,13 +274,13 @@ def marker_free_frames(kind: str, count: int, seed: int):
         rng = scene_rng(seed, "free", kind, index)
         size = SIZES[index % len(SIZES)]
         if kind == "clutter":
-            image = render.clutter_image(rng, size)
+            image = scenes.clutter_image(rng, size)
         elif kind == "noise":
             image = _textured_noise(rng, size)
         else:
             image = _photo_view(rng, photos[index % len(photos)], size)
         if rng.uniform() < 0.5:
-            degradation = render.CONDITIONS[str(rng.choice(["noise", "gaussian_blur", "jpeg", "low_light"]))]
+            degradation = scenes.CONDITIONS[str(rng.choice(["noise", "gaussian_blur", "jpeg", "low_light"]))]
             image = degradation.degradations.apply(image, rng)
         yield image
 
@@ -293,7 +295,7 @@ def _textured_noise(rng: np.random.Generator, size) -> np.ndarray:
     if rng.uniform() < 0.5:
         field_ = np.sign(field_)
     image = 128 + rng.uniform(30, 110) * field_
-    return np.clip(render.gaussian_blur(image.astype(np.float32), rng.uniform(0.3, 1.5)), 0, 255).astype(np.uint8)
+    return np.clip(degrade.gaussian_blur(image.astype(np.float32), rng.uniform(0.3, 1.5)), 0, 255).astype(np.uint8)
 
 
 def _photos() -> list[np.ndarray]:
@@ -425,15 +427,15 @@ def main(argv=None) -> int:
     parser.add_argument("--free-frames", type=int, default=1000, help="marker-free frames per kind")
     parser.add_argument("--repeats", type=int, default=5, help="runs per frame for timing (best is kept)")
     parser.add_argument("--seed", type=int, default=2024)
-    parser.add_argument("--conditions", default=",".join(render.CONDITIONS), help="comma-separated subset")
+    parser.add_argument("--conditions", default=",".join(scenes.CONDITIONS), help="comma-separated subset")
     parser.add_argument("--json", type=Path, help="also write the raw numbers here")
     args = parser.parse_args(argv)
     if args.quick:
         args.scenes, args.free_frames, args.repeats = 4, 20, 1
     conditions = args.conditions.split(",")
-    unknown = [c for c in conditions if c not in render.CONDITIONS]
+    unknown = [c for c in conditions if c not in scenes.CONDITIONS]
     if unknown or "clean" not in conditions:
-        parser.error(f"conditions must include clean and be among {', '.join(render.CONDITIONS)}; got {unknown}")
+        parser.error(f"conditions must include clean and be among {', '.join(scenes.CONDITIONS)}; got {unknown}")
 
     textures = Textures()
     detectors = {

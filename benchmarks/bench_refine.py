@@ -1,6 +1,6 @@
 """Sub-pixel marker corners: candidate refinements against the renderer's exact ground truth.
 
-Scenes come from ``companion.sim.render.random_marker_scene`` (640x480, 70 degree
+Scenes come from ``companion.sim.scenes.random_marker_scene`` (640x480, 70 degree
 field of view, three RS markers per scene, tilts up to 60 degrees) per size
 band of the inner square and per image condition. The initial corners are
 what the detector's square path gets today: OpenCV ``ArucoDetector`` with
@@ -45,7 +45,10 @@ import cv2
 import numpy as np
 
 from companion.geometry import frames
-from companion.sim import render
+from companion.sim import degrade
+from companion.sim import raster
+from companion.sim.scenes import random_marker_scene
+from companion.geometry.camera import intrinsics_from_hfov
 from companion.markers.dictionary import load_dictionary
 from companion.markers.layout import MarkerLayout, marker_image
 from companion.detect.refine import MarkerRefiner
@@ -190,8 +193,8 @@ def render_band(rng, layout: MarkerLayout, textures: dict, band, condition: str,
     refined: dict[str, int] = defaultdict(int)
     for _ in range(scenes):
         ids = rng.choice(len(layout.dictionary.bits), MARKERS_PER_SCENE, replace=False)
-        markers = [textures.setdefault(int(i), render.rs_marker_texture(layout, int(i))) for i in ids]
-        scene = render.random_marker_scene(rng, IMAGE_SIZE, markers, band, condition, max_tilt_deg=MAX_TILT_DEG)
+        markers = [textures.setdefault(int(i), raster.rs_marker_texture(layout, int(i))) for i in ids]
+        scene = random_marker_scene(rng, IMAGE_SIZE, markers, band, condition, max_tilt_deg=MAX_TILT_DEG)
         truths = {int(ids[t.key]): t for t in scene.truths if t.fully_visible}
         base_ms, _ = timed_detect(plain, scene.image)
         found = {}
@@ -288,7 +291,7 @@ def main_table(layout: MarkerLayout, scenes: int, seed: int) -> dict:
 def lens_table(layout: MarkerLayout, markers: int, seed: int) -> None:
     """Markers of 40-150 px anywhere in a distorted image: lk without and with the camera model."""
     width, height = IMAGE_SIZE
-    K = render.default_camera_matrix(width, height)
+    K = intrinsics_from_hfov(width, height, 70.0)
     detector = aruco_detector(cv2.aruco.CORNER_REFINE_SUBPIX)
     print("\nlens distortion (40-150 px, tilt <= 40 deg, anywhere in the frame; mean corner error px, median / p90; "
           "'edge' = markers > 90 px centred > 200 px off the image centre):")
@@ -296,23 +299,23 @@ def lens_table(layout: MarkerLayout, markers: int, seed: int) -> None:
           f"{'lk+cam edge':>12} {'ms lk':>6} {'ms lk+cam':>10}")
     for dist in ((-0.05, 0.02), (-0.3, 0.1)):
         coefficients = np.array([dist[0], dist[1], 0.0, 0.0, 0.0])
-        renderer = render.Renderer(K, coefficients, width, height)
+        renderer = raster.Renderer(K, coefficients, width, height)
         plain = MarkerRefiner(layout)
         with_camera = MarkerRefiner(layout, camera=SimpleNamespace(K=K, dist=coefficients))
         rng = np.random.default_rng(seed)
         rows = []
         for _ in range(markers):
             marker_id = int(rng.integers(len(layout.dictionary.bits)))
-            texture = render.rs_marker_texture(layout, marker_id)
+            texture = raster.rs_marker_texture(layout, marker_id)
             z = K[0, 0] * 0.15 / rng.uniform(40, 150)
             centre = z * np.linalg.solve(K, [rng.uniform(60, width - 60), rng.uniform(60, height - 60), 1.0])
             tilt = frames.rotation_from_rotvec([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), 0.0])
-            R = tilt @ frames.rot_z(rng.uniform(0, 2 * np.pi)) @ render._R_camera_marker_facing()
+            R = tilt @ frames.rot_z(rng.uniform(0, 2 * np.pi)) @ frames.R_camera_marker_face_on()
             T = frames.make_transform(R, centre)
-            quad = render.marker_quad(texture, 0.15, T, gain=0.85, offset=15.0)
+            quad = raster.marker_quad(texture, 0.15, T, gain=0.85, offset=15.0)
             rendering = renderer.render([quad], np.eye(4), 120.0)
-            image = render.sensor_noise(render.gaussian_blur(rendering.image, 0.5), rng, 1.0, 0.02)
-            truth = render.marker_truth(renderer, rendering, texture, 0.15, T, np.eye(4), 0)
+            image = degrade.sensor_noise(degrade.gaussian_blur(rendering.image, 0.5), rng, 1.0, 0.02)
+            truth = raster.marker_truth(renderer, rendering, texture, 0.15, T, np.eye(4), 0)
             _, found = timed_detect(detector, image)
             if not truth.fully_visible or marker_id not in found:
                 continue
@@ -353,8 +356,8 @@ def detector_table(layout: MarkerLayout, scenes: int, seed: int) -> None:
             before, after = [], []
             for _ in range(scenes):
                 ids = rng.choice(len(layout.dictionary.bits), MARKERS_PER_SCENE, replace=False)
-                markers = [textures.setdefault(int(i), render.rs_marker_texture(layout, int(i))) for i in ids]
-                scene = render.random_marker_scene(rng, IMAGE_SIZE, markers, band, condition,
+                markers = [textures.setdefault(int(i), raster.rs_marker_texture(layout, int(i))) for i in ids]
+                scene = random_marker_scene(rng, IMAGE_SIZE, markers, band, condition,
                                                    max_tilt_deg=MAX_TILT_DEG)
                 truths = {int(ids[t.key]): t for t in scene.truths if t.fully_visible}
                 for detection in detector.detect(scene.image):
@@ -395,8 +398,8 @@ def occluded_table(layout: MarkerLayout, scenes: int, seed: int) -> None:
         rows = defaultdict(list)
         for _ in range(scenes):
             ids = rng.choice(len(layout.dictionary.bits), MARKERS_PER_SCENE, replace=False)
-            markers = [textures.setdefault(int(i), render.rs_marker_texture(layout, int(i))) for i in ids]
-            scene = render.random_marker_scene(rng, IMAGE_SIZE, markers, (30, 150), condition,
+            markers = [textures.setdefault(int(i), raster.rs_marker_texture(layout, int(i))) for i in ids]
+            scene = random_marker_scene(rng, IMAGE_SIZE, markers, (30, 150), condition,
                                                max_tilt_deg=MAX_TILT_DEG)
             truths = {int(ids[t.key]): t for t in scene.truths}
             for detection in detector.detect(scene.image):

@@ -5,7 +5,7 @@ band sits right against the inner marker's black border, so black parity
 cells join the border's blob and its outer contour is no longer a square.
 This renders each of the 50 markers, with and without the gap, under random
 perspectives (inner square 40-150 px, tilt up to 50 degrees, any in-plane
-rotation) with ``companion.sim.render.random_marker_scene``, on a plain and on a
+rotation) with ``companion.sim.scenes.random_marker_scene``, on a plain and on a
 cluttered background, and runs OpenCV's ``ArucoDetector`` with our custom
 dictionary (``minDistanceToBorder = 0``). Both variants see the same scenes
 (same seeds: poses, boards, background, noise), two markers per 640x480 image.
@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from companion.sim import render
+from companion.sim import raster
+from companion.sim import scenes
 from companion.markers.layout import MarkerLayout
 
 IMAGE_SIZE = (640, 480)
@@ -77,7 +78,7 @@ def background_image(kind: str, rng: np.random.Generator) -> np.ndarray | None:
     return None
 
 
-def score_scene(scene: render.Scene, corners: tuple, ids, tally: Tally) -> None:
+def score_scene(scene: scenes.Scene, corners: tuple, ids, tally: Tally) -> None:
     found = [] if ids is None else [(int(i), c.reshape(4, 2)) for i, c in zip(ids.ravel(), corners)]
     for truth in scene.truths:
         if not truth.fully_visible:  # a neighbour's board can hide part of it: not scored
@@ -96,7 +97,7 @@ def score_scene(scene: render.Scene, corners: tuple, ids, tally: Tally) -> None:
 
 def run_configuration(parity: int, gap_cells: int, background: str, views: int, seed: int) -> Tally:
     layout = MarkerLayout(parity, gap_cells=gap_cells)
-    textures = [render.rs_marker_texture(layout, i, TEXTURE_PX_PER_CELL) for i in range(len(layout.all_cells))]
+    textures = [raster.rs_marker_texture(layout, i, TEXTURE_PX_PER_CELL) for i in range(len(layout.all_cells))]
     detector = aruco_detector(layout)
     tally = Tally()
     n_markers = len(textures)
@@ -106,7 +107,7 @@ def run_configuration(parity: int, gap_cells: int, background: str, views: int, 
         rng = np.random.default_rng([seed, parity, BACKGROUNDS.index(background), s])
         first = (s * MARKERS_PER_SCENE) % n_markers
         chosen = [textures[(first + k) % n_markers] for k in range(MARKERS_PER_SCENE)]
-        scene = render.random_marker_scene(rng, IMAGE_SIZE, chosen, INNER_PX_RANGE, "clean",
+        scene = scenes.random_marker_scene(rng, IMAGE_SIZE, chosen, INNER_PX_RANGE, "clean",
                                            background=background_image(background, rng))
         corners, ids, _ = detector.detectMarkers(scene.image)
         score_scene(scene, corners, ids, tally)

@@ -9,7 +9,7 @@ import pytest
 from companion.geometry import frames
 from companion.geometry.calibration import Board, CalibrationError, calibrate
 from companion.geometry.camera import load_camera
-from companion.sim.render import Renderer, TexturedQuad, make_texture, rectangle_corners
+from companion.sim.raster import Renderer, TexturedQuad, make_texture, rectangle_corners
 
 K_TRUE = np.array([[520.0, 0.0, 322.0], [0.0, 518.0, 236.0], [0.0, 0.0, 1.0]])
 DIST_TRUE = np.array([-0.12, 0.03, 0.0, 0.0, 0.0])

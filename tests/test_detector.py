@@ -10,7 +10,11 @@ import numpy as np
 import pytest
 
 from companion.geometry import frames
-from companion.sim import render
+from companion.sim import degrade
+from companion.sim import occluders
+from companion.sim import raster
+from companion.sim import scenes
+from companion.geometry.camera import intrinsics_from_hfov
 from companion.detect.detector import Detector, DetectorError, DetectorParams, DetectorParamsError
 from companion.markers.codec import GridDecoder
 from companion.markers.layout import UNKNOWN, MarkerLayout
@@ -26,25 +30,25 @@ GOLDEN_TOLERANCE_PX = {"square": 0.4, "circles": 0.75}
 def facing_pose(distance_m: float, spin_deg: float = 0.0, tilt_deg: float = 0.0,
                 offset_px=(0.0, 0.0)) -> np.ndarray:
     """T_camera_marker of an upright marker ahead of the camera, spun about its normal, then tilted."""
-    K = render.default_camera_matrix(W, H)
+    K = intrinsics_from_hfov(W, H, 70.0)
     R = (frames.rot_y(math.radians(tilt_deg)) @ frames.rot_z(math.radians(spin_deg))
-         @ render._R_camera_marker_facing())
+         @ frames.R_camera_marker_face_on())
     centre = distance_m * np.linalg.solve(K, [K[0, 2] + offset_px[0], K[1, 2] + offset_px[1], 1.0])
     return frames.make_transform(R, centre)
 
 
 def render_scene(textures_and_poses, occluders=(), background=150.0, blur_sigma_px=0.6, seed=0):
     """Render markers (and occluder quads) with one camera; returns (image, truths)."""
-    renderer = render.Renderer(render.default_camera_matrix(W, H), np.zeros(5), W, H)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), np.zeros(5), W, H)
     quads, placed = [], []
     for texture, T in textures_and_poses:
-        quads.append(render.marker_quad(texture, SIZE_M, T, gain=0.9, offset=10.0))
+        quads.append(raster.marker_quad(texture, SIZE_M, T, gain=0.9, offset=10.0))
         placed.append((texture, T, len(quads) - 1))
     quads.extend(occluders)
     rendering = renderer.render(quads, np.eye(4), background)
-    truths = [render.marker_truth(renderer, rendering, t, SIZE_M, T, np.eye(4), i) for t, T, i in placed]
+    truths = [raster.marker_truth(renderer, rendering, t, SIZE_M, T, np.eye(4), i) for t, T, i in placed]
     rng = np.random.default_rng(seed)
-    image = render.sensor_noise(render.gaussian_blur(rendering.image, blur_sigma_px), rng, 1.0, 0.02)
+    image = degrade.sensor_noise(degrade.gaussian_blur(rendering.image, blur_sigma_px), rng, 1.0, 0.02)
     return image, truths
 
 
@@ -66,7 +70,7 @@ def by_id(detections):
 
 @pytest.mark.parametrize("spin_deg", [0, 90, 180, 270, 33])
 def test_square_path_reads_id_and_upright_corners_at_every_rotation(layout, detector, spin_deg):
-    texture = render.rs_marker_texture(layout, 17)
+    texture = raster.rs_marker_texture(layout, 17)
     image, (truth,) = render_scene([(texture, facing_pose(1.2, spin_deg, tilt_deg=25))])
     (d,) = detector.detect(image)
     assert (d.id, d.symbol, d.path, d.corrected) == (17, "R", "square", 0)
@@ -77,7 +81,7 @@ def test_square_path_reads_id_and_upright_corners_at_every_rotation(layout, dete
 
 def test_square_path_finds_several_markers_of_parity_4():
     layout4 = MarkerLayout(parity=4)
-    textures = [render.rs_marker_texture(layout4, i) for i in (3, 41)]
+    textures = [raster.rs_marker_texture(layout4, i) for i in (3, 41)]
     image, truths = render_scene([(textures[0], facing_pose(1.4, 10, offset_px=(-150, 0))),
                                   (textures[1], facing_pose(1.4, -80, offset_px=(150, 20)))])
     found = by_id(Detector(DetectorParams(parity=4)).detect(image))
@@ -87,9 +91,9 @@ def test_square_path_finds_several_markers_of_parity_4():
 
 
 def test_blob_on_the_data_is_corrected_through_the_parity_ring(layout, detector):
-    texture = render.rs_marker_texture(layout, 5)
+    texture = raster.rs_marker_texture(layout, 5)
     T = facing_pose(1.3, 12)
-    blob = render.blob_occluder(SIZE_M, T, np.random.default_rng(3), radius_fraction=0.2, level=25.0)
+    blob = occluders.blob_occluder(SIZE_M, T, np.random.default_rng(3), radius_fraction=0.2, level=25.0)
     image, (truth,) = render_scene([(texture, T)], occluders=[blob])
     (d,) = detector.detect(image)
     assert (d.id, d.path) == (5, "square")
@@ -106,7 +110,7 @@ def test_data_that_disagrees_with_its_parity_ring_is_rejected(layout, detector):
     px_per_cell, quiet = 16, 1
     image = np.where(np.kron(np.pad(cells, quiet), np.ones((px_per_cell, px_per_cell))) > 0, 0, 255).astype(np.uint8)
     corners = (layout.inner_corners_cells + quiet) * px_per_cell - 0.5
-    texture = render.MarkerTexture(image, corners, np.zeros((0, 2)), 30)
+    texture = raster.MarkerTexture(image, corners, np.zeros((0, 2)), 30)
     image, _ = render_scene([(texture, facing_pose(1.2, 20))])
     aruco_ids = cv2.aruco.ArucoDetector(layout.dictionary.aruco()).detectMarkers(image)[1]
     assert aruco_ids is not None and 30 in aruco_ids.ravel()
@@ -114,12 +118,12 @@ def test_data_that_disagrees_with_its_parity_ring_is_rejected(layout, detector):
 
 
 def test_marker_free_frame_yields_nothing(detector):
-    background = render.clutter_image(np.random.default_rng(4), (W, H))
+    background = scenes.clutter_image(np.random.default_rng(4), (W, H))
     assert detector.detect(background) == []
 
 
 def test_stage_times_are_reported(layout, detector):
-    image, _ = render_scene([(render.rs_marker_texture(layout, 1), facing_pose(1.0))])
+    image, _ = render_scene([(raster.rs_marker_texture(layout, 1), facing_pose(1.0))])
     detector.detect(image)
     assert {"square", "square_decode"} <= set(detector.last_stage_ms)
     assert all(ms >= 0 for ms in detector.last_stage_ms.values())
@@ -168,7 +172,7 @@ def assert_circles_consistent(d, layout):
 
 def test_circles_path_reads_a_marker_cut_by_the_image_edge(layout, detector):
     # a quarter of the grid lies left of the frame: its cells are erasures, not errors
-    texture = render.rs_marker_texture(layout, 21)
+    texture = raster.rs_marker_texture(layout, 21)
     image, (truth,) = render_scene([(texture, facing_pose(0.9, 15, 10, offset_px=(-300, 0)))])
     assert not truth.corners_visible.all()
     (d,) = detector.detect(image)
@@ -181,9 +185,9 @@ def test_circles_path_reads_a_marker_cut_by_the_image_edge(layout, detector):
 def test_circles_mode_gates_the_occluded_path(layout):
     # one clean marker and one under a strip: by default the circles path does not run in a frame
     # where the square path found something; "always" finds both; "never" never runs it
-    clean_texture, strip_texture = render.rs_marker_texture(layout, 3), render.rs_marker_texture(layout, 40)
+    clean_texture, strip_texture = raster.rs_marker_texture(layout, 3), raster.rs_marker_texture(layout, 40)
     T_strip = facing_pose(1.0, 30, 15, offset_px=(150, 0))
-    strip = render.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
+    strip = occluders.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
     image, _ = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
                              (strip_texture, T_strip)], occluders=[strip])
     found = {mode: {(d.id, d.path) for d in Detector(DetectorParams(circles=mode)).detect(image)}

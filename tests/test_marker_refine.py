@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 from companion.geometry import frames
-from companion.sim import render
+from companion.sim import degrade
+from companion.sim import raster
+from companion.sim import scenes
+from companion.geometry.camera import intrinsics_from_hfov
 from companion.markers.dictionary import load_dictionary
 from companion.markers.layout import MarkerLayout
 from companion.detect.refine import MarkerRefiner, MarkerRefineError, RefineParams, _Lens
@@ -25,7 +28,7 @@ def layout():
 
 @pytest.fixture(scope="module")
 def textures(layout):
-    return {i: render.rs_marker_texture(layout, i) for i in range(50)}
+    return {i: raster.rs_marker_texture(layout, i) for i in range(50)}
 
 
 def aruco_detector() -> cv2.aruco.ArucoDetector:
@@ -44,7 +47,7 @@ def detected_markers(textures, seed: int, conditions, scenes_each: int, inner_px
     for condition in conditions:
         for _ in range(scenes_each):
             ids = [int(i) for i in rng.choice(50, 3, replace=False)]
-            scene = render.random_marker_scene(rng, (W, H), [textures[i] for i in ids], inner_px_range, condition,
+            scene = scenes.random_marker_scene(rng, (W, H), [textures[i] for i in ids], inner_px_range, condition,
                                                max_tilt_deg=60.0)
             corners, detected_ids, _ = detector.detectMarkers(scene.image)
             if detected_ids is None:
@@ -63,19 +66,19 @@ def mean_corner_error(corners, truth_px) -> float:
 
 def facing_pose(distance_m: float, centre_px, spin_deg: float = 0.0, tilt_deg: float = 0.0) -> np.ndarray:
     """T_camera_marker of a marker whose centre projects to ``centre_px``, spun and tilted."""
-    K = render.default_camera_matrix(W, H)
+    K = intrinsics_from_hfov(W, H, 70.0)
     R = (frames.rot_y(math.radians(tilt_deg)) @ frames.rot_z(math.radians(spin_deg))
-         @ render._R_camera_marker_facing())
+         @ frames.R_camera_marker_face_on())
     return frames.make_transform(R, distance_m * np.linalg.solve(K, [centre_px[0], centre_px[1], 1.0]))
 
 
 def render_one(texture, T_camera_marker, dist=np.zeros(5), seed=0):
     """(image, truth) of one marker in front of a plain background, light blur and noise."""
-    renderer = render.Renderer(render.default_camera_matrix(W, H), np.asarray(dist, float), W, H)
-    quad = render.marker_quad(texture, SIZE_M, T_camera_marker, gain=0.85, offset=15.0)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), np.asarray(dist, float), W, H)
+    quad = raster.marker_quad(texture, SIZE_M, T_camera_marker, gain=0.85, offset=15.0)
     rendering = renderer.render([quad], np.eye(4), 120.0)
-    image = render.sensor_noise(render.gaussian_blur(rendering.image, 0.6), np.random.default_rng(seed), 1.0, 0.02)
-    return image, render.marker_truth(renderer, rendering, texture, SIZE_M, T_camera_marker, np.eye(4), 0)
+    image = degrade.sensor_noise(degrade.gaussian_blur(rendering.image, 0.6), np.random.default_rng(seed), 1.0, 0.02)
+    return image, raster.marker_truth(renderer, rendering, texture, SIZE_M, T_camera_marker, np.eye(4), 0)
 
 
 # ------------------------------------------------------------------ accuracy
@@ -155,7 +158,7 @@ def test_occluded_markers_never_come_back_with_a_larger_misfit(layout, textures)
     fits = []
     for _ in range(4):
         ids = [int(i) for i in rng.choice(50, 3, replace=False)]
-        scene = render.random_marker_scene(rng, (W, H), [textures[i] for i in ids], (40.0, 120.0), "strip_1_4",
+        scene = scenes.random_marker_scene(rng, (W, H), [textures[i] for i in ids], (40.0, 120.0), "strip_1_4",
                                            max_tilt_deg=40.0)
         for truth in scene.truths:
             initial = truth.corners_px + rng.normal(0.0, 0.4, (4, 2))
@@ -193,7 +196,7 @@ def test_a_marker_partly_outside_the_frame(layout, textures):
 
 
 def test_the_lens_model_matches_opencv():
-    K = render.default_camera_matrix(W, H)
+    K = intrinsics_from_hfov(W, H, 70.0)
     dist = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.01, 0.02, -0.005, 0.001])
     lens = _Lens(K, dist)
     ideal = np.random.default_rng(4).uniform([0, 0], [W, H], (200, 2))
@@ -205,7 +208,7 @@ def test_the_lens_model_matches_opencv():
 
 def test_with_the_camera_a_strongly_distorted_large_marker_is_refined(layout, textures):
     dist = np.array([-0.3, 0.1, 0.001, -0.001, 0.0])
-    camera = SimpleNamespace(K=render.default_camera_matrix(W, H), dist=dist)
+    camera = SimpleNamespace(K=intrinsics_from_hfov(W, H, 70.0), dist=dist)
     image, truth = render_one(textures[5], facing_pose(0.55, (470.0, 340.0), spin_deg=30, tilt_deg=20), dist)
     assert truth.fully_visible and truth.inner_px > 100
     initial, _, _ = aruco_detector().detectMarkers(image)
@@ -255,7 +258,7 @@ def test_the_template_cache_is_bounded(layout, textures):
 
 def test_the_robust_layout_is_refined_too():
     layout = MarkerLayout(parity=4)  # 18 x 18 grid
-    texture = render.rs_marker_texture(layout, 31)
+    texture = raster.rs_marker_texture(layout, 31)
     image, truth = render_one(texture, facing_pose(1.2, (300.0, 220.0), spin_deg=-35, tilt_deg=35))
     corners, ids, _ = aruco_detector().detectMarkers(image)
     assert ids is not None and 31 in ids.ravel()

@@ -8,7 +8,11 @@ import numpy as np
 import pytest
 
 from companion.geometry import frames
-from companion.sim import render
+from companion.sim import degrade
+from companion.sim import occluders
+from companion.sim import raster
+from companion.sim import scenes
+from companion.geometry.camera import intrinsics_from_hfov
 
 ARUCO = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_50)
 W, H = 640, 480
@@ -31,9 +35,9 @@ def detect(image: np.ndarray) -> dict[int, np.ndarray]:
 def facing_marker_pose(distance_m: float, offset_px=(0.0, 0.0), K=None, spin_deg: float = 0.0,
                        tilt_deg: float = 0.0) -> np.ndarray:
     """T_camera_marker for an upright marker straight ahead (then spun and tilted)."""
-    K = render.default_camera_matrix(W, H) if K is None else K
+    K = intrinsics_from_hfov(W, H, 70.0) if K is None else K
     R = (frames.rot_y(math.radians(tilt_deg)) @ frames.rot_z(math.radians(spin_deg))
-         @ render._R_camera_marker_facing())
+         @ frames.R_camera_marker_face_on())
     u, v = K[0, 2] + offset_px[0], K[1, 2] + offset_px[1]
     centre = distance_m * np.linalg.solve(K, [u, v, 1.0])
     return frames.make_transform(R, centre)
@@ -42,10 +46,10 @@ def facing_marker_pose(distance_m: float, offset_px=(0.0, 0.0), K=None, spin_deg
 def render_markers(renderer, textures_and_poses, size_m=0.15, background=128.0):
     quads, placed = [], []
     for texture, T in textures_and_poses:
-        quads.append(render.marker_quad(texture, size_m, T))
+        quads.append(raster.marker_quad(texture, size_m, T))
         placed.append((texture, T, len(quads) - 1))
     rendering = renderer.render(quads, np.eye(4), background)
-    truths = [render.marker_truth(renderer, rendering, t, size_m, T, np.eye(4), i) for t, T, i in placed]
+    truths = [raster.marker_truth(renderer, rendering, t, size_m, T, np.eye(4), i) for t, T, i in placed]
     return rendering, truths
 
 
@@ -53,10 +57,10 @@ def render_markers(renderer, textures_and_poses, size_m=0.15, background=128.0):
 
 def test_ground_truth_corners_match_detected_corners_on_random_scenes():
     rng = np.random.default_rng(11)
-    markers = [render.aruco_marker_texture(ARUCO, i) for i in range(3)]
+    markers = [raster.aruco_marker_texture(ARUCO, i) for i in range(3)]
     errors, seen = [], 0
     for _ in range(12):
-        scene = render.random_marker_scene(rng, (W, H), markers, condition="clean")
+        scene = scenes.random_marker_scene(rng, (W, H), markers, condition="clean")
         found = detect(scene.image)
         for truth in scene.truths:
             seen += 1
@@ -70,14 +74,14 @@ def test_ground_truth_corners_match_detected_corners_on_random_scenes():
 
 
 def test_ground_truth_through_lens_distortion():
-    K = render.default_camera_matrix(W, H)
+    K = intrinsics_from_hfov(W, H, 70.0)
     dist = np.array([-0.28, 0.09, 0.001, -0.0005, 0.0])
-    renderer = render.Renderer(K, dist, W, H)
-    texture = render.aruco_marker_texture(ARUCO, 7)
+    renderer = raster.Renderer(K, dist, W, H)
+    texture = raster.aruco_marker_texture(ARUCO, 7)
     # far off-centre, where the distortion moves points by many pixels
     T = facing_marker_pose(1.2, offset_px=(-200.0, 140.0), K=K, spin_deg=17.0)
     rendering, (truth,) = render_markers(renderer, [(texture, T)])
-    ideal, _ = render.Renderer(K, np.zeros(5), W, H).project(frames.marker_inner_corners_m(0.15) @ T[:3, :3].T
+    ideal, _ = raster.Renderer(K, np.zeros(5), W, H).project(frames.marker_inner_corners_m(0.15) @ T[:3, :3].T
                                                               + T[:3, 3], np.eye(4))
     assert np.max(np.linalg.norm(ideal - truth.corners_px, axis=1)) > 10.0  # the lens matters here
     found = detect(rendering.image)
@@ -86,9 +90,9 @@ def test_ground_truth_through_lens_distortion():
 
 
 def test_distortion_map_inverts_projection():
-    K = render.default_camera_matrix(W, H)
+    K = intrinsics_from_hfov(W, H, 70.0)
     dist = np.array([-0.28, 0.09, 0.001, -0.0005, 0.0])
-    renderer = render.Renderer(K, dist, W, H)
+    renderer = raster.Renderer(K, dist, W, H)
     # pixel -> canvas (the map), canvas -> ray, ray -> projectPoints must return the pixel
     pixels = np.array([[0, 0], [639, 0], [320, 240], [10, 470], [600, 300]])
     canvas = renderer._undistort_map[pixels[:, 1], pixels[:, 0]].astype(float)
@@ -99,9 +103,9 @@ def test_distortion_map_inverts_projection():
 
 
 def test_supersampled_render_keeps_ground_truth():
-    K = render.default_camera_matrix(W, H)
-    renderer = render.Renderer(K, [], W, H, supersample=2)
-    texture = render.aruco_marker_texture(ARUCO, 3)
+    K = intrinsics_from_hfov(W, H, 70.0)
+    renderer = raster.Renderer(K, [], W, H, supersample=2)
+    texture = raster.aruco_marker_texture(ARUCO, 3)
     T = facing_marker_pose(1.0, offset_px=(60.0, -30.0), spin_deg=-33.0, tilt_deg=35.0)
     rendering, (truth,) = render_markers(renderer, [(texture, T)])
     assert rendering.image.shape == (H, W)
@@ -111,11 +115,11 @@ def test_supersampled_render_keeps_ground_truth():
 
 def test_rendered_square_has_the_projected_area_and_centre():
     """Detector-free check: a black square's darkness integrates to its projected area and centre."""
-    renderer = render.Renderer(render.default_camera_matrix(W, H), [], W, H)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
     image = np.full((160, 160), 255, np.uint8)
     image[16:144, 16:144] = 0
     lo, hi = 15.5, 143.5
-    square = render.MarkerTexture(image, np.array([[lo, lo], [hi, lo], [hi, hi], [lo, hi]]), np.zeros((0, 2)), 0)
+    square = raster.MarkerTexture(image, np.array([[lo, lo], [hi, lo], [hi, hi], [lo, hi]]), np.zeros((0, 2)), 0)
     for distance in (0.3, 0.7, 1.0, 1.6, 2.5):  # inner side 230 .. 27 px: every mip level
         for offset in ((0.0, 0.0), (0.3, 0.1), (0.5, 0.5), (0.77, 0.25)):
             T = facing_marker_pose(distance, offset)
@@ -133,24 +137,24 @@ def test_rendered_square_has_the_projected_area_and_centre():
 
 def test_clip_polygon_near():
     square = np.array([[-1.0, 0.0, -1.0], [1.0, 0.0, -1.0], [1.0, 0.0, 3.0], [-1.0, 0.0, 3.0]])
-    clipped = render.clip_polygon_near(square, 1.0)
+    clipped = raster.clip_polygon_near(square, 1.0)
     assert len(clipped) == 4
     assert clipped[:, 2].min() == pytest.approx(1.0)
     np.testing.assert_allclose(sorted(map(tuple, clipped)),
                                sorted([(1.0, 0.0, 1.0), (1.0, 0.0, 3.0), (-1.0, 0.0, 3.0), (-1.0, 0.0, 1.0)]))
-    assert len(render.clip_polygon_near(square - [0.0, 0.0, 10.0], 1.0)) == 0
+    assert len(raster.clip_polygon_near(square - [0.0, 0.0, 10.0], 1.0)) == 0
     triangle_corner_in = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
-    assert len(render.clip_polygon_near(triangle_corner_in, 1.0)) == 3
+    assert len(raster.clip_polygon_near(triangle_corner_in, 1.0)) == 3
 
 
 def test_floor_partly_behind_camera_is_drawn_only_below_the_horizon():
-    K = render.default_camera_matrix(W, H)
-    renderer = render.Renderer(K, [], W, H)
+    K = intrinsics_from_hfov(W, H, 70.0)
+    renderer = raster.Renderer(K, [], W, H)
     # camera 1 m above a floor (camera y is down, so the floor is the plane y = +1),
     # the floor reaching 20 m behind and 30 m ahead of the camera
-    floor_texture = render.make_texture(np.full((64, 64), 200, np.uint8))
+    floor_texture = raster.make_texture(np.full((64, 64), 200, np.uint8))
     corners = np.array([[-50.0, 1.0, 30.0], [50.0, 1.0, 30.0], [50.0, 1.0, -20.0], [-50.0, 1.0, -20.0]])
-    rendering = renderer.render([render.TexturedQuad(corners, floor_texture)], np.eye(4), background=30.0)
+    rendering = renderer.render([raster.TexturedQuad(corners, floor_texture)], np.eye(4), background=30.0)
     horizon_row = K[1, 2]
     above = rendering.image[: int(horizon_row) - 1]
     assert np.all(above == 30)  # nothing of the part behind the camera folds into the sky
@@ -161,20 +165,20 @@ def test_floor_partly_behind_camera_is_drawn_only_below_the_horizon():
 
 
 def test_quad_wholly_behind_camera_draws_nothing():
-    renderer = render.Renderer(render.default_camera_matrix(W, H), [], W, H)
-    texture = render.make_texture(np.full((16, 16), 255, np.uint8))
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
+    texture = raster.make_texture(np.full((16, 16), 255, np.uint8))
     corners = np.array([[-1.0, -1.0, -2.0], [1.0, -1.0, -2.0], [1.0, 1.0, -2.0], [-1.0, 1.0, -2.0]])
-    rendering = renderer.render([render.TexturedQuad(corners, texture)], np.eye(4), background=10.0)
+    rendering = renderer.render([raster.TexturedQuad(corners, texture)], np.eye(4), background=10.0)
     assert np.all(rendering.image == 10) and np.all(rendering.label == -1)
 
 
 def test_nearest_quad_wins_whatever_the_order():
-    renderer = render.Renderer(render.default_camera_matrix(W, H), [], W, H)
-    near = render.TexturedQuad(np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]]),
-                               render.make_texture(np.full((16, 16), 50, np.uint8)))
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
+    near = raster.TexturedQuad(np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]]),
+                               raster.make_texture(np.full((16, 16), 50, np.uint8)))
     # the far quad is tilted so its centroid is nearer than the near quad's in places
-    far = render.TexturedQuad(np.array([[-3.0, -3.0, 1.0], [3.0, -3.0, 7.0], [3.0, 3.0, 7.0], [-3.0, 3.0, 1.0]]),
-                              render.make_texture(np.full((16, 16), 220, np.uint8)))
+    far = raster.TexturedQuad(np.array([[-3.0, -3.0, 1.0], [3.0, -3.0, 7.0], [3.0, 3.0, 7.0], [-3.0, 3.0, 1.0]]),
+                              raster.make_texture(np.full((16, 16), 220, np.uint8)))
     for quads, near_index in (([near, far], 0), ([far, near], 1)):
         rendering = renderer.render(quads, np.eye(4))
         assert rendering.image[H // 2, W // 2] == 50
@@ -182,30 +186,30 @@ def test_nearest_quad_wins_whatever_the_order():
 
 
 def test_one_sided_quad_is_culled_from_behind():
-    renderer = render.Renderer(render.default_camera_matrix(W, H), [], W, H)
-    texture = render.aruco_marker_texture(ARUCO, 1)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
+    texture = raster.aruco_marker_texture(ARUCO, 1)
     T = facing_marker_pose(1.0)
-    quad = render.marker_quad(texture, 0.15, T)
+    quad = raster.marker_quad(texture, 0.15, T)
     assert renderer.render([quad], np.eye(4)).label[H // 2, W // 2] == 0
     flipped = T @ frames.make_transform(frames.rot_y(math.pi), [0.0, 0.0, 0.0])
-    assert np.all(renderer.render([render.marker_quad(texture, 0.15, flipped)], np.eye(4)).label == -1)
+    assert np.all(renderer.render([raster.marker_quad(texture, 0.15, flipped)], np.eye(4)).label == -1)
 
 
 # ------------------------------------------------------------- occluders
 
 def face_on_truth(occluder_factory, marker_id=5):
-    renderer = render.Renderer(render.default_camera_matrix(W, H), [], W, H)
-    texture = render.aruco_marker_texture(ARUCO, marker_id)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
+    texture = raster.aruco_marker_texture(ARUCO, marker_id)
     T = facing_marker_pose(0.8)
-    quads = [render.marker_quad(texture, 0.15, T), occluder_factory(texture, T)]
+    quads = [raster.marker_quad(texture, 0.15, T), occluder_factory(texture, T)]
     rendering = renderer.render(quads, np.eye(4), 128.0)
-    return rendering, render.marker_truth(renderer, rendering, texture, 0.15, T, np.eye(4), 0)
+    return rendering, raster.marker_truth(renderer, rendering, texture, 0.15, T, np.eye(4), 0)
 
 
 def test_strip_occluder_hides_the_given_fraction_from_one_side():
     rng = np.random.default_rng(0)
     for side, hidden in (("left", [0, 3]), ("right", [1, 2]), ("top", [0, 1]), ("bottom", [2, 3])):
-        _, truth = face_on_truth(lambda t, T: render.strip_occluder(t, 0.15, T, 0.25, side, rng))
+        _, truth = face_on_truth(lambda t, T: occluders.strip_occluder(t, 0.15, T, 0.25, side, rng))
         expected = np.ones(4, bool)
         expected[hidden] = False
         np.testing.assert_array_equal(truth.corners_visible, expected, err_msg=side)
@@ -214,7 +218,7 @@ def test_strip_occluder_hides_the_given_fraction_from_one_side():
 
 def test_strip_occluder_defeats_plain_aruco():
     rng = np.random.default_rng(1)
-    rendering, truth = face_on_truth(lambda t, T: render.strip_occluder(t, 0.15, T, 1 / 8, "left", rng, 200.0))
+    rendering, truth = face_on_truth(lambda t, T: occluders.strip_occluder(t, 0.15, T, 1 / 8, "left", rng, 200.0))
     assert truth.inner_visible_fraction == pytest.approx(7 / 8, abs=0.03)
     assert 5 not in detect(rendering.image)
 
@@ -222,7 +226,7 @@ def test_strip_occluder_defeats_plain_aruco():
 def test_corner_occluder_hides_one_corner():
     rng = np.random.default_rng(2)
     for corner in range(4):
-        _, truth = face_on_truth(lambda t, T: render.corner_occluder(t, 0.15, T, 0.25, corner, rng))
+        _, truth = face_on_truth(lambda t, T: occluders.corner_occluder(t, 0.15, T, 0.25, corner, rng))
         expected = np.ones(4, bool)
         expected[corner] = False
         np.testing.assert_array_equal(truth.corners_visible, expected)
@@ -232,21 +236,21 @@ def test_corner_occluder_hides_one_corner():
 def test_blob_occluder_stays_inside_the_marker():
     rng = np.random.default_rng(3)
     for _ in range(5):
-        _, truth = face_on_truth(lambda t, T: render.blob_occluder(0.15, T, rng, 0.18))
+        _, truth = face_on_truth(lambda t, T: occluders.blob_occluder(0.15, T, rng, 0.18))
         assert truth.corners_visible.all()
         assert 0.8 < truth.inner_visible_fraction < 0.97
 
 
 def test_person_occluder_hides_markers_behind_it():
-    renderer = render.Renderer(render.default_camera_matrix(W, H), [], W, H)
-    texture = render.aruco_marker_texture(ARUCO, 9)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
+    texture = raster.aruco_marker_texture(ARUCO, 9)
     T = facing_marker_pose(3.0)
     rng = np.random.default_rng(4)
     # a person 1.5 m ahead, feet 1 m below the optical axis (camera y is down)
-    plane = frames.make_transform(render._R_camera_marker_facing(), [0.0, 1.0, 1.5])
-    quads = [render.marker_quad(texture, 0.15, T), render.person_occluder(rng, plane)]
+    plane = frames.make_transform(frames.R_camera_marker_face_on(), [0.0, 1.0, 1.5])
+    quads = [raster.marker_quad(texture, 0.15, T), occluders.person_occluder(rng, plane)]
     rendering = renderer.render(quads, np.eye(4), 128.0)
-    truth = render.marker_truth(renderer, rendering, texture, 0.15, T, np.eye(4), 0)
+    truth = raster.marker_truth(renderer, rendering, texture, 0.15, T, np.eye(4), 0)
     assert not truth.corners_visible.any()
     assert truth.inner_visible_fraction < 0.05
 
@@ -266,15 +270,15 @@ def gradient_energy(image: np.ndarray, axis: int | None = None) -> float:
 @pytest.fixture(scope="module")
 def scene_image():
     rng = np.random.default_rng(5)
-    return render.random_marker_scene(rng, (W, H), [render.aruco_marker_texture(ARUCO, 0)],
-                                      condition=render.SceneCondition("plain", degradations=render.Degradations())
+    return scenes.random_marker_scene(rng, (W, H), [raster.aruco_marker_texture(ARUCO, 0)],
+                                      condition=scenes.SceneCondition("plain", degradations=degrade.Degradations())
                                       ).image
 
 
 def test_gaussian_blur_lowers_gradient_energy(scene_image):
     e0 = gradient_energy(scene_image)
-    e1 = gradient_energy(render.gaussian_blur(scene_image, 1.0))
-    e2 = gradient_energy(render.gaussian_blur(scene_image, 2.5))
+    e1 = gradient_energy(degrade.gaussian_blur(scene_image, 1.0))
+    e2 = gradient_energy(degrade.gaussian_blur(scene_image, 2.5))
     assert e2 < e1 < 0.8 * e0
 
 
@@ -283,11 +287,11 @@ def test_motion_blur_smears_along_its_direction_only():
     image = np.zeros((200, 400), np.uint8)
     image[:, :200][:, (np.arange(200) // 10) % 2 == 0] = 255
     image[:, 200:][(np.arange(200) // 10) % 2 == 0, :] = 255
-    blurred = render.motion_blur(image, 9.0, 0.0)  # horizontal motion
+    blurred = degrade.motion_blur(image, 9.0, 0.0)  # horizontal motion
     left, right = (slice(20, 180), slice(20, 180)), (slice(20, 180), slice(220, 380))
     assert gradient_energy(blurred[left], axis=1) < 0.5 * gradient_energy(image[left], axis=1)
     assert gradient_energy(blurred[right], axis=0) == pytest.approx(gradient_energy(image[right], axis=0), rel=0.02)
-    kernel = render.motion_blur_kernel(9.0, math.radians(90))
+    kernel = degrade.motion_blur_kernel(9.0, math.radians(90))
     assert kernel.sum() == pytest.approx(1.0)
     # a vertical kernel: mass spread over rows, one column wide (up to anti-aliasing)
     assert kernel.sum(axis=1).max() < 0.2 and kernel.sum(axis=0).max() > 0.8
@@ -296,53 +300,53 @@ def test_motion_blur_smears_along_its_direction_only():
 def test_sensor_noise_has_the_requested_sigma():
     rng = np.random.default_rng(6)
     flat = np.full((400, 400), 100, np.uint8)
-    read_only = render.sensor_noise(flat, rng, read_noise_dn=5.0, shot_noise_gain=0.0).astype(float)
+    read_only = degrade.sensor_noise(flat, rng, read_noise_dn=5.0, shot_noise_gain=0.0).astype(float)
     assert read_only.std() == pytest.approx(5.0, rel=0.03)
     assert read_only.mean() == pytest.approx(100.0, abs=0.1)
     # shot noise grows with the signal: variance = read^2 + gain * I
     bright = np.full((400, 400), 200, np.uint8)
-    shot = render.sensor_noise(bright, rng, read_noise_dn=0.0, shot_noise_gain=0.5).astype(float)
+    shot = degrade.sensor_noise(bright, rng, read_noise_dn=0.0, shot_noise_gain=0.5).astype(float)
     assert shot.std() == pytest.approx(math.sqrt(0.5 * 200), rel=0.03)
 
 
 def test_exposure_and_low_light():
     rng = np.random.default_rng(7)
     image = np.tile(np.linspace(0, 250, 256).astype(np.uint8), (64, 1))
-    half = render.exposure(image, 0.5)
+    half = degrade.exposure(image, 0.5)
     assert np.abs(half.astype(float) - image / 2).max() <= 0.5
-    double = render.exposure(image, 2.0)
+    double = degrade.exposure(image, 2.0)
     assert double.max() == 255 and np.count_nonzero(double == 255) > 0.45 * image.size  # saturation
-    dark = render.low_light(image, rng, light_fraction=0.15)
+    dark = degrade.low_light(image, rng, light_fraction=0.15)
     assert dark.mean() == pytest.approx(0.15 * image.mean(), rel=0.1)
     # contrast of the marker-scale steps drops below the noise
-    assert float(np.std(dark.astype(float) - render.exposure(image, 0.15))) > 1.5
+    assert float(np.std(dark.astype(float) - degrade.exposure(image, 0.15))) > 1.5
 
 
 def test_jpeg_error_grows_as_quality_drops(scene_image):
     def rms(q):
-        return float(np.sqrt(np.mean((render.jpeg(scene_image, q).astype(float) - scene_image) ** 2)))
+        return float(np.sqrt(np.mean((degrade.jpeg(scene_image, q).astype(float) - scene_image) ** 2)))
     errors = [rms(q) for q in (95, 50, 10)]
     assert 0 < errors[0] < errors[1] < errors[2]
     ok, data = cv2.imencode(".jpg", scene_image, [cv2.IMWRITE_JPEG_QUALITY, 50])
-    np.testing.assert_array_equal(render.jpeg(scene_image, 50), cv2.imdecode(data, cv2.IMREAD_GRAYSCALE))
+    np.testing.assert_array_equal(degrade.jpeg(scene_image, 50), cv2.imdecode(data, cv2.IMREAD_GRAYSCALE))
 
 
 def test_degradations_apply_in_order_and_copy():
     rng = np.random.default_rng(8)
     image = np.full((32, 32), 120, np.uint8)
-    out = render.Degradations().apply(image, rng)
+    out = degrade.Degradations().apply(image, rng)
     assert out is not image and np.array_equal(out, image)
-    out = render.Degradations(exposure_gain=0.5, jpeg_quality=90).apply(image, rng)
+    out = degrade.Degradations(exposure_gain=0.5, jpeg_quality=90).apply(image, rng)
     assert abs(float(out.mean()) - 60.0) < 1.0
 
 
 # ------------------------------------------------------- scenes, determinism
 
 def test_scene_is_deterministic_under_a_seed():
-    markers = [render.aruco_marker_texture(ARUCO, i) for i in range(2)]
-    a = render.random_marker_scene(np.random.default_rng(42), (W, H), markers, condition="strip_1_4")
-    b = render.random_marker_scene(np.random.default_rng(42), (W, H), markers, condition="strip_1_4")
-    c = render.random_marker_scene(np.random.default_rng(43), (W, H), markers, condition="strip_1_4")
+    markers = [raster.aruco_marker_texture(ARUCO, i) for i in range(2)]
+    a = scenes.random_marker_scene(np.random.default_rng(42), (W, H), markers, condition="strip_1_4")
+    b = scenes.random_marker_scene(np.random.default_rng(42), (W, H), markers, condition="strip_1_4")
+    c = scenes.random_marker_scene(np.random.default_rng(43), (W, H), markers, condition="strip_1_4")
     np.testing.assert_array_equal(a.image, b.image)
     for ta, tb in zip(a.truths, b.truths):
         np.testing.assert_array_equal(ta.corners_px, tb.corners_px)
@@ -352,37 +356,37 @@ def test_scene_is_deterministic_under_a_seed():
 
 def test_every_condition_renders_with_sizes_in_range():
     rng = np.random.default_rng(9)
-    markers = [render.aruco_marker_texture(ARUCO, i) for i in range(3)]
-    for name in render.CONDITIONS:
-        scene = render.random_marker_scene(rng, (W, H), markers, (40, 150), name)
+    markers = [raster.aruco_marker_texture(ARUCO, i) for i in range(3)]
+    for name in scenes.CONDITIONS:
+        scene = scenes.random_marker_scene(rng, (W, H), markers, (40, 150), name)
         assert scene.image.shape == (H, W) and scene.image.dtype == np.uint8
         assert len(scene.truths) >= 1
         for truth in scene.truths:
             # tilt shortens sides, never lengthens them past the face-on size
             assert 40 * math.cos(math.radians(50)) - 3 < truth.inner_px < 152
-            assert render.Renderer(scene.K, [], W, H).inside_image(truth.corners_px).all()
-            if render.CONDITIONS[name].occlusion == "none":
+            assert raster.Renderer(scene.K, [], W, H).inside_image(truth.corners_px).all()
+            if scenes.CONDITIONS[name].occlusion == "none":
                 assert truth.corners_visible.all() and truth.inner_visible_fraction > 0.99
-            elif render.CONDITIONS[name].occlusion in ("strip", "corner"):
+            elif scenes.CONDITIONS[name].occlusion in ("strip", "corner"):
                 assert not truth.corners_visible.all()
 
 
 def test_unknown_condition_is_a_clear_error():
-    with pytest.raises(render.RenderError, match="unknown condition 'fog'"):
-        render.random_marker_scene(np.random.default_rng(0), (W, H), [], condition="fog")
+    with pytest.raises(raster.RenderError, match="unknown condition 'fog'"):
+        scenes.random_marker_scene(np.random.default_rng(0), (W, H), [], condition="fog")
 
 
 def test_quads_must_be_parallelograms():
-    texture = render.make_texture(np.zeros((8, 8), np.uint8))
-    with pytest.raises(render.RenderError, match="parallelogram"):
-        render.TexturedQuad(np.array([[0, 0, 1], [1, 0, 1], [1.5, 1, 1], [0, 1, 1.0]]), texture)
+    texture = raster.make_texture(np.zeros((8, 8), np.uint8))
+    with pytest.raises(raster.RenderError, match="parallelogram"):
+        raster.TexturedQuad(np.array([[0, 0, 1], [1, 0, 1], [1.5, 1, 1], [0, 1, 1.0]]), texture)
 
 
 def test_mip_levels_halve_exactly():
-    texture = render.make_texture(np.zeros((256, 320), np.uint8))
+    texture = raster.make_texture(np.zeros((256, 320), np.uint8))
     sizes = [level.shape for level in texture.levels]
     assert sizes[:4] == [(256, 320), (128, 160), (64, 80), (32, 40)]
-    assert all(min(s) >= render.MIN_MIP_SIZE_PX for s in sizes)
+    assert all(min(s) >= raster.MIN_MIP_SIZE_PX for s in sizes)
 
 
 def test_rs_marker_scenes_for_the_detector_benchmark():
@@ -390,7 +394,7 @@ def test_rs_marker_scenes_for_the_detector_benchmark():
     from companion.markers.dictionary import load_dictionary
 
     layout = marker.MarkerLayout(parity=2)
-    markers = [render.rs_marker_texture(layout, i) for i in (0, 17, 42)]
+    markers = [raster.rs_marker_texture(layout, i) for i in (0, 17, 42)]
     assert markers[0].circles_px.shape == (12, 2)
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -400,7 +404,7 @@ def test_rs_marker_scenes_for_the_detector_benchmark():
     errors = []
     for size in ((W, H), (1280, 720)):
         for _ in range(4):
-            scene = render.random_marker_scene(rng, size, markers, condition="clean")
+            scene = scenes.random_marker_scene(rng, size, markers, condition="clean")
             corners, ids, _ = inner.detectMarkers(scene.image)
             found = {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(), corners)}
             for truth in scene.truths:

@@ -168,6 +168,13 @@ def load_camera(path) -> CameraModel:
     return CameraModel.from_config(document.get("camera", document), str(path))
 
 
+def intrinsics_from_hfov(width: int, height: int, hfov_deg: float) -> np.ndarray:
+    """(3, 3) K of an ideal pinhole with ``hfov_deg`` horizontal field of view, principal point at the image centre."""
+    # fx = fy = (W / 2) / tan(hfov / 2); the centre of a W-pixel row is at (W - 1) / 2
+    f_px = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+    return np.array([[f_px, 0.0, (width - 1) / 2.0], [0.0, f_px, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
 # ------------------------------------------------------------------ pieces
 
 def _is_file_storage(path) -> bool:
@@ -190,13 +197,11 @@ def _inline_intrinsics(section: dict, where: Where):
         hfov_deg = where.positive(section, "hfov_deg")
         if hfov_deg >= 180.0:
             raise where.error(f"must be below 180 for a pinhole camera, got {hfov_deg:g}", "hfov_deg")
-        # fx = (w / 2) / tan(hfov / 2), principal point at the image centre
-        f_px = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
-        fx, fy, cx, cy = f_px, f_px, (width - 1) / 2.0, (height - 1) / 2.0
+        K = intrinsics_from_hfov(width, height, hfov_deg)
     else:
         fx, fy = where.positive(section, "fx_px"), where.positive(section, "fy_px")
         cx, cy = where.number(section, "cx_px"), where.number(section, "cy_px")
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     dist = where.numbers(section, "distortion", DISTORTION_LENGTHS, [0.0] * 5)
     _check_intrinsics(K, width, height, where, "cx_px")
     return K, dist, width, height

@@ -257,6 +257,16 @@ def R_map_marker_facing_down() -> np.ndarray:
     return rot_x(math.pi)
 
 
+def R_camera_marker_face_on() -> np.ndarray:
+    """(3, 3) marker -> OpenCV camera for an upright marker seen face-on (marker x = image right, y = image up).
+
+    A level body looking along map +x (yaw 0 in a map whose x points north),
+    a forward camera, a wall marker facing -x.
+    """
+    R_map_camera = R_ned_map(0.0).T @ R_body_camera_from_mount()
+    return R_map_camera.T @ R_map_marker_on_wall(180.0)
+
+
 # ----------------------------------------------------------------- marker
 
 def grid_to_marker_m(uv_cells, inner_origin_cells: float, size_m: float) -> np.ndarray:

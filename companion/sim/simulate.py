@@ -4,7 +4,7 @@ The world is built from the map: every marker as its printed texture on a
 small backing sheet, shelving faces or walls behind groups of markers that
 share a plane, a floor, a ceiling and enclosing walls. A trajectory (a CSV of
 body poses or a built-in pattern) moves the vehicle; the configured camera
-(intrinsics, distortion, mounting) looks out of it; ``companion.sim.render``
+(intrinsics, distortion, mounting) looks out of it; ``companion.sim``
 draws each frame and applies the realism knobs. Output: a sequence folder as
 ``docs/simulator.md`` (and the project conventions) describe::
 
@@ -26,7 +26,9 @@ import numpy as np
 import yaml
 
 from companion.geometry import frames
-from companion.sim import render
+from companion.sim import degrade
+from companion.sim import occluders
+from companion.sim import raster
 from companion.sim import trajectory as trajectories
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
@@ -55,7 +57,7 @@ class WorldMarker:
     marker_id: int
     size_m: float
     T_map_marker: np.ndarray
-    texture: render.MarkerTexture
+    texture: raster.MarkerTexture
     quad_index: int
 
 
@@ -63,7 +65,7 @@ class WorldMarker:
 class World:
     """Everything static that the camera can see, in the map frame."""
 
-    quads: list[render.TexturedQuad]
+    quads: list[raster.TexturedQuad]
     markers: list[WorldMarker]
     floor_z_m: float
     bounds_m: np.ndarray  # (2, 3) min and max corner of the hall
@@ -87,7 +89,7 @@ def build_world(facility_map: FacilityMap, seed: int = 0) -> World:
     bounds = np.array([[low[0] - margin, low[1] - margin, floor_z], [high[0] + margin, high[1] + margin, ceiling_z]])
     textures = _SurfaceTextures(rng)
 
-    quads: list[render.TexturedQuad] = []
+    quads: list[raster.TexturedQuad] = []
     quads += _floor_and_ceiling(bounds, textures)
     quads += _enclosing_walls(bounds, textures)
     grouped = _vertical_groups(markers)
@@ -97,8 +99,8 @@ def build_world(facility_map: FacilityMap, seed: int = 0) -> World:
     world_markers = []
     in_groups = {m.id for group in grouped for m in group}
     for m in markers:
-        texture = render.rs_marker_texture(layout, m.id, PX_PER_CELL)
-        quad = render.marker_quad(texture, m.size_m, m.T_map_marker, gain=0.84, offset=18.0)
+        texture = raster.rs_marker_texture(layout, m.id, PX_PER_CELL)
+        quad = raster.marker_quad(texture, m.size_m, m.T_map_marker, gain=0.84, offset=18.0)
         sheet_scale = 1.25 if m.id in in_groups else 2.2
         quads.append(_sheet_behind(quad, sheet_scale, textures, rng))
         quads.append(quad)
@@ -111,14 +113,14 @@ class _SurfaceTextures:
 
     def __init__(self, rng: np.random.Generator):
         self.rng = rng
-        self.floor = [render.make_texture(self._concrete(256)) for _ in range(3)]
-        self.wall = [render.make_texture(self._blocks(256)) for _ in range(2)]
-        self.ceiling = render.make_texture(render.solid_texture(rng, (64, 64), 200.0, 10.0))
-        self.sheet = render.make_texture(render.solid_texture(rng, (64, 64), 235.0, 6.0))
+        self.floor = [raster.make_texture(self._concrete(256)) for _ in range(3)]
+        self.wall = [raster.make_texture(self._blocks(256)) for _ in range(2)]
+        self.ceiling = raster.make_texture(occluders.solid_texture(rng, (64, 64), 200.0, 10.0))
+        self.sheet = raster.make_texture(occluders.solid_texture(rng, (64, 64), 235.0, 6.0))
 
     def _concrete(self, n: int) -> np.ndarray:
         rng = self.rng
-        base = render.solid_texture(rng, (n, n), 150.0, 18.0).astype(np.float32)
+        base = occluders.solid_texture(rng, (n, n), 150.0, 18.0).astype(np.float32)
         base += 2.0 * cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 1.5)
         for _ in range(3):  # scuffs and cracks
             p0 = rng.integers(0, n, 2)
@@ -130,7 +132,7 @@ class _SurfaceTextures:
 
     def _blocks(self, n: int) -> np.ndarray:
         rng = self.rng
-        wall = render.solid_texture(rng, (n, n), 175.0, 8.0)
+        wall = occluders.solid_texture(rng, (n, n), 175.0, 8.0)
         course = n // 8
         for row in range(8):
             y = row * course
@@ -140,10 +142,10 @@ class _SurfaceTextures:
                 wall[y:y + course, x:x + 2] = 140
         return wall
 
-    def shelving(self, width_px: int, height_px: int, height_m: float) -> render.Texture:
+    def shelving(self, width_px: int, height_px: int, height_m: float) -> raster.Texture:
         """Rack face: dark interior, boxes on beams every ~0.8 m, uprights at the edges."""
         rng = self.rng
-        face = render.solid_texture(rng, (width_px, height_px), 55.0, 10.0)
+        face = occluders.solid_texture(rng, (width_px, height_px), 55.0, 10.0)
         px_per_m = height_px / height_m
         beams = np.arange(0.05, height_m, 0.8)
         for z in beams:
@@ -159,7 +161,7 @@ class _SurfaceTextures:
         upright = max(int(0.05 * px_per_m), 2)
         face[:, :upright] = 90
         face[:, -upright:] = 90
-        return render.make_texture(face)
+        return raster.make_texture(face)
 
 
 def _tiles(origin: np.ndarray, along: np.ndarray, up: np.ndarray, length_m: float, height_m: float,
@@ -174,20 +176,20 @@ def _tiles(origin: np.ndarray, along: np.ndarray, up: np.ndarray, length_m: floa
             yield np.array([bl + du * up, bl + du * up + da * along, bl + da * along, bl]), (i, j)
 
 
-def _floor_and_ceiling(bounds: np.ndarray, textures: _SurfaceTextures) -> list[render.TexturedQuad]:
+def _floor_and_ceiling(bounds: np.ndarray, textures: _SurfaceTextures) -> list[raster.TexturedQuad]:
     (x0, y0, z0), (x1, y1, z1) = bounds
     quads = []
     ex, ey = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
-    floor_origin = np.array([x0, y0, z0 - render.MARKER_LIFT_M])
+    floor_origin = np.array([x0, y0, z0 - raster.MARKER_LIFT_M])
     for corners, (i, j) in _tiles(floor_origin, ex, ey, x1 - x0, y1 - y0):
-        quads.append(render.TexturedQuad(corners, textures.floor[(i * 7 + j * 3) % len(textures.floor)], gain=0.95))
-    ceiling_origin = np.array([x0, y0, z1 + render.MARKER_LIFT_M])
+        quads.append(raster.TexturedQuad(corners, textures.floor[(i * 7 + j * 3) % len(textures.floor)], gain=0.95))
+    ceiling_origin = np.array([x0, y0, z1 + raster.MARKER_LIFT_M])
     for corners, _ in _tiles(ceiling_origin, ex, ey, x1 - x0, y1 - y0, tile_m=4 * TILE_M):
-        quads.append(render.TexturedQuad(corners, textures.ceiling, gain=0.8))
+        quads.append(raster.TexturedQuad(corners, textures.ceiling, gain=0.8))
     return quads
 
 
-def _enclosing_walls(bounds: np.ndarray, textures: _SurfaceTextures) -> list[render.TexturedQuad]:
+def _enclosing_walls(bounds: np.ndarray, textures: _SurfaceTextures) -> list[raster.TexturedQuad]:
     (x0, y0, z0), (x1, y1, z1) = bounds
     corners_xy = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
     quads = []
@@ -197,7 +199,7 @@ def _enclosing_walls(bounds: np.ndarray, textures: _SurfaceTextures) -> list[ren
         length = float(np.linalg.norm(b - a))
         along = (b - a) / length
         for corners, (i, j) in _tiles(a, along, np.array([0.0, 0.0, 1.0]), length, z1 - z0):
-            quads.append(render.TexturedQuad(corners, textures.wall[(i + j) % 2], gain=0.85))
+            quads.append(raster.TexturedQuad(corners, textures.wall[(i + j) % 2], gain=0.85))
     return quads
 
 
@@ -228,7 +230,7 @@ def _vertical_groups(markers, max_gap_m: float = 3.5) -> list[list]:
     return [g for g in groups if len(g) >= 2]
 
 
-def _panel_behind(group, bounds: np.ndarray, textures: _SurfaceTextures) -> list[render.TexturedQuad]:
+def _panel_behind(group, bounds: np.ndarray, textures: _SurfaceTextures) -> list[raster.TexturedQuad]:
     """A shelving face behind a marker group (none on the hall's boundary: the wall is there)."""
     up = np.array([0.0, 0.0, 1.0])
     n = group[0].T_map_marker[:3, 2] * [1.0, 1.0, 0.0]
@@ -243,7 +245,7 @@ def _panel_behind(group, bounds: np.ndarray, textures: _SurfaceTextures) -> list
     along = positions @ right
     start, end = float(along.min()) - 1.2, float(along.max()) + 1.2
     height = float(max(positions[:, 2].max() + 0.6, 2.4))
-    offset = float(np.mean(positions @ n)) - 2 * render.MARKER_LIFT_M
+    offset = float(np.mean(positions @ n)) - 2 * raster.MARKER_LIFT_M
     bottom_left = offset * n + start * right + z0 * up
     n_tiles = max(int(math.ceil((end - start) / TILE_M)), 1)
     tile = (end - start) / n_tiles
@@ -252,18 +254,18 @@ def _panel_behind(group, bounds: np.ndarray, textures: _SurfaceTextures) -> list
     for i in range(n_tiles):
         bl = bottom_left + i * tile * right
         corners = np.array([bl + height * up, bl + height * up + tile * right, bl + tile * right, bl])
-        quads.append(render.TexturedQuad(corners, textures.shelving(256, texture_height_px, height)))
+        quads.append(raster.TexturedQuad(corners, textures.shelving(256, texture_height_px, height)))
     return quads
 
 
-def _sheet_behind(quad: render.TexturedQuad, scale: float, textures: _SurfaceTextures, rng) -> render.TexturedQuad:
+def _sheet_behind(quad: raster.TexturedQuad, scale: float, textures: _SurfaceTextures, rng) -> raster.TexturedQuad:
     """A light sheet (laminated sign, painted board) a little larger than the marker, just behind it."""
     c = quad.corners_world
     centre = c.mean(axis=0)
     front = np.cross(c[3] - c[0], c[1] - c[0])
     front /= np.linalg.norm(front)
-    corners = centre + scale * (c - centre) - render.MARKER_LIFT_M * front
-    return render.TexturedQuad(corners, textures.sheet, gain=float(rng.uniform(0.75, 0.9)))
+    corners = centre + scale * (c - centre) - raster.MARKER_LIFT_M * front
+    return raster.TexturedQuad(corners, textures.sheet, gain=float(rng.uniform(0.75, 0.9)))
 
 
 # ---------------------------------------------------------------- occluders
@@ -284,7 +286,7 @@ class PassingOccluder:
     facing: np.ndarray
     quad_texture_seed: int
 
-    def quad_at(self, t_s: float) -> render.TexturedQuad | None:
+    def quad_at(self, t_s: float) -> raster.TexturedQuad | None:
         if not (self.t_start_s <= t_s <= self.t_end_s):
             return None
         feet = self.start_m + (t_s - self.t_start_s) * self.velocity_m_s
@@ -293,8 +295,8 @@ class PassingOccluder:
         T = frames.make_transform(np.column_stack([np.cross(up, self.facing), up, self.facing]), feet)
         rng = np.random.default_rng(self.quad_texture_seed)
         if self.kind == "person":
-            return render.person_occluder(rng, T)
-        return render.box_occluder(rng, T, 1.1, 1.3)
+            return occluders.person_occluder(rng, T)
+        return occluders.box_occluder(rng, T, 1.1, 1.3)
 
 
 def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: int, world: World,
@@ -349,7 +351,7 @@ class Realism:
     exposure_ms: exposure time; the motion blur is the image motion during it.
     motion_blur: smear by the vehicle's motion.
     optics_blur_sigma_px, read_noise_dn, shot_noise_gain, jpeg_quality,
-    vignette_strength: as in ``render.Degradations``.
+    vignette_strength: as in ``degrade.Degradations``.
     exposure_wander: amplitude of slow auto-exposure changes (0.3 = the
         light level varies by about x/÷ 1.35).
     occluders: number of people/boxes crossing in front of the camera.
@@ -382,7 +384,7 @@ class RenderedFrame:
     image: np.ndarray
     t_ns: int
     T_map_body: np.ndarray
-    truths: list[render.MarkerTruth]
+    truths: list[raster.MarkerTruth]
 
 
 class Simulator:
@@ -391,7 +393,7 @@ class Simulator:
     def __init__(self, world: World, camera: CameraModel, traj: trajectories.Trajectory,
                  realism: Realism = Realism(), seed: int = 0, supersample: int = 1):
         self.world, self.camera, self.trajectory, self.realism, self.seed = world, camera, traj, realism, seed
-        self.renderer = render.Renderer.from_camera(camera, supersample)
+        self.renderer = raster.Renderer.from_camera(camera, supersample)
         self.occluders = plan_occluders(traj, camera, realism.occluders, world,
                                         np.random.default_rng(seed + 104729))
 
@@ -408,12 +410,12 @@ class Simulator:
             if quad is not None:
                 quads.append(quad)
         rendering = self.renderer.render(quads, T_camera_map, background=40.0)
-        truths = [render.marker_truth(self.renderer, rendering, m.texture, m.size_m, m.T_map_marker,
+        truths = [raster.marker_truth(self.renderer, rendering, m.texture, m.size_m, m.T_map_marker,
                                       T_camera_map, m.quad_index, m.marker_id)
                   for m in self.world.markers]
         truths = [t for t in truths if t.corners_visible.any() or t.inner_visible_fraction > 0]
         r = self.realism
-        degradations = render.Degradations(
+        degradations = degrade.Degradations(
             optics_blur_sigma_px=r.optics_blur_sigma_px, motion_blur=r.motion_blur,
             exposure_gain=exposure_gain_at(t_s, r.exposure_wander, self.seed),
             vignette_strength=r.vignette_strength, read_noise_dn=r.read_noise_dn,
@@ -423,7 +425,7 @@ class Simulator:
         image = degradations.apply(rendering.image, rng, motion)
         return RenderedFrame(image, t_ns, T_map_body, truths)
 
-    def image_motion_px(self, t_s: float, truths: list[render.MarkerTruth]) -> tuple[float, float]:
+    def image_motion_px(self, t_s: float, truths: list[raster.MarkerTruth]) -> tuple[float, float]:
         """Image displacement (dx, dy) during the exposure of the scene points that matter.
 
         The median over the visible markers' centres, or, with none in view,

@@ -10,7 +10,7 @@ Each NAME.png (400 x 300, 8-bit gray; markers with a 45-55 px inner square) come
 corners are the renderer's ground truth (inner square TL, TR, BR, BL of the
 upright marker, through the same camera model), not detector output; path is
 the path that must find the marker. Frames with "markers": [] must yield
-nothing. Everything is drawn by ``companion.sim.render`` with fixed poses and seeds.
+nothing. Everything is drawn by ``companion.sim`` with fixed poses and seeds.
 """
 from __future__ import annotations
 
@@ -22,7 +22,11 @@ import cv2
 import numpy as np
 
 from companion.geometry import frames
-from companion.sim import render
+from companion.sim import degrade
+from companion.sim import occluders
+from companion.sim import raster
+from companion.sim import scenes
+from companion.geometry.camera import intrinsics_from_hfov
 from companion.markers.layout import MarkerLayout
 
 HERE = Path(__file__).resolve().parent
@@ -33,36 +37,36 @@ SIZE_M = 0.15
 def pose(distance_m: float, spin_deg: float, tilt_deg: float = 0.0, offset_px=(0.0, 0.0),
          tilt_axis_deg: float = 0.0) -> np.ndarray:
     """T_camera_marker: an upright marker ahead, spun about its normal, tilted about an in-plane axis."""
-    K = render.default_camera_matrix(W, H)
+    K = intrinsics_from_hfov(W, H, 70.0)
     axis = math.radians(tilt_axis_deg)
     tilt = math.radians(tilt_deg)
     R_tilt = frames.rotation_from_rotvec([math.cos(axis) * tilt, math.sin(axis) * tilt, 0.0])
-    R = R_tilt @ frames.rot_z(math.radians(spin_deg)) @ render._R_camera_marker_facing()
+    R = R_tilt @ frames.rot_z(math.radians(spin_deg)) @ frames.R_camera_marker_face_on()
     centre = distance_m * np.linalg.solve(K, [K[0, 2] + offset_px[0], K[1, 2] + offset_px[1], 1.0])
     return frames.make_transform(R, centre)
 
 
-def scene(name: str, markers, parity: int = 2, note: str = "", seed: int = 0, degrade=None,
+def scene(name: str, markers, parity: int = 2, note: str = "", seed: int = 0, degradations=None,
           background_kind: str = "clutter"):
     """markers: list of (texture, T, expected path or None for 'must not be found', occlusion, occluder or None)."""
     rng = np.random.default_rng(seed)
-    renderer = render.Renderer(render.default_camera_matrix(W, H), np.zeros(5), W, H)
-    background = render.clutter_image(rng, (W, H)) if background_kind == "clutter" else float(background_kind)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), np.zeros(5), W, H)
+    background = scenes.clutter_image(rng, (W, H)) if background_kind == "clutter" else float(background_kind)
     quads, placed = [], []
     for texture, T, path, occlusion, occluder in markers:
-        quads.append(render.marker_quad(texture, SIZE_M, T, gain=rng.uniform(0.75, 0.92), offset=rng.uniform(8, 25)))
+        quads.append(raster.marker_quad(texture, SIZE_M, T, gain=rng.uniform(0.75, 0.92), offset=rng.uniform(8, 25)))
         placed.append((texture, T, len(quads) - 1, path, occlusion))
         if occluder is not None:
             quads.append(occluder)
     rendering = renderer.render(quads, np.eye(4), background)
-    degradations = degrade or render.Degradations(optics_blur_sigma_px=0.5, read_noise_dn=1.0, shot_noise_gain=0.02)
+    degradations = degradations or degrade.Degradations(optics_blur_sigma_px=0.5, read_noise_dn=1.0, shot_noise_gain=0.02)
     image = degradations.apply(rendering.image, rng)
     expected = []
     layout = MarkerLayout(parity)
     for texture, T, index, path, occlusion in placed:
         if path is None:
             continue
-        truth = render.marker_truth(renderer, rendering, texture, SIZE_M, T, np.eye(4), index)
+        truth = raster.marker_truth(renderer, rendering, texture, SIZE_M, T, np.eye(4), index)
         expected.append({"symbol": layout.dictionary.symbol_of(texture.marker_id), "id": texture.marker_id,
                          "corners": np.round(truth.corners_px, 3).tolist(), "path": path, "occlusion": occlusion})
     cv2.imwrite(str(HERE / f"{name}.png"), image)
@@ -73,7 +77,7 @@ def main() -> None:
     rs = {p: MarkerLayout(p) for p in (2, 4)}
 
     def tex(marker_id, parity=2):
-        return render.rs_marker_texture(rs[parity], marker_id)
+        return raster.rs_marker_texture(rs[parity], marker_id)
 
     rng = np.random.default_rng(1)
 
@@ -90,31 +94,31 @@ def main() -> None:
     for k, (marker_id, offset) in enumerate(zip((5, 18, 31, 44), ((-100, -72), (100, -72), (-100, 72), (100, 72)))):
         T = pose(0.9, 90 * k + 8, 18, offset, 60 * k)
         markers.append((tex(marker_id), T, "circles", "corner",
-                        render.corner_occluder(tex(marker_id), SIZE_M, T, 0.25, (k + 1) % 4, rng, level=70 + 40 * k)))
+                        occluders.corner_occluder(tex(marker_id), SIZE_M, T, 0.25, (k + 1) % 4, rng, level=70 + 40 * k)))
     scene("circles_rotations", markers, note="corner patches; circles path at 0, 90, 180 and 270 degrees", seed=2)
 
     # side strips (border included), dark and light
     T1, T2 = pose(0.85, 20, 15, (-95, 0), 90), pose(0.85, -35, 25, (95, 10), 10)
     scene("strip_1_8", [
-        (tex(7), T1, "circles", "strip_1_8", render.strip_occluder(tex(7), SIZE_M, T1, 1 / 8, "left", rng, level=40)),
-        (tex(22), T2, "circles", "strip_1_8", render.strip_occluder(tex(22), SIZE_M, T2, 1 / 8, "top", rng, level=200)),
+        (tex(7), T1, "circles", "strip_1_8", occluders.strip_occluder(tex(7), SIZE_M, T1, 1 / 8, "left", rng, level=40)),
+        (tex(22), T2, "circles", "strip_1_8", occluders.strip_occluder(tex(22), SIZE_M, T2, 1 / 8, "top", rng, level=200)),
     ], note="1/8 of the inner side hidden from one side, border included", seed=3)
     T1, T2 = pose(0.85, 150, 20, (-95, 5), 45), pose(0.9, 250, 10, (95, -5), 160)
     scene("strip_1_4", [
-        (tex(33), T1, "circles", "strip_1_4", render.strip_occluder(tex(33), SIZE_M, T1, 1 / 4, "bottom", rng, level=120)),
-        (tex(48), T2, "circles", "strip_1_4", render.strip_occluder(tex(48), SIZE_M, T2, 1 / 4, "right", rng, level=60)),
+        (tex(33), T1, "circles", "strip_1_4", occluders.strip_occluder(tex(33), SIZE_M, T1, 1 / 4, "bottom", rng, level=120)),
+        (tex(48), T2, "circles", "strip_1_4", occluders.strip_occluder(tex(48), SIZE_M, T2, 1 / 4, "right", rng, level=60)),
     ], note="1/4 of the inner side hidden from one side, border included", seed=4)
     T1 = pose(0.9, 60, 20, (0, 0), 100)
     scene("strip_1_4_parity4", [
         (tex(11, 4), T1, "circles", "strip_1_4",
-         render.strip_occluder(tex(11, 4), SIZE_M, T1, 1 / 4, "left", rng, level=180)),
+         occluders.strip_occluder(tex(11, 4), SIZE_M, T1, 1 / 4, "left", rng, level=180)),
     ], parity=4, note="parity 4, 1/4 strip", seed=5)
 
     # a blob on the data area: the square path, corrected by RS
     T1, T2 = pose(0.85, 10, 20, (-95, 0), 0), pose(0.85, 200, 25, (95, 0), 90)
     scene("blob", [
-        (tex(2), T1, "square", "blob", render.blob_occluder(SIZE_M, T1, rng, 0.2, level=30)),
-        (tex(29), T2, "square", "blob", render.blob_occluder(SIZE_M, T2, rng, 0.2, level=230)),
+        (tex(2), T1, "square", "blob", occluders.blob_occluder(SIZE_M, T1, rng, 0.2, level=30)),
+        (tex(29), T2, "square", "blob", occluders.blob_occluder(SIZE_M, T2, rng, 0.2, level=230)),
     ], note="blobs inside the data area (RS corrects them)", seed=6)
 
     # nothing to find: clutter; plain ArUco and AprilTag markers; an RS marker half gone
@@ -122,13 +126,13 @@ def main() -> None:
     aruco = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_50)
     april = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
     scene("other_families", [
-        (render.aruco_marker_texture(aruco, 3), pose(0.85, 10, 15, (-95, 0), 20), None, "none", None),
-        (render.aruco_marker_texture(april, 21, family="apriltag"), pose(0.85, -20, 20, (95, 0), 80), None, "none",
+        (raster.aruco_marker_texture(aruco, 3), pose(0.85, 10, 15, (-95, 0), 20), None, "none", None),
+        (raster.aruco_marker_texture(april, 21, family="apriltag"), pose(0.85, -20, 20, (95, 0), 80), None, "none",
          None),
     ], note="OpenCV DICT_6X6_50 id 3 and AprilTag 36h11 id 21: not RS markers, nothing may be reported", seed=8)
     T1 = pose(0.9, 0, 10, (0, 0), 0)
     scene("too_occluded", [
-        (tex(9), T1, None, "strip_5_8", render.strip_occluder(tex(9), SIZE_M, T1, 5 / 8, "left", rng, level=90)),
+        (tex(9), T1, None, "strip_5_8", occluders.strip_occluder(tex(9), SIZE_M, T1, 5 / 8, "left", rng, level=90)),
     ], note="5/8 of an RS marker hidden: not decodable, nothing may be reported", seed=9)
 
 

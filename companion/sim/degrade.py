@@ -1,0 +1,143 @@
+"""Image degradations, applied in the order a camera produces them: motion blur, optics blur,
+exposure, vignetting, sensor noise, JPEG.
+
+Small functions on (H, W) uint8 images and the ``Degradations`` knobs that chain them.
+Everything random takes a ``numpy.random.Generator``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from companion.sim.raster import RenderError
+
+
+def gaussian_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Defocus or optics blur: a gaussian of ``sigma_px`` pixels."""
+    if sigma_px <= 0:
+        return image.copy()
+    return cv2.GaussianBlur(image, (0, 0), sigmaX=sigma_px, sigmaY=sigma_px, borderType=cv2.BORDER_REPLICATE)
+
+
+def motion_blur_kernel(length_px: float, angle_rad: float) -> np.ndarray:
+    """(k, k) float32 line kernel of ``length_px`` along ``angle_rad`` (image x right, y down), sum 1.
+
+    Built by spreading many evenly spaced samples of the segment over the
+    pixel grid with bilinear weights, so a horizontal kernel stays one row.
+    """
+    length = max(float(length_px), 1.0)
+    half = int(math.ceil(length / 2)) + 1
+    k = 2 * half + 1
+    steps = np.linspace(-length / 2, length / 2, int(length * 16) + 1)
+    xs = half + steps * math.cos(angle_rad)
+    ys = half + steps * math.sin(angle_rad)
+    x0, y0 = np.floor(xs).astype(int), np.floor(ys).astype(int)
+    fx, fy = xs - x0, ys - y0
+    kernel = np.zeros((k + 1, k + 1), np.float64)
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        np.add.at(kernel, (y0 + dy, x0 + dx), w)
+    kernel = kernel[:k, :k]
+    return (kernel / kernel.sum()).astype(np.float32)
+
+
+def motion_blur(image: np.ndarray, length_px: float, angle_rad: float) -> np.ndarray:
+    """Linear motion blur: the image smeared over ``length_px`` along ``angle_rad``."""
+    if length_px < 0.5:
+        return image.copy()
+    return cv2.filter2D(image, -1, motion_blur_kernel(length_px, angle_rad), borderType=cv2.BORDER_REPLICATE)
+
+
+def sensor_noise(image: np.ndarray, rng: np.random.Generator, read_noise_dn: float = 2.0,
+                 shot_noise_gain: float = 0.05) -> np.ndarray:
+    """Shot plus read noise, in 8-bit digital numbers (DN).
+
+    variance(I) = read_noise_dn^2 + shot_noise_gain * I (the gaussian
+    approximation of Poisson photon noise with gain DN per electron, plus the
+    read-out noise), then rounded and clipped to 0..255.
+    """
+    signal = image.astype(np.float32)
+    sigma = np.sqrt(np.float32(read_noise_dn) ** 2 + np.float32(shot_noise_gain) * signal)
+    noisy = signal + sigma * rng.standard_normal(image.shape, dtype=np.float32)
+    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+
+
+def exposure(image: np.ndarray, gain: float, black_level_dn: float = 0.0) -> np.ndarray:
+    """Exposure or gain change: (I - black) * gain + black, clipped (bright areas saturate)."""
+    out = (image.astype(np.float32) - black_level_dn) * np.float32(gain) + black_level_dn
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def low_light(image: np.ndarray, rng: np.random.Generator, light_fraction: float = 0.15,
+              read_noise_dn: float = 2.5, shot_noise_gain: float = 0.3) -> np.ndarray:
+    """A dim scene: ``light_fraction`` of the light, then the sensor's noise on the weak signal.
+
+    The result stays dark (no digital gain), with low contrast and a noise
+    floor that is large relative to it.
+    """
+    return sensor_noise(exposure(image, light_fraction), rng, read_noise_dn, shot_noise_gain)
+
+
+def jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    """The image after a JPEG encode/decode round trip at ``quality`` (1..100)."""
+    ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RenderError(f"JPEG encoding failed at quality {quality}")
+    return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+
+
+def vignette(image: np.ndarray, strength: float) -> np.ndarray:
+    """Darker corners: I * (1 - strength r^2), r = distance from the centre over the half diagonal."""
+    h, w = image.shape
+    ys, xs = np.ogrid[:h, :w]
+    r2 = ((xs - (w - 1) / 2) ** 2 + (ys - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
+    return np.clip(np.rint(image * (1.0 - strength * r2)), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class Degradations:
+    """The image-side realism knobs, applied in the order a camera produces them.
+
+    optics_blur_sigma_px: lens/focus blur (0 = off).
+    motion_blur: smear by the image motion during the exposure (the caller
+        passes it as ``motion_px``; ``motion_length_px`` > 0 forces a fixed kernel).
+    exposure_gain: multiplies the light (1 = unchanged).
+    vignette_strength: corner darkening (0 = off).
+    read_noise_dn, shot_noise_gain: sensor noise (both 0 = off).
+    jpeg_quality: JPEG round trip (0 = off).
+    """
+
+    optics_blur_sigma_px: float = 0.0
+    motion_blur: bool = False
+    motion_length_px: float = 0.0
+    motion_angle_rad: float = 0.0
+    exposure_gain: float = 1.0
+    vignette_strength: float = 0.0
+    read_noise_dn: float = 0.0
+    shot_noise_gain: float = 0.0
+    jpeg_quality: int = 0
+
+    def apply(self, image: np.ndarray, rng: np.random.Generator,
+              motion_px: tuple[float, float] | None = None) -> np.ndarray:
+        """Degrade an (H, W) uint8 image; ``motion_px``: image motion (dx, dy) over the exposure."""
+        out = image
+        if self.motion_length_px > 0:
+            out = motion_blur(out, self.motion_length_px, self.motion_angle_rad)
+        elif self.motion_blur and motion_px is not None:
+            out = motion_blur(out, math.hypot(*motion_px), math.atan2(motion_px[1], motion_px[0]))
+        if self.optics_blur_sigma_px > 0:
+            out = gaussian_blur(out, self.optics_blur_sigma_px)
+        if self.exposure_gain != 1.0:
+            out = exposure(out, self.exposure_gain)
+        if self.vignette_strength > 0:
+            out = vignette(out, self.vignette_strength)
+        if self.read_noise_dn > 0 or self.shot_noise_gain > 0:
+            out = sensor_noise(out, rng, self.read_noise_dn, self.shot_noise_gain)
+        if self.jpeg_quality > 0:
+            out = jpeg(out, self.jpeg_quality)
+        return out if out is not image else image.copy()
+
+    def with_(self, **changes) -> "Degradations":
+        return replace(self, **changes)

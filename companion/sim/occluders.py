@@ -1,0 +1,145 @@
+"""Occluder quads: things in front of a marker or crossing the view (strip, corner patch, blob, box, person).
+
+Everything random takes a ``numpy.random.Generator``.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from companion.geometry import frames
+from companion.sim.raster import (OCCLUDER_LIFT_M, RenderError, MarkerTexture, TexturedQuad, lift, make_texture,
+                                  rectangle_corners, texture_to_marker)
+
+
+def solid_texture(rng: np.random.Generator, size_px: tuple[int, int], level: float,
+                  texture_amplitude: float = 12.0) -> np.ndarray:
+    """(H, W) uint8 surface of mean ``level`` with a soft random mottle and a gradient."""
+    w, h = size_px
+    coarse = rng.normal(0.0, 1.0, (max(h // 16, 2), max(w // 16, 2))).astype(np.float32)
+    mottle = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
+    gradient = np.linspace(-1.0, 1.0, w, dtype=np.float32)[None, :] * rng.uniform(-1, 1)
+    surface = level + texture_amplitude * (0.6 * mottle + 0.4 * gradient)
+    return np.clip(surface, 0, 255).astype(np.uint8)
+
+
+def strip_occluder(marker: MarkerTexture, size_m: float, T_world_marker: np.ndarray, fraction: float,
+                   side: str, rng: np.random.Generator, level: float | None = None) -> TexturedQuad:
+    """A strip over ``fraction`` of the inner square's width from one side, border and margin included.
+
+    side: "left", "right", "top" or "bottom" of the upright marker. The strip
+    reaches well past the marker on the other three directions.
+    """
+    s = size_m
+    reach = _outer_reach_m(marker, size_m) + 0.2 * s
+    inner_edge = -s / 2 + fraction * s  # measured from the chosen side
+    # in the marker frame (x right, y up): the strip covers [-reach, inner_edge] along the side axis
+    length = inner_edge + reach
+    centre_along = (-reach + inner_edge) / 2
+    if side == "left":
+        width_m, height_m, centre = length, 2 * reach, (centre_along, 0.0)
+    elif side == "right":
+        width_m, height_m, centre = length, 2 * reach, (-centre_along, 0.0)
+    elif side == "bottom":
+        width_m, height_m, centre = 2 * reach, length, (0.0, centre_along)
+    elif side == "top":
+        width_m, height_m, centre = 2 * reach, length, (0.0, -centre_along)
+    else:
+        raise RenderError(f"strip side must be left, right, top or bottom, got {side!r}")
+    return _flat_occluder(rng, T_world_marker, width_m, height_m, centre, level)
+
+
+def corner_occluder(marker: MarkerTexture, size_m: float, T_world_marker: np.ndarray, fraction: float,
+                    corner: int, rng: np.random.Generator, level: float | None = None) -> TexturedQuad:
+    """A patch hiding one inner corner (0 TL, 1 TR, 2 BR, 3 BL) and ``fraction`` of the side along both edges."""
+    s = size_m
+    reach = _outer_reach_m(marker, size_m) + 0.2 * s
+    corner_xy = frames.marker_inner_corners_m(s)[corner, :2]
+    inward = -np.sign(corner_xy)  # toward the marker centre
+    inner = corner_xy + inward * fraction * s
+    outer = corner_xy - inward * (reach - s / 2)
+    centre = (inner + outer) / 2
+    size = np.abs(outer - inner)
+    return _flat_occluder(rng, T_world_marker, float(size[0]), float(size[1]), tuple(centre), level)
+
+
+def blob_occluder(size_m: float, T_world_marker: np.ndarray, rng: np.random.Generator,
+                  radius_fraction: float = 0.2, level: float | None = None) -> TexturedQuad:
+    """An irregular blob (a smudge, a sticker, a glare spot) inside the data area.
+
+    Its radius is about ``radius_fraction`` of the inner side; its centre lies
+    within the inner 6x6 data cells so it never reaches the border.
+    """
+    s = size_m
+    max_offset = max(3.0 / 8.0 * s - radius_fraction * s, 0.0)
+    centre = rng.uniform(-max_offset, max_offset, 2)
+    side_px = 64
+    alpha = np.zeros((side_px, side_px), np.uint8)
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    radii = (side_px / 2 - 2) * (1.0 - 0.25 * rng.uniform(0, 1, len(angles)))
+    radii = np.convolve(np.r_[radii[-2:], radii, radii[:2]], np.ones(5) / 5, mode="valid")
+    pts = np.column_stack([side_px / 2 + radii * np.cos(angles), side_px / 2 + radii * np.sin(angles)])
+    cv2.fillPoly(alpha, [np.round(pts * 16).astype(np.int32)], 255, lineType=cv2.LINE_AA, shift=4)
+    level = rng.choice([rng.uniform(20, 90), rng.uniform(160, 250)]) if level is None else level
+    texture = make_texture(solid_texture(rng, (side_px, side_px), level, 8.0), alpha)
+    diameter = 2 * radius_fraction * s * side_px / (side_px - 4)
+    corners = rectangle_corners(lift(T_world_marker, OCCLUDER_LIFT_M), diameter, diameter, tuple(centre))
+    return TexturedQuad(corners, texture)
+
+
+def _outer_reach_m(marker: MarkerTexture, size_m: float) -> float:
+    """Distance from the marker centre to the texture's outer edge, metres (max over sides)."""
+    A = texture_to_marker(marker, size_m)
+    h, w = marker.image.shape
+    outer = np.array([[-0.5, -0.5, 1.0], [w - 0.5, h - 0.5, 1.0]]) @ A.T
+    return float(np.abs(outer[:, :2]).max())
+
+
+def _flat_occluder(rng, T_world_marker, width_m, height_m, centre_xy, level) -> TexturedQuad:
+    level = rng.uniform(30, 230) if level is None else level
+    texture = make_texture(solid_texture(rng, (64, 64), level))
+    corners = rectangle_corners(lift(T_world_marker, OCCLUDER_LIFT_M), width_m, height_m, centre_xy)
+    return TexturedQuad(corners, texture)
+
+
+def person_alpha(height_px: int = 256) -> np.ndarray:
+    """(H, W) uint8 coverage of a standing person seen from the front (W = H / 2)."""
+    h = height_px
+    w = h // 2
+    alpha = np.zeros((h, w), np.uint8)
+    cx = w / 2
+    aa = cv2.LINE_AA
+    cv2.ellipse(alpha, (int(cx), int(0.09 * h)), (int(0.085 * h), int(0.09 * h)), 0, 0, 360, 255, -1, aa)
+    torso = np.array([[cx - 0.16 * h, 0.2 * h], [cx + 0.16 * h, 0.2 * h], [cx + 0.13 * h, 0.56 * h],
+                      [cx - 0.13 * h, 0.56 * h]], np.int32)
+    cv2.fillConvexPoly(alpha, torso, 255, aa)
+    for sign in (-1, 1):
+        arm = np.array([[cx + sign * 0.16 * h, 0.21 * h], [cx + sign * 0.23 * h, 0.22 * h],
+                        [cx + sign * 0.21 * h, 0.52 * h], [cx + sign * 0.15 * h, 0.5 * h]], np.int32)
+        cv2.fillConvexPoly(alpha, arm, 255, aa)
+        leg = np.array([[cx + sign * 0.01 * h, 0.55 * h], [cx + sign * 0.13 * h, 0.55 * h],
+                        [cx + sign * 0.11 * h, 0.99 * h], [cx + sign * 0.03 * h, 0.99 * h]], np.int32)
+        cv2.fillConvexPoly(alpha, leg, 255, aa)
+    return alpha
+
+
+def person_occluder(rng: np.random.Generator, T_world_plane: np.ndarray, height_m: float = 1.75) -> TexturedQuad:
+    """A person-shaped upright silhouette in the plane's z = 0 plane, feet at the plane origin.
+
+    The plane's +y is up; the silhouette is two-sided.
+    """
+    alpha = person_alpha(256)
+    shade = solid_texture(rng, (alpha.shape[1], alpha.shape[0]), rng.uniform(40, 140), 25.0)
+    corners = rectangle_corners(T_world_plane, height_m / 2, height_m, (0.0, height_m / 2))
+    return TexturedQuad(corners, make_texture(shade, alpha))
+
+
+def box_occluder(rng: np.random.Generator, T_world_plane: np.ndarray, width_m: float,
+                 height_m: float) -> TexturedQuad:
+    """A cardboard box face (with a tape line) in the plane's z = 0 plane, bottom edge at the origin."""
+    w_px, h_px = 128, max(int(128 * height_m / width_m) // 2 * 2, 8)
+    face = solid_texture(rng, (w_px, h_px), rng.uniform(110, 190), 15.0)
+    tape = slice(max(h_px // 2 - h_px // 16, 0), h_px // 2 + h_px // 16)
+    face[tape, :] = np.clip(face[tape, :].astype(int) + 35, 0, 255).astype(np.uint8)
+    corners = rectangle_corners(T_world_plane, width_m, height_m, (0.0, height_m / 2))
+    return TexturedQuad(corners, make_texture(face))
