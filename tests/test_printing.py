@@ -352,6 +352,15 @@ def render_page(pdf_path: Path, page: int, dpi: int) -> np.ndarray:
     return cv2.imread(str(out.with_suffix(".pgm")), cv2.IMREAD_GRAYSCALE)
 
 
+def text_boxes_mm(pdf_path: Path, page: int) -> list[tuple[str, float, float, float, float]]:
+    """Words of page ``page`` with poppler's boxes (x0, y0, x1, y1 in mm from the top-left corner),
+    measured with poppler's own metrics of the standard fonts."""
+    xhtml = subprocess.run([poppler("pdftotext"), "-bbox", "-f", str(page), "-l", str(page), str(pdf_path), "-"],
+                           check=True, capture_output=True, text=True, timeout=60).stdout
+    words = re.findall(r'<word xMin="(\S+)" yMin="(\S+)" xMax="(\S+)" yMax="(\S+)">(.*?)</word>', xhtml)
+    return [(text, *(float(v) / PT_PER_MM for v in box)) for *box, text in words]
+
+
 def test_pdf_sheet_is_valid_and_draws_markers_at_exact_scale(tmp_path):
     assert run_markers(tmp_path, "--symbols", "A,B,7", "--format", "pdf", "--size-mm", "30") == 0
     (pdf_path,) = tmp_path.glob("*.pdf")
@@ -420,6 +429,34 @@ def test_pdf_rendered_by_poppler_has_35_mm_inner_squares_where_the_layout_puts_t
     bar = np.split(black, np.flatnonzero(np.diff(black) > 1) + 1)[0]  # the footer text follows the bar
     assert bar[0] * mm_per_px == pytest.approx(8.0, abs=0.05)
     assert len(bar) * mm_per_px == pytest.approx(50.0, abs=0.05)
+
+
+def test_a_long_label_fits_its_slot_by_the_font_metrics(tmp_path):
+    # tiny markers, so the longest details line sets the slot width: 4.123456 mm in 6 decimals
+    assert run_markers(tmp_path, "--all", "--format", "pdf", "--dictionary", "8x8", "--parity", "4",
+                       "--size-mm", "4.123456") == 0
+    (pdf_path,) = tmp_path.glob("*.pdf")
+    words = text_boxes_mm(pdf_path, 1)
+    label = "parity 4, 8x8, inner square 4.123456 mm".split()
+    starts = [i for i, (text, *_) in enumerate(words) if text == "parity"]
+    assert len(starts) > 4
+    rows = {}
+    for i in starts:
+        line = words[i:i + len(label)]
+        assert [text for text, *_ in line] == label
+        rows.setdefault(round(line[0][2], 2), []).append((line[0][1], line[-1][3]))  # x0, x1 (mm) per row
+    # the black square spans the grid's columns, centred in it
+    column_centres_mm = sorted({round((min(x for x, *_ in rects) + max(x + w for x, _, w, _ in rects)) / 2 / PT_PER_MM, 4)
+                                for rects, _ in pdf_drawings(pdf_path)[0][1].groups})
+    for spans in rows.values():
+        spans.sort()
+        assert spans[0][0] >= printing.PAGE_MARGIN_MM and spans[-1][1] <= 210 - printing.PAGE_MARGIN_MM
+        gaps = [next_x0 - x1 for (_, x1), (next_x0, _) in zip(spans, spans[1:])]
+        # labels in neighbouring slots keep the 1 mm slot spacing between them: each fits its
+        # slot, and the slot is no wider than the label (measured, not estimated per character)
+        np.testing.assert_allclose(gaps, 1.0, atol=0.01)
+        # each label is centred under its marker
+        np.testing.assert_allclose([(x0 + x1) / 2 for x0, x1 in spans], column_centres_mm, atol=0.01)
 
 
 # ------------------------------------------------------------------ errors
