@@ -3,9 +3,12 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import struct
+import subprocess
 import xml.etree.ElementTree as ET
 import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -18,7 +21,6 @@ from companion import cli
 from companion.markers import printing
 from companion.markers.dictionary import load_dictionary
 from companion.markers.layout import MarkerLayout
-from companion.markers.pdf import PT_PER_MM
 
 SYMBOLS = ["A", "B", "7", "HOME"]
 
@@ -178,6 +180,10 @@ def test_cell_runs_rebuild_the_grid_with_maximal_runs(rows):
 
 # --------------------------------------------------------------------- PDF
 
+PT_PER_MM = 72 / 25.4  # PDF user space unit: 1/72 inch
+CONTENT_TOKEN = re.compile(r"\((?:\\.|[^\\)])*\)|\[|\]|[^\s\[\]()]+")
+
+
 def pdf_objects(data: bytes) -> dict[int, bytes]:
     """Objects found through the xref table; asserts every offset lands on ``N 0 obj``."""
     assert data.startswith(b"%PDF-1.") and data.rstrip().endswith(b"%%EOF")
@@ -203,34 +209,97 @@ def pdf_pages(objects: dict[int, bytes]) -> list[tuple[tuple[float, float], str]
     """(MediaBox width, height in pt) and the content stream text of every page, in page order."""
     catalog = next(o for o in objects.values() if b"/Type /Catalog" in o)
     pages_ref = int(re.search(rb"/Pages (\d+) 0 R", catalog).group(1))
-    kids = [int(k) for k in re.findall(rb"(\d+) 0 R", re.search(rb"/Kids \[(.*?)\]", objects[pages_ref]).group(1))]
+    kids = [int(k) for k in re.findall(rb"(\d+) 0 R", re.search(rb"/Kids \[(.*?)\]", objects[pages_ref], re.S).group(1))]
     assert int(re.search(rb"/Count (\d+)", objects[pages_ref]).group(1)) == len(kids)
     pages = []
     for kid in kids:
         page = objects[kid]
         box = [float(v) for v in re.search(rb"/MediaBox \[([^\]]*)\]", page).group(1).split()]
         content = objects[int(re.search(rb"/Contents (\d+) 0 R", page).group(1))]
+        assert b"/Filter" not in content  # uncompressed: readable here
         length = int(re.search(rb"/Length (\d+)", content).group(1))
         stream = content[content.index(b"stream\n") + 7:]
-        assert stream[length:] == b"endstream"
-        pages.append(((box[2], box[3]), stream[:length].decode("ascii")))
+        assert stream[length:].strip() == b"endstream"
+        pages.append(((box[2], box[3]), stream[:length].decode("latin-1")))
     return pages
 
 
-def marker_groups(content: str) -> list[tuple[list, list]]:
-    """Per q ... Q group: rects (x, y, w, h) and circles (4 Bezier end points), in pt, y up."""
-    groups = []
-    for block in re.findall(r"^q\n(.*?)^Q$", content, re.S | re.M):
-        rects = [tuple(map(float, m)) for m in re.findall(r"^(\S+) (\S+) (\S+) (\S+) re$", block, re.M)]
-        circles = []
-        for start, path in re.findall(r"^(\S+ \S+) m\n((?:.* c\n){4})h$", block, re.M):
-            # (4 arcs, 4 points: start, control, control, end, 2)
-            controls = np.array([line.split()[:6] for line in path.strip().split("\n")], float).reshape(4, 3, 2)
-            starts = np.vstack([[float(v) for v in start.split()], controls[:-1, 2]])
-            assert np.array_equal(starts[0], controls[-1, 2])  # a closed outline
-            circles.append(np.concatenate([starts[:, None], controls], axis=1))
-        groups.append((rects, circles))
-    return groups
+def pdf_string(token: str) -> str:
+    """The text of a PDF literal string token ``(...)`` (backslash escapes of ( ) and \\)."""
+    return re.sub(r"\\(.)", r"\1", token[1:-1])
+
+
+@dataclass
+class PageDrawing:
+    """What a page's content stream paints, in pt, PDF y up.
+
+    groups: per top-level q ... Q block, the filled rectangles (x, y, w, h) and circles
+    ((4 arcs, start + 2 controls + end, 2) Bezier points) inside it; rects: filled rectangles
+    outside any block; segments: stroked lines (x0, y0, x1, y1); texts: (x, y, size, text).
+    """
+
+    groups: list[tuple[list, list]] = field(default_factory=list)
+    rects: list[tuple[float, ...]] = field(default_factory=list)
+    segments: list[tuple[float, ...]] = field(default_factory=list)
+    texts: list[tuple[float, float, float, str]] = field(default_factory=list)
+
+
+def read_content(content: str) -> PageDrawing:
+    """Interpret the operators the sheets use; anything that is not a vector shape or text fails."""
+    page, depth, path, operands = PageDrawing(), 0, [], []
+    font_pt = text_x = text_y = None
+    for token in CONTENT_TOKEN.findall(content):
+        if token.startswith(("(", "/")) or token in "[]":
+            operands.append(pdf_string(token) if token.startswith("(") else token)
+            continue
+        try:
+            operands.append(float(token))
+            continue
+        except ValueError:
+            op, args, operands = token, operands, []
+        if op == "cm":
+            assert args == [1, 0, 0, 1, 0, 0], args  # page coordinates stay page coordinates
+        elif op == "q":
+            depth += 1
+            if depth == 1:
+                page.groups.append(([], []))
+        elif op == "Q":
+            depth -= 1
+        elif op == "re":
+            path.append(("re", tuple(args)))
+        elif op == "m":
+            path.append(("m", [tuple(args)]))
+        elif op in ("l", "c"):
+            path[-1][1].append(tuple(args))
+        elif op in ("f", "f*"):
+            assert op == "f", "filled with the nonzero winding rule"
+            rects, circles = page.groups[-1] if depth else (page.rects, [])
+            for kind, points in path:
+                if kind == "re":
+                    rects.append(points)
+                else:
+                    start, arcs = points[0], np.array(points[1:], float).reshape(-1, 3, 2)
+                    assert len(arcs) == 4 and np.array_equal(arcs[-1, 2], start)  # a closed 4-arc outline
+                    starts = np.vstack([start, arcs[:-1, 2]])
+                    circles.append(np.concatenate([starts[:, None], arcs], axis=1))
+            path = []
+        elif op == "S":
+            page.segments += [a + b for kind, (a, b) in path]
+            path = []
+        elif op == "Tf":
+            font_pt = args[1]
+        elif op == "Tm":
+            text_x, text_y = args[4:6]
+        elif op == "Td":  # right after BT: from the origin
+            text_x, text_y = args
+        elif op == "Tj":
+            page.texts.append((text_x, text_y, font_pt, args[0]))
+        elif op in ("Do", "BI", "sh"):
+            raise AssertionError(f"{op}: an image or shading where vector shapes belong")
+        else:
+            assert op in ("n", "h", "w", "BT", "ET", "TL", "T*", "g", "G", "rg", "RG"), op
+    assert depth == 0 and not path
+    return page
 
 
 def check_marker_geometry(rects, circles, layout: MarkerLayout, marker_id: int, size_mm: float) -> None:
@@ -265,44 +334,129 @@ def check_marker_geometry(rects, circles, layout: MarkerLayout, marker_id: int, 
     np.testing.assert_allclose(np.array(drawn) / cell, layout.circles, atol=1e-3)
 
 
+def pdf_drawings(pdf_path: Path) -> list[tuple[tuple[float, float], PageDrawing]]:
+    return [(box, read_content(content)) for box, content in pdf_pages(pdf_objects(pdf_path.read_bytes()))]
+
+
+def poppler(tool: str) -> str:
+    path = shutil.which(tool)
+    assert path, f"{tool} is needed for this test (apt-get install poppler-utils)"
+    return path
+
+
+def render_page(pdf_path: Path, page: int, dpi: int) -> np.ndarray:
+    """Page ``page`` (1-based) rasterised by poppler as an 8-bit gray image."""
+    out = pdf_path.with_name(f"page{page}")
+    subprocess.run([poppler("pdftoppm"), "-r", str(dpi), "-gray", "-f", str(page), "-l", str(page), "-singlefile",
+                    str(pdf_path), str(out)], check=True, timeout=120)
+    return cv2.imread(str(out.with_suffix(".pgm")), cv2.IMREAD_GRAYSCALE)
+
+
+def text_boxes_mm(pdf_path: Path, page: int) -> list[tuple[str, float, float, float, float]]:
+    """Words of page ``page`` with poppler's boxes (x0, y0, x1, y1 in mm from the top-left corner),
+    measured with poppler's own metrics of the standard fonts."""
+    xhtml = subprocess.run([poppler("pdftotext"), "-bbox", "-f", str(page), "-l", str(page), str(pdf_path), "-"],
+                           check=True, capture_output=True, text=True, timeout=60).stdout
+    words = re.findall(r'<word xMin="(\S+)" yMin="(\S+)" xMax="(\S+)" yMax="(\S+)">(.*?)</word>', xhtml)
+    return [(text, *(float(v) / PT_PER_MM for v in box)) for *box, text in words]
+
+
 def test_pdf_sheet_is_valid_and_draws_markers_at_exact_scale(tmp_path):
     assert run_markers(tmp_path, "--symbols", "A,B,7", "--format", "pdf", "--size-mm", "30") == 0
     (pdf_path,) = tmp_path.glob("*.pdf")
-    objects = pdf_objects(pdf_path.read_bytes())
-    pages = pdf_pages(objects)
-    assert len(pages) == 1
-    (width_pt, height_pt), content = pages[0]
+    assert b"/BaseFont /Helvetica" in pdf_path.read_bytes()
+    ((width_pt, height_pt), page), = pdf_drawings(pdf_path)
     assert (width_pt, height_pt) == pytest.approx((210 * PT_PER_MM, 297 * PT_PER_MM), abs=1e-3)
     layout = MarkerLayout(2)
-    groups = marker_groups(content)
-    assert len(groups) == 3
-    for symbol, (rects, circles) in zip(("A", "B", "7"), groups):
+    assert len(page.groups) == 3
+    texts = [text for *_, text in page.texts]
+    for symbol, (rects, circles) in zip(("A", "B", "7"), page.groups):
         marker_id = layout.dictionary.id_of(symbol)
         check_marker_geometry(rects, circles, layout, marker_id, 30.0)
-        assert f"({symbol}   id {marker_id}) Tj" in content
-    assert content.count("(parity 2, 6x6, inner square 30 mm) Tj") == 3
-    assert len(re.findall(r" l S$", content, re.M)) == 3 * 8  # crop marks: 2 per corner
-    assert b"/BaseFont /Helvetica" in b"".join(objects.values())
+        assert f"{symbol}   id {marker_id}" in texts
+    assert texts.count("parity 2, 6x6, inner square 30 mm") == 3
+    assert len(page.segments) == 3 * 8  # crop marks: 2 per corner
+    # the scale bar: 50 x 1 mm, 8 mm from the left and 8.5 mm from the bottom edge
+    np.testing.assert_allclose(np.array(page.rects) / PT_PER_MM, [[8, 8.5, 50, 1]], atol=1e-3)
 
 
 def test_pdf_all_markers_fill_letter_pages_inside_the_margins(tmp_path):
     assert run_markers(tmp_path, "--all", "--format", "pdf", "--parity", "4", "--page", "letter") == 0
     (pdf_path,) = tmp_path.glob("*.pdf")
-    pages = pdf_pages(pdf_objects(pdf_path.read_bytes()))
+    pages = pdf_drawings(pdf_path)
     layout = MarkerLayout(4)
     labels = []
-    for (width_pt, height_pt), content in pages:
+    for (width_pt, height_pt), page in pages:
         assert (width_pt, height_pt) == pytest.approx((215.9 * PT_PER_MM, 279.4 * PT_PER_MM), abs=1e-3)
-        for rects, circles in marker_groups(content):
+        for rects, circles in page.groups:
             assert len(circles) == 12
             xs = np.array([(x, x + w) for x, _, w, _ in rects]) / PT_PER_MM
             assert xs.min() >= printing.PAGE_MARGIN_MM and xs.max() <= 215.9 - printing.PAGE_MARGIN_MM
-        labels += re.findall(r"\((\S+)   id (\d+)\) Tj", content)
+        labels += [re.fullmatch(r"(\S+)   id (\d+)", text).groups() for *_, text in page.texts if " id " in text]
     assert [(s, int(i)) for s, i in labels] == [(s, i) for i, s in enumerate(layout.dictionary.symbols)]
-    per_page = printing.sheet_geometry(printing.MarkerPrint(layout, 0, 35.0, 1), "letter").per_page
-    assert len(pages) == -(-50 // per_page)
-    rects, circles = marker_groups(pages[-1][1])[-1]
+    # 35 mm inner square, parity 4: a 20-cell, 87.5 mm cut square; slot 87.5 + 2 x 4 mm crop marks wide
+    # and 8 mm more (two label lines) high: 2 columns and 2 rows in 199.9 x 255.4 mm inside the margins
+    assert len(pages) == 13 and [len(page.groups) for _, page in pages] == [4] * 12 + [2]
+    rects, circles = pages[-1][1].groups[-1]
     check_marker_geometry(rects, circles, layout, 49, 35.0)
+
+
+def test_pdf_rendered_by_poppler_has_35_mm_inner_squares_where_the_layout_puts_them(tmp_path):
+    assert run_markers(tmp_path, "--all", "--format", "pdf") == 0
+    (pdf_path,) = tmp_path.glob("*.pdf")
+    dpi = 600
+    image = render_page(pdf_path, 1, dpi)
+    assert image.shape == (round(297 / 25.4 * dpi), round(210 / 25.4 * dpi))
+    mm_per_px = 25.4 / dpi
+    found = aruco_detect(image, "6x6")
+    # By hand for 35 mm, parity 2, A4: a 16-cell, 70 mm cut square in a 78 x 86 mm slot (4 mm of crop
+    # marks each side, 8 mm of labels below); 2 columns centred, (210 - 2 x 78 - 1) / 2 = 26.5 mm from
+    # the left, 3 rows from the 8 mm margin, 1 mm apart; the inner square is 4 cells (17.5 mm) inside.
+    expected_top_left_mm = {k: (26.5 + 4 + 17.5 + 79 * (k % 2), 8 + 4 + 17.5 + 87 * (k // 2)) for k in range(6)}
+    assert sorted(found) == list(expected_top_left_mm)
+    layout = MarkerLayout(2)
+    for marker_id, corners_px in found.items():
+        # corners are pixel-centre coordinates: the edge of pixel 0 is at -0.5
+        corners_mm = (corners_px + 0.5) * mm_per_px
+        sides_mm = np.linalg.norm(corners_mm - np.roll(corners_mm, 1, axis=0), axis=1)
+        assert sides_mm.min() > 34.967 and sides_mm.max() < 35.019, sides_mm
+        np.testing.assert_allclose(corners_mm.min(axis=0), expected_top_left_mm[marker_id], atol=0.03)
+        result = layout.decode(sample_grid(image, layout, corners_px))
+        assert (result.id, result.mismatched_cells, result.erased_cells) == (marker_id, 0, 0)
+    # the scale bar: 1 mm high, its top 297 - 8 - 1.5 mm from the top edge, 50 mm long
+    bar_row = image[round((297 - 8 - 1.0) / mm_per_px)]
+    black = np.flatnonzero(bar_row < 128)
+    bar = np.split(black, np.flatnonzero(np.diff(black) > 1) + 1)[0]  # the footer text follows the bar
+    assert bar[0] * mm_per_px == pytest.approx(8.0, abs=0.05)
+    assert len(bar) * mm_per_px == pytest.approx(50.0, abs=0.05)
+
+
+def test_a_long_label_fits_its_slot_by_the_font_metrics(tmp_path):
+    # tiny markers, so the longest details line sets the slot width: 4.123456 mm in 6 decimals
+    assert run_markers(tmp_path, "--all", "--format", "pdf", "--dictionary", "8x8", "--parity", "4",
+                       "--size-mm", "4.123456") == 0
+    (pdf_path,) = tmp_path.glob("*.pdf")
+    words = text_boxes_mm(pdf_path, 1)
+    label = "parity 4, 8x8, inner square 4.123456 mm".split()
+    starts = [i for i, (text, *_) in enumerate(words) if text == "parity"]
+    assert len(starts) > 4
+    rows = {}
+    for i in starts:
+        line = words[i:i + len(label)]
+        assert [text for text, *_ in line] == label
+        rows.setdefault(round(line[0][2], 2), []).append((line[0][1], line[-1][3]))  # x0, x1 (mm) per row
+    # the black square spans the grid's columns, centred in it
+    column_centres_mm = sorted({round((min(x for x, *_ in rects) + max(x + w for x, _, w, _ in rects)) / 2 / PT_PER_MM, 4)
+                                for rects, _ in pdf_drawings(pdf_path)[0][1].groups})
+    for spans in rows.values():
+        spans.sort()
+        assert spans[0][0] >= printing.PAGE_MARGIN_MM and spans[-1][1] <= 210 - printing.PAGE_MARGIN_MM
+        gaps = [next_x0 - x1 for (_, x1), (next_x0, _) in zip(spans, spans[1:])]
+        # labels in neighbouring slots keep the 1 mm slot spacing between them: each fits its
+        # slot, and the slot is no wider than the label (measured, not estimated per character)
+        np.testing.assert_allclose(gaps, 1.0, atol=0.01)
+        # each label is centred under its marker
+        np.testing.assert_allclose([(x0 + x1) / 2 for x0, x1 in spans], column_centres_mm, atol=0.01)
 
 
 # ------------------------------------------------------------------ errors

@@ -55,9 +55,8 @@ def generate(args: argparse.Namespace) -> int:
 
     if args.format == "pdf":
         path = out_dir / f"markers-p{layout.parity}-{args.dictionary}-{num(size_mm)}mm-{args.page}.pdf"
-        data = markers_pdf(markers, args.page)
-        path.write_bytes(data)
-        n_pages = -(-len(markers) // sheet_geometry(markers[0], args.page).per_page)
+        path.write_bytes(markers_pdf(markers, args.page))
+        n_pages = sheet_geometry(markers, args.page).page_count(len(markers))
         print(f"{path}: {len(markers)} markers on {n_pages} {args.page} page(s), inner square "
               f"{num(size_mm)} mm, cut square {num(markers[0].outer_mm)} mm")
         return 0

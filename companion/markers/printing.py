@@ -14,10 +14,12 @@ Sizes: ``--size-mm`` is the printed side of the inner black square (the
 * SVG: vector, width and height in mm, cells as rectangles (horizontal runs
   merged), circles as circles.
 * PDF: sheets of markers at exact scale on A4 or Letter with crop marks, the
-  symbol, id, parity and inner-square size beside each, and a 50 mm scale bar.
+  symbol, id, parity and inner-square size beside each, and a 50 mm scale bar;
+  drawn with reportlab as vector shapes, labels sized by Helvetica's metrics.
 """
 from __future__ import annotations
 
+import io
 import json
 import struct
 import zlib
@@ -26,10 +28,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from reportlab.lib.units import mm as PT_PER_MM  # 72 / 25.4 points per millimetre
+from reportlab.pdfbase.pdfmetrics import stringWidth
+from reportlab.pdfgen.canvas import FILL_NON_ZERO, Canvas
 
 from companion.markers.dictionary import DictionaryError
 from companion.markers.layout import MarkerLayout, cell_point_to_px, marker_image
-from companion.markers.pdf import PdfPage, text_width_mm, write_pdf
 
 MM_PER_INCH = 25.4
 PAGES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4)}
@@ -229,6 +233,55 @@ def marker_svg(marker: MarkerPrint) -> str:
 
 # --------------------------------------------------------------------- PDF
 
+# One of the 14 standard PDF fonts: every reader has it, nothing is embedded, and
+# reportlab carries its Adobe metrics, so label widths are measured, not guessed.
+LABEL_FONT = "Helvetica"
+FOOTER_TEXT_PT = 6.5
+
+
+def text_width_mm(text: str, size_pt: float) -> float:
+    """Printed width of ``text`` in the label font at ``size_pt``, from the font's glyph widths."""
+    return stringWidth(text, LABEL_FONT, size_pt) / PT_PER_MM
+
+
+@dataclass(frozen=True)
+class SheetPage:
+    """The current page of a reportlab canvas, addressed in mm from the page's top-left corner, y down
+    (like the marker grid); reportlab's user space is in points from the bottom-left corner, y up."""
+
+    canvas: Canvas
+    width_mm: float
+    height_mm: float
+
+    def point(self, x_mm: float, y_mm: float) -> tuple[float, float]:
+        return x_mm * PT_PER_MM, (self.height_mm - y_mm) * PT_PER_MM
+
+    def fill_rects(self, rects_mm: list[tuple[float, float, float, float]]) -> None:
+        """Fill rectangles (top-left x, y, width, height in mm) black, as one path."""
+        path = self.canvas.beginPath()
+        for x, y, width, height in rects_mm:
+            # PDF "re" takes the lower-left corner and a positive height upward.
+            path.rect(*self.point(x, y + height), width * PT_PER_MM, height * PT_PER_MM)
+        self.canvas.drawPath(path, stroke=0, fill=1, fillMode=FILL_NON_ZERO)
+
+    def fill_circles(self, circles_mm: list[tuple[float, float, float]]) -> None:
+        """Fill circles (centre x, y, radius in mm) black, as one path of Bezier quarter arcs."""
+        path = self.canvas.beginPath()
+        for cx, cy, radius in circles_mm:
+            path.circle(*self.point(cx, cy), radius * PT_PER_MM)
+        self.canvas.drawPath(path, stroke=0, fill=1, fillMode=FILL_NON_ZERO)
+
+    def lines(self, segments_mm: list[tuple[float, float, float, float]], width_mm: float) -> None:
+        """Stroke black line segments (x0, y0, x1, y1 in mm)."""
+        self.canvas.setLineWidth(width_mm * PT_PER_MM)
+        self.canvas.lines([(*self.point(x0, y0), *self.point(x1, y1)) for x0, y0, x1, y1 in segments_mm])
+
+    def text(self, x_mm: float, baseline_mm: float, text: str, size_pt: float) -> None:
+        """Black label-font text starting at x with its baseline at ``baseline_mm``."""
+        self.canvas.setFont(LABEL_FONT, size_pt)
+        self.canvas.drawString(*self.point(x_mm, baseline_mm), text)
+
+
 @dataclass(frozen=True)
 class SheetGeometry:
     """Where marker slots go on a page (mm). A slot holds the cut square, its crop marks and label."""
@@ -242,6 +295,9 @@ class SheetGeometry:
     def per_page(self) -> int:
         return self.columns * self.rows
 
+    def page_count(self, n_markers: int) -> int:
+        return -(-n_markers // self.per_page)
+
 
 def marker_labels(marker: MarkerPrint) -> tuple[str, str]:
     layout = marker.layout
@@ -249,14 +305,21 @@ def marker_labels(marker: MarkerPrint) -> tuple[str, str]:
             f"parity {layout.parity}, {layout.data_size}x{layout.data_size}, inner square {num(marker.size_mm)} mm")
 
 
-def sheet_geometry(marker: MarkerPrint, page: str) -> SheetGeometry:
-    """Grid of equal slots that fits the page inside its margins and footer."""
+def label_width_mm(marker: MarkerPrint) -> float:
+    """Width of the marker's widest label line."""
+    return max(text_width_mm(text, size_pt) for text, size_pt in zip(marker_labels(marker), LABEL_SIZES_PT))
+
+
+def sheet_geometry(markers: list[MarkerPrint], page: str) -> SheetGeometry:
+    """Grid of equal slots, wide enough for the widest label, that fits the page inside its margins and footer.
+
+    All ``markers`` share layout, size and quiet zone.
+    """
+    marker = markers[0]
     page_w, page_h = PAGES_MM[page]
     mark_reach = CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
-    labels = marker_labels(marker)
-    label_w = max(text_width_mm(text, size) for text, size in zip(labels, LABEL_SIZES_PT))
-    slot_w = max(marker.outer_mm + 2 * mark_reach, label_w)
-    slot_h = marker.outer_mm + 2 * mark_reach + len(labels) * LABEL_LINE_MM
+    slot_w = max(marker.outer_mm + 2 * mark_reach, max(label_width_mm(m) for m in markers))
+    slot_h = marker.outer_mm + 2 * mark_reach + len(LABEL_SIZES_PT) * LABEL_LINE_MM
     usable_w = page_w - 2 * PAGE_MARGIN_MM
     usable_h = page_h - 2 * PAGE_MARGIN_MM - FOOTER_MM
     # n slots need n w + (n - 1) spacing <= usable
@@ -269,73 +332,77 @@ def sheet_geometry(marker: MarkerPrint, page: str) -> SheetGeometry:
     return SheetGeometry((page_w, page_h), (slot_w, slot_h), columns, rows)
 
 
-def draw_marker(pdf: PdfPage, marker: MarkerPrint, x_mm: float, y_mm: float) -> None:
-    """Draw the marker's cells and circles with the cut square's top-left at (x, y) mm."""
+def draw_marker(sheet: SheetPage, marker: MarkerPrint, x_mm: float, y_mm: float) -> None:
+    """Draw the marker's cells and circles with the cut square's top-left at (x, y) mm, as one q/Q group."""
     cell, q = marker.cell_mm, marker.quiet_zone_cells
     layout = marker.layout
-    pdf.begin_group()
-    for row, column, length in cell_runs(layout.cells(marker.marker_id)):
-        pdf.rect(x_mm + (column + q) * cell, y_mm + (row + q) * cell, length * cell, cell)
-    pdf.fill()
+    sheet.canvas.saveState()  # PDF q ... Q: one marker, one group
+    sheet.fill_rects([(x_mm + (column + q) * cell, y_mm + (row + q) * cell, length * cell, cell)
+                      for row, column, length in cell_runs(layout.cells(marker.marker_id))])
     circles = np.asarray(layout.circles, dtype=float).reshape(-1, 3)
-    for u, v, radius in circles:
-        pdf.circle(x_mm + (u + q) * cell, y_mm + (v + q) * cell, radius * cell)
     if len(circles):
-        pdf.fill()
-    pdf.end_group()
+        sheet.fill_circles([(x_mm + (u + q) * cell, y_mm + (v + q) * cell, radius * cell)
+                            for u, v, radius in circles])
+    sheet.canvas.restoreState()
 
 
-def draw_crop_marks(pdf: PdfPage, x_mm: float, y_mm: float, side_mm: float) -> None:
+def draw_crop_marks(sheet: SheetPage, x_mm: float, y_mm: float, side_mm: float) -> None:
     """Two short lines outside each corner of the square, along its edges' extensions."""
     near, far = CROP_MARK_GAP_MM, CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
+    segments = []
     for cx, sx in ((x_mm, -1), (x_mm + side_mm, 1)):
         for cy, sy in ((y_mm, -1), (y_mm + side_mm, 1)):
-            pdf.line(cx + sx * near, cy, cx + sx * far, cy, CROP_MARK_WIDTH_MM)
-            pdf.line(cx, cy + sy * near, cx, cy + sy * far, CROP_MARK_WIDTH_MM)
+            segments += [(cx + sx * near, cy, cx + sx * far, cy), (cx, cy + sy * near, cx, cy + sy * far)]
+    sheet.lines(segments, CROP_MARK_WIDTH_MM)
 
 
-def draw_footer(pdf: PdfPage, page_index: int, n_pages: int) -> None:
-    width, height = pdf.width_mm, pdf.height_mm
-    bar_y = height - PAGE_MARGIN_MM - 1.5
-    pdf.rect(PAGE_MARGIN_MM, bar_y, SCALE_BAR_MM, 1.0)
-    pdf.fill()
-    pdf.text(PAGE_MARGIN_MM + SCALE_BAR_MM + 3.0, bar_y + 1.0,
-             f"this bar is {num(SCALE_BAR_MM)} mm: print at 100 % (no fit to page)", 6.5)
+def draw_footer(sheet: SheetPage, page_index: int, n_pages: int) -> None:
+    bar_y = sheet.height_mm - PAGE_MARGIN_MM - 1.5
+    sheet.fill_rects([(PAGE_MARGIN_MM, bar_y, SCALE_BAR_MM, 1.0)])
+    sheet.text(PAGE_MARGIN_MM + SCALE_BAR_MM + 3.0, bar_y + 1.0,
+               f"this bar is {num(SCALE_BAR_MM)} mm: print at 100 % (no fit to page)", FOOTER_TEXT_PT)
     page_text = f"companion RS markers, page {page_index + 1}/{n_pages}"
-    pdf.text(width - PAGE_MARGIN_MM - text_width_mm(page_text, 6.5), bar_y + 1.0, page_text, 6.5)
+    sheet.text(sheet.width_mm - PAGE_MARGIN_MM - text_width_mm(page_text, FOOTER_TEXT_PT), bar_y + 1.0,
+               page_text, FOOTER_TEXT_PT)
 
 
 def markers_pdf(markers: list[MarkerPrint], page: str = "a4") -> bytes:
     """A PDF of marker sheets (all ``markers`` share layout, size and quiet zone)."""
-    geometry = sheet_geometry(markers[0], page)
+    geometry = sheet_geometry(markers, page)
+    n_pages = geometry.page_count(len(markers))
     mark_reach = CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
+    page_w, page_h = geometry.page_mm
     slot_w, slot_h = geometry.slot_mm
     # centre the columns on the page
-    left_mm = (geometry.page_mm[0] - geometry.columns * (slot_w + SLOT_SPACING_MM) + SLOT_SPACING_MM) / 2
-    pages = []
-    for start in range(0, len(markers), geometry.per_page):
-        pdf = PdfPage(*geometry.page_mm)
+    left_mm = (page_w - geometry.columns * (slot_w + SLOT_SPACING_MM) + SLOT_SPACING_MM) / 2
+    out = io.BytesIO()
+    # Uncompressed content streams stay readable and checkable; invariant: the same
+    # markers give the same bytes (fixed dates and document id).
+    canvas = Canvas(out, pagesize=(page_w * PT_PER_MM, page_h * PT_PER_MM), pageCompression=0, invariant=1)
+    first = markers[0]
+    canvas.setTitle(f"RS markers, parity {first.layout.parity}, {first.layout.data_size}x{first.layout.data_size}, "
+                    f"inner square {num(first.size_mm)} mm")
+    canvas.setCreator("companion markers")
+    canvas.setProducer("companion markers (reportlab)")
+    sheet = SheetPage(canvas, page_w, page_h)
+    for page_index in range(n_pages):
+        start = page_index * geometry.per_page
         for k, marker in enumerate(markers[start:start + geometry.per_page]):
             row, column = divmod(k, geometry.columns)
             slot_x = left_mm + column * (slot_w + SLOT_SPACING_MM)
             slot_y = PAGE_MARGIN_MM + row * (slot_h + SLOT_SPACING_MM)
             x = slot_x + (slot_w - marker.outer_mm) / 2
             y = slot_y + mark_reach
-            draw_marker(pdf, marker, x, y)
-            draw_crop_marks(pdf, x, y, marker.outer_mm)
-            labels = marker_labels(marker)
-            label_w = max(text_width_mm(text, size_pt) for text, size_pt in zip(labels, LABEL_SIZES_PT))
-            label_x = min(x, slot_x + (slot_w - label_w) / 2)  # under the marker, inside the slot
+            draw_marker(sheet, marker, x, y)
+            draw_crop_marks(sheet, x, y, marker.outer_mm)
+            label_x = min(x, slot_x + (slot_w - label_width_mm(marker)) / 2)  # under the marker, inside the slot
             baseline = y + marker.outer_mm + mark_reach + LABEL_LINE_MM - 0.5
-            for line, (text, size_pt) in enumerate(zip(labels, LABEL_SIZES_PT)):
-                pdf.text(label_x, baseline + line * LABEL_LINE_MM, text, size_pt)
-        pages.append(pdf)
-    for index, pdf in enumerate(pages):
-        draw_footer(pdf, index, len(pages))
-    first = markers[0]
-    title = (f"RS markers, parity {first.layout.parity}, {first.layout.data_size}x{first.layout.data_size}, "
-             f"inner square {num(first.size_mm)} mm")
-    return write_pdf(pages, title)
+            for line, (text, size_pt) in enumerate(zip(marker_labels(marker), LABEL_SIZES_PT)):
+                sheet.text(label_x, baseline + line * LABEL_LINE_MM, text, size_pt)
+        draw_footer(sheet, page_index, n_pages)
+        canvas.showPage()
+    canvas.save()
+    return out.getvalue()
 
 
 # --------------------------------------------------------------------- CLI
