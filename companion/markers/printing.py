@@ -14,7 +14,7 @@ Sizes: ``--size-mm`` is the printed side of the inner black square (the
 * SVG: vector, width and height in mm, cells as rectangles (horizontal runs
   merged), circles as circles.
 * PDF: sheets of markers at exact scale on A4 or Letter with crop marks, the
-  symbol, id, parity and inner-square size beside each, and a 50 mm scale bar;
+  symbol, id, parity and inner-square size below each, and a 50 mm scale bar;
   drawn with reportlab as vector shapes, labels sized by Helvetica's metrics.
 """
 from __future__ import annotations
@@ -403,6 +403,3 @@ def markers_pdf(markers: list[MarkerPrint], page: str = "a4") -> bytes:
         canvas.showPage()
     canvas.save()
     return out.getvalue()
-
-
-# --------------------------------------------------------------------- CLI
