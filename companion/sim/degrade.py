@@ -12,7 +12,9 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from companion.sim.raster import RenderError
+
+class DegradationError(ValueError):
+    """A degradation knob out of its range, or an image step that failed; the message names it."""
 
 
 def gaussian_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -84,7 +86,7 @@ def jpeg(image: np.ndarray, quality: int) -> np.ndarray:
     """The image after a JPEG encode/decode round trip at ``quality`` (1..100)."""
     ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
-        raise RenderError(f"JPEG encoding failed at quality {quality}")
+        raise DegradationError(f"JPEG encoding failed at quality {quality}")
     return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
 
 

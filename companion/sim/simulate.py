@@ -26,12 +26,13 @@ import numpy as np
 import yaml
 
 from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import FacilityMap
+from companion.markers.layout import MarkerLayout
 from companion.sim import degrade
 from companion.sim import occluders
 from companion.sim import raster
 from companion.sim import trajectory as trajectories
-from companion.geometry.camera import CameraModel
-from companion.geometry.facility_map import FacilityMap
 from companion.yaml_input import read_yaml
 
 DEFAULT_CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,
@@ -74,8 +75,6 @@ class World:
 
 def build_world(facility_map: FacilityMap, seed: int = 0) -> World:
     """Markers on sheets, shelf faces or walls behind marker groups, floor, ceiling and walls."""
-    from companion.markers.layout import MarkerLayout
-
     rng = np.random.default_rng(seed)
     layout = MarkerLayout(parity=facility_map.parity)
     markers = sorted(facility_map.markers.values(), key=lambda m: m.id)
@@ -115,12 +114,12 @@ class _SurfaceTextures:
         self.rng = rng
         self.floor = [raster.make_texture(self._concrete(256)) for _ in range(3)]
         self.wall = [raster.make_texture(self._blocks(256)) for _ in range(2)]
-        self.ceiling = raster.make_texture(occluders.solid_texture(rng, (64, 64), 200.0, 10.0))
-        self.sheet = raster.make_texture(occluders.solid_texture(rng, (64, 64), 235.0, 6.0))
+        self.ceiling = raster.make_texture(raster.solid_texture(rng, (64, 64), 200.0, 10.0))
+        self.sheet = raster.make_texture(raster.solid_texture(rng, (64, 64), 235.0, 6.0))
 
     def _concrete(self, n: int) -> np.ndarray:
         rng = self.rng
-        base = occluders.solid_texture(rng, (n, n), 150.0, 18.0).astype(np.float32)
+        base = raster.solid_texture(rng, (n, n), 150.0, 18.0).astype(np.float32)
         base += 2.0 * cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 1.5)
         for _ in range(3):  # scuffs and cracks
             p0 = rng.integers(0, n, 2)
@@ -132,7 +131,7 @@ class _SurfaceTextures:
 
     def _blocks(self, n: int) -> np.ndarray:
         rng = self.rng
-        wall = occluders.solid_texture(rng, (n, n), 175.0, 8.0)
+        wall = raster.solid_texture(rng, (n, n), 175.0, 8.0)
         course = n // 8
         for row in range(8):
             y = row * course
@@ -145,7 +144,7 @@ class _SurfaceTextures:
     def shelving(self, width_px: int, height_px: int, height_m: float) -> raster.Texture:
         """Rack face: dark interior, boxes on beams every ~0.8 m, uprights at the edges."""
         rng = self.rng
-        face = occluders.solid_texture(rng, (width_px, height_px), 55.0, 10.0)
+        face = raster.solid_texture(rng, (width_px, height_px), 55.0, 10.0)
         px_per_m = height_px / height_m
         beams = np.arange(0.05, height_m, 0.8)
         for z in beams:
@@ -270,37 +269,8 @@ def _sheet_behind(quad: raster.TexturedQuad, scale: float, textures: _SurfaceTex
 
 # ---------------------------------------------------------------- occluders
 
-@dataclass(frozen=True)
-class PassingOccluder:
-    """A person or a box crossing in front of the camera along a straight floor path.
-
-    start_m, velocity_m_s: (3,) feet position at t_start_s and its velocity;
-    facing: (3,) horizontal unit normal of its face; kind: "person" or "box".
-    """
-
-    kind: str
-    t_start_s: float
-    t_end_s: float
-    start_m: np.ndarray
-    velocity_m_s: np.ndarray
-    facing: np.ndarray
-    quad_texture_seed: int
-
-    def quad_at(self, t_s: float) -> raster.TexturedQuad | None:
-        if not (self.t_start_s <= t_s <= self.t_end_s):
-            return None
-        feet = self.start_m + (t_s - self.t_start_s) * self.velocity_m_s
-        # plane frame: z = facing, y = up, x = y cross z
-        up = np.array([0.0, 0.0, 1.0])
-        T = frames.make_transform(np.column_stack([np.cross(up, self.facing), up, self.facing]), feet)
-        rng = np.random.default_rng(self.quad_texture_seed)
-        if self.kind == "person":
-            return occluders.person_occluder(rng, T)
-        return occluders.box_occluder(rng, T, 1.1, 1.3)
-
-
 def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: int, world: World,
-                   rng: np.random.Generator) -> list[PassingOccluder]:
+                   rng: np.random.Generator) -> list[occluders.PassingOccluder]:
     """``count`` crossings spread over the flight, each well in front of what the camera sees.
 
     Each walks straight across the view the camera has at the crossing's
@@ -308,7 +278,7 @@ def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: in
     the range of the nearest marker in view (0.7-2 m), so it passes between
     the camera and the markers, and is in the middle of the image at t_mid.
     """
-    occluders = []
+    crossings = []
     for k in range(count):
         t_mid = (k + rng.uniform(0.3, 0.7)) * traj.duration_s / max(count, 1)
         T_map_camera = traj.pose_at(t_mid) @ camera.T_body_camera
@@ -326,9 +296,10 @@ def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: in
         half_time = half_width / speed
         kind = "person" if rng.uniform() < 0.6 else "box"
         # in the middle of the view at t_mid
-        occluders.append(PassingOccluder(kind, t_mid - half_time, t_mid + half_time, start,
-                                         direction * speed * right, -forward, int(rng.integers(0, 2**31))))
-    return occluders
+        crossings.append(occluders.PassingOccluder(kind, t_mid - half_time, t_mid + half_time, start,
+                                                   direction * speed * right, -forward,
+                                                   int(rng.integers(0, 2**31))))
+    return crossings
 
 
 def _nearest_marker_range(world: World, camera: CameraModel, T_map_camera: np.ndarray) -> float:
