@@ -4,9 +4,12 @@ The world is built from the map: every marker as its printed texture on a
 small backing sheet, shelving faces or walls behind groups of markers that
 share a plane, a floor, a ceiling and enclosing walls. A trajectory (a CSV of
 body poses or a built-in pattern) moves the vehicle; the configured camera
-(intrinsics, distortion, mounting) looks out of it; ``companion.sim``
-draws each frame and applies the realism knobs. Output: a sequence folder as
-``docs/simulator.md`` (and the project conventions) describe::
+(intrinsics, distortion, mounting) looks out of it; the rasteriser
+(``companion.sim.raster``) draws each frame, people and boxes
+(``companion.sim.occluders``) may cross the view, and the image-realism knobs
+(``companion.sim.degrade.Degradations``) make it look like a real camera's.
+Output: a sequence folder as ``docs/simulator.md`` (and the project
+conventions) describe::
 
     SEQ/sequence.yaml, frames/NNNNNN.png (or video.avi), timestamps.csv,
     groundtruth.csv, markers.csv (per-frame marker corners in pixels)
@@ -29,14 +32,17 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
 from companion.markers.layout import MarkerLayout
-from companion.sim import degrade
 from companion.sim import occluders
 from companion.sim import raster
 from companion.sim import trajectory as trajectories
+from companion.sim.degrade import Degradations
 from companion.yaml_input import read_yaml
 
 DEFAULT_CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,
                   "mount": {"lever_arm_m": [0.1, 0.0, 0.05], "facing": "forward", "tilt_down_deg": 20.0}}
+# a realistic small camera: motion blur over the exposure, a little optics blur, vignetting, sensor noise
+DEFAULT_DEGRADATIONS = Degradations(motion_blur=True, optics_blur_sigma_px=0.6, vignette_strength=0.15,
+                                    read_noise_dn=1.5, shot_noise_gain=0.03)
 GROUNDTRUTH_COLUMNS = ("frame", "t_ns", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz",
                        "north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "yaw_rad")
 MARKERS_COLUMNS = ("frame", "t_ns", "marker_id", "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
@@ -315,41 +321,6 @@ def _nearest_marker_range(world: World, camera: CameraModel, T_map_camera: np.nd
 
 # ---------------------------------------------------------------- rendering
 
-@dataclass(frozen=True)
-class Realism:
-    """The simulator's realism knobs (all stored in sequence.yaml).
-
-    exposure_ms: exposure time; the motion blur is the image motion during it.
-    motion_blur: smear by the vehicle's motion.
-    optics_blur_sigma_px, read_noise_dn, shot_noise_gain, jpeg_quality,
-    vignette_strength: as in ``degrade.Degradations``.
-    exposure_wander: amplitude of slow auto-exposure changes (0.3 = the
-        light level varies by about x/÷ 1.35).
-    occluders: number of people/boxes crossing in front of the camera.
-    """
-
-    exposure_ms: float = 8.0
-    motion_blur: bool = True
-    optics_blur_sigma_px: float = 0.6
-    read_noise_dn: float = 1.5
-    shot_noise_gain: float = 0.03
-    jpeg_quality: int = 0
-    vignette_strength: float = 0.15
-    exposure_wander: float = 0.0
-    occluders: int = 0
-
-
-def exposure_gain_at(t_s: float, amplitude: float, seed: int) -> float:
-    """Slow auto-exposure drift: exp(amplitude * smooth noise in [-1, 1])."""
-    if amplitude <= 0:
-        return 1.0
-    rng = np.random.default_rng(seed + 7919)
-    periods = rng.uniform(2.0, 7.0, 3)
-    phases = rng.uniform(0, 2 * np.pi, 3)
-    wave = float(np.mean(np.sin(2 * np.pi * t_s / periods + phases)))
-    return math.exp(amplitude * wave)
-
-
 @dataclass
 class RenderedFrame:
     image: np.ndarray
@@ -359,14 +330,19 @@ class RenderedFrame:
 
 
 class Simulator:
-    """Renders frames of a trajectory through a world with a camera and realism knobs."""
+    """Renders frames of a trajectory through a world with a camera and image-realism knobs.
+
+    occluder_count: people or boxes crossing the view during the flight
+    (``plan_occluders``); ``occluders`` lists them.
+    """
 
     def __init__(self, world: World, camera: CameraModel, traj: trajectories.Trajectory,
-                 realism: Realism = Realism(), seed: int = 0, supersample: int = 1):
-        self.world, self.camera, self.trajectory, self.realism, self.seed = world, camera, traj, realism, seed
+                 degradations: Degradations = DEFAULT_DEGRADATIONS, seed: int = 0, supersample: int = 1,
+                 occluder_count: int = 0):
+        self.world, self.camera, self.trajectory, self.seed = world, camera, traj, seed
+        self.degradations = degradations
         self.renderer = raster.Renderer.from_camera(camera, supersample)
-        self.occluders = plan_occluders(traj, camera, realism.occluders, world,
-                                        np.random.default_rng(seed + 104729))
+        self.occluders = plan_occluders(traj, camera, occluder_count, world, np.random.default_rng(seed + 104729))
 
     def T_camera_map(self, t_s: float) -> np.ndarray:
         return frames.invert_transform(self.trajectory.pose_at(t_s) @ self.camera.T_body_camera)
@@ -385,15 +361,9 @@ class Simulator:
                                       T_camera_map, m.quad_index, m.marker_id)
                   for m in self.world.markers]
         truths = [t for t in truths if t.corners_visible.any() or t.inner_visible_fraction > 0]
-        r = self.realism
-        degradations = degrade.Degradations(
-            optics_blur_sigma_px=r.optics_blur_sigma_px, motion_blur=r.motion_blur,
-            exposure_gain=exposure_gain_at(t_s, r.exposure_wander, self.seed),
-            vignette_strength=r.vignette_strength, read_noise_dn=r.read_noise_dn,
-            shot_noise_gain=r.shot_noise_gain, jpeg_quality=r.jpeg_quality)
-        motion = self.image_motion_px(t_s, truths) if r.motion_blur else None
+        motion = self.image_motion_px(t_s, truths) if self.degradations.motion_blur else None
         rng = np.random.default_rng([self.seed, index])
-        image = degradations.apply(rendering.image, rng, motion)
+        image = self.degradations.at(t_s, self.seed).apply(rendering.image, rng, motion)
         return RenderedFrame(image, t_ns, T_map_body, truths)
 
     def image_motion_px(self, t_s: float, truths: list[raster.MarkerTruth]) -> tuple[float, float]:
@@ -402,7 +372,7 @@ class Simulator:
         The median over the visible markers' centres, or, with none in view,
         of the point 3 m ahead on the optical axis.
         """
-        half = self.realism.exposure_ms * 1e-3 / 2
+        half = self.degradations.exposure_ms * 1e-3 / 2
         seen = {t.key for t in truths if t.corners_visible.any()}
         points = np.array([m.T_map_marker[:3, 3] for m in self.world.markers if m.marker_id in seen])
         if len(points) == 0:
@@ -509,7 +479,8 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
         "duration_s": simulator.trajectory.duration_s,
         "trajectory": simulator.trajectory.describe(),
         "seed": simulator.seed,
-        "degradations": asdict(simulator.realism),
+        "degradations": asdict(simulator.degradations),
+        "occluders": len(simulator.occluders),
         "video": "video.avi" if video else None,
         "video_codec": codec if video else None,
     }
