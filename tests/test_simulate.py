@@ -350,15 +350,20 @@ def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
     assert "--occluders must be 0 or more, got -1" in capsys.readouterr().err
 
 
-def test_progress_bar_reaches_the_total():
-    import io
-    stream = io.StringIO()
-    bar = simulate.Progress(50, True, stream)
-    for i in range(1, 51):
-        bar.update(i)
-    text = stream.getvalue()
-    assert "50/50 frames" in text and text.endswith("\n")
-    assert text.count("\r") < 50  # throttled, not one line per frame
+def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, camera, capsys):
+    def shown(total, progress):
+        with simulate.progress_bar(total, progress) as bar:
+            return not bar.disable
+    limit = simulate.PROGRESS_MIN_FRAMES
+    assert shown(limit + 1, None) and not shown(limit, None) and not shown(limit + 1, False)
+    capsys.readouterr()
+    traj = tj.hover((7.0, 5.5, 1.9), -90.0, 0.2, drift_m=0.0)  # 3 frames at 10 fps
+    simulator = simulate.Simulator(world, camera, traj)
+    simulate.write_sequence(tmp_path / "quiet", simulator, 10.0, str(MAP))
+    assert capsys.readouterr().err == ""
+    simulate.write_sequence(tmp_path / "asked", simulator, 10.0, str(MAP), progress=True)
+    captured = capsys.readouterr()
+    assert "3/3" in captured.err and captured.out == ""
 
 
 # ------------------------------------------------------ committed sequences

@@ -20,13 +20,13 @@ import csv
 import math
 import os
 import sys
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
+from tqdm import tqdm
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -49,6 +49,7 @@ MARKERS_COLUMNS = ("frame", "t_ns", "marker_id", "tl_x", "tl_y", "tr_x", "tr_y",
                    "corners_visible", "visible_fraction", "inner_px")
 PX_PER_CELL = 16
 TILE_M = 1.5
+PROGRESS_MIN_FRAMES = 60  # longer renders show a progress bar unless told otherwise
 
 
 class SimulationError(ValueError):
@@ -389,31 +390,11 @@ class Simulator:
 
 # ------------------------------------------------------------------ output
 
-class Progress:
-    """A plain progress bar on stderr (only for long renders or when asked)."""
-
-    def __init__(self, total: int, enabled: bool, stream=sys.stderr):
-        self.total, self.enabled, self.stream = total, enabled, stream
-        self.start = time.monotonic()
-        self.last = 0.0
-
-    def update(self, done: int) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if done < self.total and now - self.last < 0.25:
-            return
-        self.last = now
-        elapsed = now - self.start
-        rate = done / elapsed if elapsed > 0 else 0.0
-        eta = (self.total - done) / rate if rate > 0 else 0.0
-        width = 30
-        filled = int(width * done / max(self.total, 1))
-        self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} frames "
-                          f"{rate:5.1f} fps  eta {eta:5.1f} s ")
-        if done >= self.total:
-            self.stream.write("\n")
-        self.stream.flush()
+def progress_bar(total: int, progress: bool | None) -> tqdm:
+    """A progress bar of ``total`` frames on stderr; ``progress`` None: only for more than
+    ``PROGRESS_MIN_FRAMES`` frames."""
+    enabled = total > PROGRESS_MIN_FRAMES if progress is None else progress
+    return tqdm(total=total, unit="frame", disable=not enabled, file=sys.stderr)
 
 
 def frame_times_ns(duration_s: float, fps: float) -> list[int]:
@@ -430,6 +411,7 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     """Render every frame and write the sequence folder; returns its path.
 
     video: one ``video.avi`` in ``codec`` ("mp4v" or "ffv1") instead of PNG frames.
+    progress: a progress bar on stderr (None: for more than ``PROGRESS_MIN_FRAMES`` frames).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -445,10 +427,9 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
             raise SimulationError(f"{out / 'video.avi'}: OpenCV cannot write a {codec} video here")
     else:
         (out / "frames").mkdir(exist_ok=True)
-    bar = Progress(len(times), len(times) > 60 if progress is None else progress)
     T_ned_map = simulator.world.T_ned_map
     with open(out / "timestamps.csv", "w", newline="") as ft, open(out / "groundtruth.csv", "w", newline="") as fg, \
-            open(out / "markers.csv", "w", newline="") as fm:
+            open(out / "markers.csv", "w", newline="") as fm, progress_bar(len(times), progress) as bar:
         ts, gt, mk = csv.writer(ft), csv.writer(fg), csv.writer(fm)
         ts.writerow(("frame", "t_ns", "file"))
         gt.writerow(GROUNDTRUTH_COLUMNS)
@@ -467,7 +448,7 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
                 mk.writerow((index, t_ns, truth.key, *(f"{v:.4f}" for v in truth.corners_px.ravel()),
                              "".join("1" if v else "0" for v in truth.corners_visible),
                              f"{truth.inner_visible_fraction:.3f}", f"{truth.inner_px:.2f}"))
-            bar.update(index + 1)
+            bar.update(1)
     if writer is not None:
         writer.release()
     info = {
