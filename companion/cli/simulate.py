@@ -48,18 +48,24 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--period", type=float, default=8.0, help="seconds per eight (figure8)")
     t.add_argument("--drift", type=float, default=0.04, help="hover wander, m (hover)")
 
-    r = parser.add_argument_group("realism (defaults: companion.sim.simulate.DEFAULT_DEGRADATIONS)")
+    r = parser.add_argument_group("realism (the image knobs of companion.sim.degrade.Degradations)")
     d = DEFAULT_DEGRADATIONS
-    r.add_argument("--exposure-ms", type=float, default=d.exposure_ms, help="exposure time for motion blur")
-    r.add_argument("--motion-blur", action=argparse.BooleanOptionalAction, default=d.motion_blur)
-    r.add_argument("--blur", type=float, default=d.optics_blur_sigma_px, help="optics blur sigma, px")
-    r.add_argument("--read-noise", type=float, default=d.read_noise_dn, help="read noise sigma, DN")
-    r.add_argument("--shot-noise", type=float, default=d.shot_noise_gain, help="shot noise gain, DN per DN")
-    r.add_argument("--jpeg", type=int, default=d.jpeg_quality, help="JPEG quality round trip (0: off)")
-    r.add_argument("--vignette", type=float, default=d.vignette_strength, help="corner darkening 0..1")
+    r.add_argument("--exposure-ms", type=float, default=d.exposure_ms,
+                   help="exposure time for motion blur (default %(default)s)")
+    r.add_argument("--motion-blur", action=argparse.BooleanOptionalAction, default=d.motion_blur,
+                   help=f"smear by the image motion during the exposure (default {'on' if d.motion_blur else 'off'})")
+    r.add_argument("--blur", type=float, default=d.optics_blur_sigma_px,
+                   help="optics blur sigma, px (default %(default)s)")
+    r.add_argument("--read-noise", type=float, default=d.read_noise_dn,
+                   help="read noise sigma, DN (default %(default)s)")
+    r.add_argument("--shot-noise", type=float, default=d.shot_noise_gain,
+                   help="shot noise gain, DN per DN (default %(default)s)")
+    r.add_argument("--jpeg", type=int, default=d.jpeg_quality, help="JPEG quality round trip (default 0: off)")
+    r.add_argument("--vignette", type=float, default=d.vignette_strength,
+                   help="corner darkening 0..1 (default %(default)s)")
     r.add_argument("--exposure-wander", type=float, default=d.exposure_wander,
-                   help="slow exposure changes, log amplitude (0: off; 0.3 is noticeable)")
-    r.add_argument("--occluders", type=int, default=0, help="people/boxes crossing the view")
+                   help="slow exposure changes, log amplitude (default 0: off; 0.3 is noticeable)")
+    r.add_argument("--occluders", type=int, default=0, help="people/boxes crossing the view (default 0)")
 
 
 def _floats(n: int):
