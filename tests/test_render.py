@@ -340,6 +340,14 @@ def test_degradations_apply_in_order_and_copy():
     assert abs(float(out.mean()) - 60.0) < 1.0
 
 
+@pytest.mark.parametrize("knob, value", [("read_noise_dn", -1.0), ("optics_blur_sigma_px", float("nan")),
+                                         ("exposure_ms", -8.0), ("vignette_strength", 1.5),
+                                         ("jpeg_quality", 101)])
+def test_degradation_knobs_out_of_range_are_named(knob, value):
+    with pytest.raises(degrade.DegradationError, match=f"degradations: {knob} must be"):
+        degrade.Degradations(**{knob: value})
+
+
 # ------------------------------------------------------- scenes, determinism
 
 def test_scene_is_deterministic_under_a_seed():

@@ -10,6 +10,7 @@ import pytest
 
 from companion import cli
 from companion.geometry import frames
+from companion.sim import degrade
 from companion.sim import simulate
 from companion.sim import trajectory as tj
 from companion.geometry.camera import CameraModel, load_camera
@@ -80,7 +81,7 @@ def short_flight() -> tj.Trajectory:
 # --------------------------------------------------------- ground truth
 
 def test_ground_truth_pose_reprojects_onto_detected_corners(tmp_path, world, camera, facility_map):
-    simulator = simulate.Simulator(world, camera, short_flight(), simulate.Realism(), seed=1)
+    simulator = simulate.Simulator(world, camera, short_flight(), simulate.DEFAULT_DEGRADATIONS, seed=1)
     out = simulate.write_sequence(tmp_path / "seq", simulator, fps=5.0, map_path=str(MAP))
     sequence = simulate.read_sequence(out)
     errors, centres = reprojection_errors(sequence, facility_map)
@@ -91,7 +92,7 @@ def test_ground_truth_pose_reprojects_onto_detected_corners(tmp_path, world, cam
 
 
 def test_markers_csv_matches_projection_and_flags_what_is_out_of_view(tmp_path, world, camera, facility_map):
-    simulator = simulate.Simulator(world, camera, short_flight(), simulate.Realism(), seed=1)
+    simulator = simulate.Simulator(world, camera, short_flight(), simulate.DEFAULT_DEGRADATIONS, seed=1)
     frame = simulator.render_frame(0, 0)
     T_camera_map = frames.invert_transform(frame.T_map_body @ camera.T_body_camera)
     assert frame.truths
@@ -105,7 +106,8 @@ def test_markers_csv_matches_projection_and_flags_what_is_out_of_view(tmp_path, 
 def test_circle_centres_land_on_the_rendered_circles(world, camera, facility_map):
     # hover square in front of marker B (7, 3.5, 1.4) at 1.3 m so the circles are large
     hover = tj.hover((7.0, 4.8, 1.9), -90.0, 0.1, drift_m=0.0)
-    simulator = simulate.Simulator(world, camera, hover, simulate.Realism(read_noise_dn=0, shot_noise_gain=0))
+    simulator = simulate.Simulator(world, camera, hover,
+                                   simulate.DEFAULT_DEGRADATIONS.with_(read_noise_dn=0, shot_noise_gain=0))
     frame = simulator.render_frame(0, 0)
     truth = next(t for t in frame.truths if facility_map.markers[t.key].symbol == "B")
     assert truth.circles_visible.all()
@@ -123,10 +125,12 @@ def test_circle_centres_land_on_the_rendered_circles(world, camera, facility_map
 # --------------------------------------------------------- realism knobs
 
 def test_simulation_is_deterministic_under_a_seed(world, camera):
-    realism = simulate.Realism(occluders=1, exposure_wander=0.3)
-    a = simulate.Simulator(world, camera, short_flight(), realism, seed=5).render_frame(3, 300_000_000)
-    b = simulate.Simulator(world, camera, short_flight(), realism, seed=5).render_frame(3, 300_000_000)
-    c = simulate.Simulator(world, camera, short_flight(), realism, seed=6).render_frame(3, 300_000_000)
+    wandering = simulate.DEFAULT_DEGRADATIONS.with_(exposure_wander=0.3)
+
+    def frame(seed):
+        simulator = simulate.Simulator(world, camera, short_flight(), wandering, seed=seed, occluder_count=1)
+        return simulator.render_frame(3, 300_000_000)
+    a, b, c = frame(5), frame(5), frame(6)
     np.testing.assert_array_equal(a.image, b.image)
     assert not np.array_equal(a.image, c.image)
 
@@ -134,8 +138,9 @@ def test_simulation_is_deterministic_under_a_seed(world, camera):
 def test_motion_blur_follows_the_vehicle_motion(world, camera):
     # sideways at 3 m/s in front of rack R1: 8 ms exposure smears by many pixels
     fast = tj.smooth_path([(5.0, 5.5, 1.9, -90.0), (11.0, 5.5, 1.9, -90.0)], speed_m_s=3.0, max_accel_m_s2=6.0)
-    still = simulate.Realism(motion_blur=False, read_noise_dn=0, shot_noise_gain=0, optics_blur_sigma_px=0)
-    moving = simulate.Realism(motion_blur=True, read_noise_dn=0, shot_noise_gain=0, optics_blur_sigma_px=0)
+    moving = simulate.DEFAULT_DEGRADATIONS.with_(motion_blur=True, read_noise_dn=0, shot_noise_gain=0,
+                                                 optics_blur_sigma_px=0)
+    still = moving.with_(motion_blur=False)
     t_ns = int(fast.duration_s / 2 * 1e9)
     sim_blur = simulate.Simulator(world, camera, fast, moving)
     blurred = sim_blur.render_frame(0, t_ns)
@@ -149,15 +154,29 @@ def test_motion_blur_follows_the_vehicle_motion(world, camera):
 
 
 def test_exposure_wander_changes_brightness_slowly():
-    gains = [simulate.exposure_gain_at(t, 0.3, seed=2) for t in np.arange(0, 10, 0.1)]
+    gains = [degrade.exposure_wander_gain(t, 0.3, seed=2) for t in np.arange(0, 10, 0.1)]
     assert max(gains) / min(gains) > 1.2
     assert max(abs(a / b - 1) for a, b in zip(gains[1:], gains[:-1])) < 0.05
-    assert simulate.exposure_gain_at(3.0, 0.0, seed=2) == 1.0
+    assert degrade.exposure_wander_gain(3.0, 0.0, seed=2) == 1.0
+
+
+def test_a_frame_resolves_the_exposure_wander_into_its_gain():
+    flat = np.full((16, 16), 100, np.uint8)
+    wandering = degrade.Degradations(exposure_wander=0.3)
+    # a wander has no value until a frame time is given: applying it directly is an error, not a no-op
+    with pytest.raises(degrade.DegradationError, match="exposure_wander"):
+        wandering.apply(flat, np.random.default_rng(0))
+    for t_s in (0.0, 1.7, 4.2):
+        gain = degrade.exposure_wander_gain(t_s, 0.3, seed=2)
+        frame = wandering.at(t_s, seed=2)
+        assert frame.exposure_wander == 0.0
+        assert float(frame.apply(flat, np.random.default_rng(0)).mean()) == pytest.approx(100 * gain, abs=0.5)
+    assert degrade.Degradations(exposure_gain=0.5).at(1.0, seed=2).exposure_gain == 0.5
 
 
 def test_passing_occluder_hides_markers_for_a_while(world, camera, facility_map):
     hover = tj.hover((7.0, 5.6, 1.9), -90.0, 6.0, drift_m=0.01)
-    simulator = simulate.Simulator(world, camera, hover, simulate.Realism(occluders=1), seed=3)
+    simulator = simulate.Simulator(world, camera, hover, seed=3, occluder_count=1)
     (occluder,) = simulator.occluders
     marker_b = facility_map.marker_by_symbol("B").id
     times = np.arange(0.0, 6.0, 0.1)
@@ -257,7 +276,7 @@ def test_trajectory_csv_round_trip_and_errors(tmp_path):
 
 def test_sequence_folder_round_trip(tmp_path, world, camera, facility_map):
     traj = short_flight()
-    simulator = simulate.Simulator(world, camera, traj, simulate.Realism(), seed=4)
+    simulator = simulate.Simulator(world, camera, traj, simulate.DEFAULT_DEGRADATIONS, seed=4)
     out = simulate.write_sequence(tmp_path / "seq", simulator, fps=10.0, map_path=str(MAP))
     sequence = simulate.read_sequence(out)
     n = int(math.floor(traj.duration_s * 10.0)) + 1
@@ -279,7 +298,7 @@ def test_sequence_folder_round_trip(tmp_path, world, camera, facility_map):
     replay = tj.read_trajectory_csv(out / "groundtruth.csv")
     np.testing.assert_allclose(replay.pose_at(sequence.t_ns[3] * 1e-9), sequence.T_map_body[3], atol=1e-6)
     # the frames on disk are the frames rendered
-    again = simulate.Simulator(world, camera, traj, simulate.Realism(), seed=4)
+    again = simulate.Simulator(world, camera, traj, simulate.DEFAULT_DEGRADATIONS, seed=4)
     _, first = next(sequence.images())
     np.testing.assert_array_equal(first, again.render_frame(0, 0).image)
     # and the rebuilt trajectory (from sequence.yaml) is the same flight
@@ -289,7 +308,7 @@ def test_sequence_folder_round_trip(tmp_path, world, camera, facility_map):
 
 def test_video_output_round_trip(tmp_path, world, camera):
     traj = tj.hover((7.0, 5.5, 1.9), -90.0, 0.4, drift_m=0.02)
-    simulator = simulate.Simulator(world, camera, traj, simulate.Realism(), seed=1)
+    simulator = simulate.Simulator(world, camera, traj, simulate.DEFAULT_DEGRADATIONS, seed=1)
     lossless = simulate.read_sequence(simulate.write_sequence(tmp_path / "ffv1", simulator, 10.0, str(MAP),
                                                               video=True, codec="ffv1"))
     small = simulate.read_sequence(simulate.write_sequence(tmp_path / "mp4v", simulator, 10.0, str(MAP),
@@ -309,6 +328,12 @@ def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
     sequence = simulate.read_sequence(out)
     assert len(sequence.t_ns) == 3 and sequence.info["options"]["pattern"] == "hover"
     assert sequence.info["camera"]["width"] == 640 and sequence.info["fps"] == 10.0
+    # with no realism options: the documented defaults (docs/simulator.md), every knob recorded
+    assert sequence.info["degradations"] == {
+        "motion_blur": True, "exposure_ms": 8.0, "motion_length_px": 0.0, "motion_angle_rad": 0.0,
+        "optics_blur_sigma_px": 0.6, "exposure_gain": 1.0, "exposure_wander": 0.0, "vignette_strength": 0.15,
+        "read_noise_dn": 1.5, "shot_noise_gain": 0.03, "jpeg_quality": 0}
+    assert sequence.info["occluders"] == 0
     hfov = math.degrees(2 * math.atan(320 / sequence.info["camera"]["fx_px"]))
     assert hfov == pytest.approx(70.0)
     rc = cli.main(["simulate", str(tmp_path / "x"), "--map", str(MAP), "--pattern", "lawnmower"])
@@ -317,17 +342,28 @@ def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
     rc = cli.main(["simulate", str(tmp_path / "y"), "--map", str(tmp_path / "missing.yaml")])
     assert rc == 2
     assert "missing.yaml" in capsys.readouterr().err
+    rc = cli.main(["simulate", str(tmp_path / "z"), "--map", str(MAP), "--jpeg", "150"])
+    assert rc == 2
+    assert "jpeg_quality must be 0 (off) or 1..100, got 150" in capsys.readouterr().err
+    rc = cli.main(["simulate", str(tmp_path / "z"), "--map", str(MAP), "--occluders", "-1"])
+    assert rc == 2
+    assert "--occluders must be 0 or more, got -1" in capsys.readouterr().err
 
 
-def test_progress_bar_reaches_the_total():
-    import io
-    stream = io.StringIO()
-    bar = simulate.Progress(50, True, stream)
-    for i in range(1, 51):
-        bar.update(i)
-    text = stream.getvalue()
-    assert "50/50 frames" in text and text.endswith("\n")
-    assert text.count("\r") < 50  # throttled, not one line per frame
+def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, camera, capsys):
+    def shown(total, progress):
+        with simulate.progress_bar(total, progress) as bar:
+            return not bar.disable
+    limit = simulate.PROGRESS_MIN_FRAMES
+    assert shown(limit + 1, None) and not shown(limit, None) and not shown(limit + 1, False)
+    capsys.readouterr()
+    traj = tj.hover((7.0, 5.5, 1.9), -90.0, 0.2, drift_m=0.0)  # 3 frames at 10 fps
+    simulator = simulate.Simulator(world, camera, traj)
+    simulate.write_sequence(tmp_path / "quiet", simulator, 10.0, str(MAP))
+    assert capsys.readouterr().err == ""
+    simulate.write_sequence(tmp_path / "asked", simulator, 10.0, str(MAP), progress=True)
+    captured = capsys.readouterr()
+    assert "3/3" in captured.err and captured.out == ""
 
 
 # ------------------------------------------------------ committed sequences

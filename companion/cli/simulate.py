@@ -9,8 +9,8 @@ import numpy as np
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.sim import trajectory as trajectories
-from companion.sim.simulate import (DEFAULT_CAMERA, VIDEO_CODECS, Realism, SimulationError, Simulator, build_world,
-                                    frame_times_ns, write_sequence)
+from companion.sim.simulate import (DEFAULT_CAMERA, DEFAULT_DEGRADATIONS, VIDEO_CODECS, SimulationError, Simulator,
+                                    build_world, frame_times_ns, write_sequence)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -48,18 +48,24 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     t.add_argument("--period", type=float, default=8.0, help="seconds per eight (figure8)")
     t.add_argument("--drift", type=float, default=0.04, help="hover wander, m (hover)")
 
-    r = parser.add_argument_group("realism")
-    d = Realism()
-    r.add_argument("--exposure-ms", type=float, default=d.exposure_ms, help="exposure time for motion blur")
-    r.add_argument("--motion-blur", action=argparse.BooleanOptionalAction, default=d.motion_blur)
-    r.add_argument("--blur", type=float, default=d.optics_blur_sigma_px, help="optics blur sigma, px")
-    r.add_argument("--read-noise", type=float, default=d.read_noise_dn, help="read noise sigma, DN")
-    r.add_argument("--shot-noise", type=float, default=d.shot_noise_gain, help="shot noise gain, DN per DN")
-    r.add_argument("--jpeg", type=int, default=d.jpeg_quality, help="JPEG quality round trip (0: off)")
-    r.add_argument("--vignette", type=float, default=d.vignette_strength, help="corner darkening 0..1")
+    r = parser.add_argument_group("realism (the image knobs of companion.sim.degrade.Degradations)")
+    d = DEFAULT_DEGRADATIONS
+    r.add_argument("--exposure-ms", type=float, default=d.exposure_ms,
+                   help="exposure time for motion blur (default %(default)s)")
+    r.add_argument("--motion-blur", action=argparse.BooleanOptionalAction, default=d.motion_blur,
+                   help=f"smear by the image motion during the exposure (default {'on' if d.motion_blur else 'off'})")
+    r.add_argument("--blur", type=float, default=d.optics_blur_sigma_px,
+                   help="optics blur sigma, px (default %(default)s)")
+    r.add_argument("--read-noise", type=float, default=d.read_noise_dn,
+                   help="read noise sigma, DN (default %(default)s)")
+    r.add_argument("--shot-noise", type=float, default=d.shot_noise_gain,
+                   help="shot noise gain, DN per DN (default %(default)s)")
+    r.add_argument("--jpeg", type=int, default=d.jpeg_quality, help="JPEG quality round trip (default 0: off)")
+    r.add_argument("--vignette", type=float, default=d.vignette_strength,
+                   help="corner darkening 0..1 (default %(default)s)")
     r.add_argument("--exposure-wander", type=float, default=d.exposure_wander,
-                   help="slow exposure changes, log amplitude (0: off; 0.3 is noticeable)")
-    r.add_argument("--occluders", type=int, default=d.occluders, help="people/boxes crossing the view")
+                   help="slow exposure changes, log amplitude (default 0: off; 0.3 is noticeable)")
+    r.add_argument("--occluders", type=int, default=0, help="people/boxes crossing the view (default 0)")
 
 
 def _floats(n: int):
@@ -112,10 +118,14 @@ def main(args) -> int:
         traj = trajectory_from_args(args, facility_map)
         if args.fps <= 0:
             raise SimulationError(f"--fps must be positive, got {args.fps}")
-        realism = Realism(args.exposure_ms, args.motion_blur, args.blur, args.read_noise, args.shot_noise,
-                          args.jpeg, args.vignette, args.exposure_wander, args.occluders)
+        if args.occluders < 0:
+            raise SimulationError(f"--occluders must be 0 or more, got {args.occluders}")
+        degradations = DEFAULT_DEGRADATIONS.with_(
+            exposure_ms=args.exposure_ms, motion_blur=args.motion_blur, optics_blur_sigma_px=args.blur,
+            read_noise_dn=args.read_noise, shot_noise_gain=args.shot_noise, jpeg_quality=args.jpeg,
+            vignette_strength=args.vignette, exposure_wander=args.exposure_wander)
         world = build_world(facility_map, args.seed)
-        simulator = Simulator(world, camera, traj, realism, args.seed, args.supersample)
+        simulator = Simulator(world, camera, traj, degradations, args.seed, args.supersample, args.occluders)
         options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
         out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
                              {"options": options}, args.codec)

@@ -1,18 +1,21 @@
 """Image degradations, applied in the order a camera produces them: motion blur, optics blur,
 exposure, vignetting, sensor noise, JPEG.
 
-Small functions on (H, W) uint8 images and the ``Degradations`` knobs that chain them.
-Everything random takes a ``numpy.random.Generator``.
+Small functions on (H, W) uint8 images and ``Degradations``, the one set of
+image-realism knobs that chains them (the simulator and the benchmark scenes
+both use it). Everything random takes a ``numpy.random.Generator``.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import cv2
 import numpy as np
 
-from companion.sim.raster import RenderError
+
+class DegradationError(ValueError):
+    """A degradation knob out of its range, or an image step that failed; the message names it."""
 
 
 def gaussian_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -84,7 +87,7 @@ def jpeg(image: np.ndarray, quality: int) -> np.ndarray:
     """The image after a JPEG encode/decode round trip at ``quality`` (1..100)."""
     ok, data = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
-        raise RenderError(f"JPEG encoding failed at quality {quality}")
+        raise DegradationError(f"JPEG encoding failed at quality {quality}")
     return cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
 
 
@@ -96,32 +99,81 @@ def vignette(image: np.ndarray, strength: float) -> np.ndarray:
     return np.clip(np.rint(image * (1.0 - strength * r2)), 0, 255).astype(np.uint8)
 
 
+def exposure_wander_gain(t_s: float, amplitude: float, seed: int) -> float:
+    """Slow auto-exposure drift at ``t_s``: exp(amplitude * smooth noise in [-1, 1]), fixed by ``seed``.
+
+    The smooth noise is the mean of three sines with periods of 2-7 s.
+    """
+    if amplitude <= 0:
+        return 1.0
+    rng = np.random.default_rng(seed + 7919)
+    periods = rng.uniform(2.0, 7.0, 3)
+    phases = rng.uniform(0, 2 * np.pi, 3)
+    wave = float(np.mean(np.sin(2 * np.pi * t_s / periods + phases)))
+    return math.exp(amplitude * wave)
+
+
 @dataclass(frozen=True)
 class Degradations:
-    """The image-side realism knobs, applied in the order a camera produces them.
+    """The image-realism knobs, in the order a camera produces their effects.
 
-    optics_blur_sigma_px: lens/focus blur (0 = off).
-    motion_blur: smear by the image motion during the exposure (the caller
-        passes it as ``motion_px``; ``motion_length_px`` > 0 forces a fixed kernel).
+    Every default leaves the image as it is (``Degradations()`` changes
+    nothing; ``exposure_ms`` matters only with ``motion_blur``). Presets:
+    ``companion.sim.simulate.DEFAULT_DEGRADATIONS`` (a realistic camera for
+    ``companion simulate``), ``companion.sim.scenes.CONDITIONS`` (the
+    detector benchmark's conditions).
+
+    motion_blur: smear by the image motion during the exposure; the caller
+        measures it over ``exposure_ms`` and passes it as ``motion_px``.
+    exposure_ms: exposure time, milliseconds.
+    motion_length_px, motion_angle_rad: a fixed smear instead (length > 0
+        forces it, whatever ``motion_blur`` says).
+    optics_blur_sigma_px: lens/focus blur, gaussian sigma (0 = off).
     exposure_gain: multiplies the light (1 = unchanged).
-    vignette_strength: corner darkening (0 = off).
+    exposure_wander: amplitude of slow auto-exposure changes over time
+        (0 = off; 0.3 = the light level varies by about x/÷ 1.35); ``at``
+        turns it into the gain of one frame.
+    vignette_strength: corner darkening, 0..1 (0 = off).
     read_noise_dn, shot_noise_gain: sensor noise (both 0 = off).
-    jpeg_quality: JPEG round trip (0 = off).
+    jpeg_quality: JPEG round trip at this quality, 1..100 (0 = off).
     """
 
-    optics_blur_sigma_px: float = 0.0
     motion_blur: bool = False
+    exposure_ms: float = 8.0
     motion_length_px: float = 0.0
     motion_angle_rad: float = 0.0
+    optics_blur_sigma_px: float = 0.0
     exposure_gain: float = 1.0
+    exposure_wander: float = 0.0
     vignette_strength: float = 0.0
     read_noise_dn: float = 0.0
     shot_noise_gain: float = 0.0
     jpeg_quality: int = 0
 
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name not in ("motion_blur", "motion_angle_rad") and not value >= 0:
+                raise DegradationError(f"degradations: {f.name} must be >= 0, got {value}")
+        if self.vignette_strength > 1:
+            raise DegradationError(f"degradations: vignette_strength must be 0..1, got {self.vignette_strength}")
+        if self.jpeg_quality > 100:
+            raise DegradationError(f"degradations: jpeg_quality must be 0 (off) or 1..100, got {self.jpeg_quality}")
+
+    def at(self, t_s: float, seed: int) -> "Degradations":
+        """The degradations of the frame captured at ``t_s``: the exposure wander (fixed by ``seed``)
+        folded into ``exposure_gain``."""
+        if self.exposure_wander <= 0:
+            return self
+        gain = self.exposure_gain * exposure_wander_gain(t_s, self.exposure_wander, seed)
+        return replace(self, exposure_gain=gain, exposure_wander=0.0)
+
     def apply(self, image: np.ndarray, rng: np.random.Generator,
               motion_px: tuple[float, float] | None = None) -> np.ndarray:
         """Degrade an (H, W) uint8 image; ``motion_px``: image motion (dx, dy) over the exposure."""
+        if self.exposure_wander > 0:
+            raise DegradationError("degradations: exposure_wander changes over time: apply the frame's "
+                                   "degradations, at(t_s, seed)")
         out = image
         if self.motion_length_px > 0:
             out = motion_blur(out, self.motion_length_px, self.motion_angle_rad)

@@ -1,26 +1,22 @@
 """Occluder quads: things in front of a marker or crossing the view (strip, corner patch, blob, box, person).
 
+Stuck on a marker (``strip_occluder``, ``corner_occluder``, ``blob_occluder``:
+the benchmark scenes' conditions) or standing in the scene (``person_occluder``,
+``box_occluder``; ``PassingOccluder`` walks one across the simulator's view).
 Everything random takes a ``numpy.random.Generator``.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from companion.geometry import frames
-from companion.sim.raster import (OCCLUDER_LIFT_M, RenderError, MarkerTexture, TexturedQuad, lift, make_texture,
-                                  rectangle_corners, texture_to_marker)
+from companion.sim.raster import (RenderError, MarkerTexture, TexturedQuad, lift, make_texture, rectangle_corners,
+                                  solid_texture, texture_to_marker)
 
-
-def solid_texture(rng: np.random.Generator, size_px: tuple[int, int], level: float,
-                  texture_amplitude: float = 12.0) -> np.ndarray:
-    """(H, W) uint8 surface of mean ``level`` with a soft random mottle and a gradient."""
-    w, h = size_px
-    coarse = rng.normal(0.0, 1.0, (max(h // 16, 2), max(w // 16, 2))).astype(np.float32)
-    mottle = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
-    gradient = np.linspace(-1.0, 1.0, w, dtype=np.float32)[None, :] * rng.uniform(-1, 1)
-    surface = level + texture_amplitude * (0.6 * mottle + 0.4 * gradient)
-    return np.clip(surface, 0, 255).astype(np.uint8)
+OCCLUDER_LIFT_M = 0.003  # a stuck-on occluder sits this far in front of its marker
 
 
 def strip_occluder(marker: MarkerTexture, size_m: float, T_world_marker: np.ndarray, fraction: float,
@@ -143,3 +139,33 @@ def box_occluder(rng: np.random.Generator, T_world_plane: np.ndarray, width_m: f
     face[tape, :] = np.clip(face[tape, :].astype(int) + 35, 0, 255).astype(np.uint8)
     corners = rectangle_corners(T_world_plane, width_m, height_m, (0.0, height_m / 2))
     return TexturedQuad(corners, make_texture(face))
+
+
+@dataclass(frozen=True)
+class PassingOccluder:
+    """A person or a box crossing in front of the camera along a straight floor path.
+
+    start_m, velocity_m_s: (3,) feet position at t_start_s and its velocity;
+    facing: (3,) horizontal unit normal of its face; kind: "person" or "box".
+    """
+
+    kind: str
+    t_start_s: float
+    t_end_s: float
+    start_m: np.ndarray
+    velocity_m_s: np.ndarray
+    facing: np.ndarray
+    quad_texture_seed: int
+
+    def quad_at(self, t_s: float) -> TexturedQuad | None:
+        """Its quad at ``t_s``, or None outside [t_start_s, t_end_s]."""
+        if not (self.t_start_s <= t_s <= self.t_end_s):
+            return None
+        feet = self.start_m + (t_s - self.t_start_s) * self.velocity_m_s
+        # plane frame: z = facing, y = up, x = y cross z
+        up = np.array([0.0, 0.0, 1.0])
+        T = frames.make_transform(np.column_stack([np.cross(up, self.facing), up, self.facing]), feet)
+        rng = np.random.default_rng(self.quad_texture_seed)
+        if self.kind == "person":
+            return person_occluder(rng, T)
+        return box_occluder(rng, T, 1.1, 1.3)

@@ -12,7 +12,7 @@ ground truth with one piece of code. Image degradations are in
   at a near plane so a plane behind or partly behind the camera is never drawn
   wrong, then one remap through the lens distortion.
 * Markers are ``MarkerTexture`` s placed at their inner-square size
-  (``marker_quads``); their ground truth (``marker_truth``) is the projection
+  (``marker_quad``); their ground truth (``marker_truth``) is the projection
   of the same 3-D points through the same camera model (``cv2.projectPoints``),
   with flags for points that are behind the camera, outside the image or
   hidden (read from the renderer's label buffer).
@@ -31,12 +31,12 @@ import cv2
 import numpy as np
 
 from companion.geometry import frames
+from companion.markers.layout import cell_point_to_px, marker_image
 
 NEAR_M = 0.02  # near clipping plane: nothing closer to the camera is drawn
 MIN_MIP_SIZE_PX = 4
 MIP_BIAS = 0.0  # > 0 picks coarser levels: less aliasing, more blur
 MARKER_LIFT_M = 0.001  # a marker sits this far in front of its backing board
-OCCLUDER_LIFT_M = 0.003  # a stuck-on occluder sits this far in front of its marker
 
 
 class RenderError(ValueError):
@@ -82,6 +82,17 @@ def make_texture(image: np.ndarray, alpha: np.ndarray | None = None) -> Texture:
         if alphas is not None:
             alphas.append(cv2.pyrDown(alphas[-1]))
     return Texture(tuple(levels), None if alphas is None else tuple(alphas))
+
+
+def solid_texture(rng: np.random.Generator, size_px: tuple[int, int], level: float,
+                  texture_amplitude: float = 12.0) -> np.ndarray:
+    """(H, W) uint8 surface of mean ``level`` with a soft random mottle and a gradient; size_px: (W, H)."""
+    w, h = size_px
+    coarse = rng.normal(0.0, 1.0, (max(h // 16, 2), max(w // 16, 2))).astype(np.float32)
+    mottle = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
+    gradient = np.linspace(-1.0, 1.0, w, dtype=np.float32)[None, :] * rng.uniform(-1, 1)
+    surface = level + texture_amplitude * (0.6 * mottle + 0.4 * gradient)
+    return np.clip(surface, 0, 255).astype(np.uint8)
 
 
 @dataclass(frozen=True, eq=False)  # holds arrays: compare by identity
@@ -439,18 +450,17 @@ class MarkerTexture:
 
 
 def rs_marker_texture(layout, marker_id: int, px_per_cell: int = 16, quiet_zone_cells: int = 1) -> MarkerTexture:
-    """MarkerTexture of an RS marker, drawn by ``companion.markers.layout.marker_image``.
+    """MarkerTexture of an RS marker (``layout``: a ``companion.markers.layout.MarkerLayout``),
+    drawn by ``companion.markers.layout.marker_image``.
 
     Its reference points come from the layout (inner corners, circle centres in
     grid cells) through ``companion.markers.layout.cell_point_to_px``, the same mapping
     the image was drawn with.
     """
-    from companion.markers import layout as marker_module
-
-    image = marker_module.marker_image(layout, marker_id, px_per_cell, quiet_zone_cells=quiet_zone_cells)
-    corners = marker_module.cell_point_to_px(layout.inner_corners_cells, px_per_cell, quiet_zone_cells)
-    circles = marker_module.cell_point_to_px(np.asarray(layout.circles, dtype=float)[:, :2].reshape(-1, 2),
-                                             px_per_cell, quiet_zone_cells)
+    image = marker_image(layout, marker_id, px_per_cell, quiet_zone_cells=quiet_zone_cells)
+    corners = cell_point_to_px(layout.inner_corners_cells, px_per_cell, quiet_zone_cells)
+    circles = cell_point_to_px(np.asarray(layout.circles, dtype=float)[:, :2].reshape(-1, 2), px_per_cell,
+                               quiet_zone_cells)
     return MarkerTexture(image, corners, circles, int(marker_id), "rs")
 
 

@@ -16,9 +16,9 @@ import numpy as np
 from companion.geometry import frames
 from companion.geometry.camera import intrinsics_from_hfov
 from companion.sim.degrade import Degradations, gaussian_blur
-from companion.sim.occluders import blob_occluder, corner_occluder, solid_texture, strip_occluder
+from companion.sim.occluders import blob_occluder, corner_occluder, strip_occluder
 from companion.sim.raster import (MARKER_LIFT_M, MarkerTexture, MarkerTruth, RenderError, Renderer, TexturedQuad,
-                                  make_texture, marker_quad, marker_truth)
+                                  make_texture, marker_quad, marker_truth, solid_texture)
 
 
 def clutter_image(rng: np.random.Generator, size_px: tuple[int, int]) -> np.ndarray:
@@ -58,6 +58,10 @@ def clutter_image(rng: np.random.Generator, size_px: tuple[int, int]) -> np.ndar
     return np.clip(gaussian_blur(out, 0.7), 0, 255).astype(np.uint8)
 
 
+# every condition's camera: a little optics blur and sensor noise
+BASE_DEGRADATIONS = Degradations(optics_blur_sigma_px=0.5, read_noise_dn=1.0, shot_noise_gain=0.02)
+
+
 @dataclass(frozen=True)
 class SceneCondition:
     """One benchmark condition: occluders stuck on each marker and image degradations.
@@ -72,10 +76,7 @@ class SceneCondition:
     name: str
     occlusion: str = "none"
     occlusion_fraction: float = 0.0
-    degradations: Degradations = Degradations(optics_blur_sigma_px=0.5, read_noise_dn=1.0, shot_noise_gain=0.02)
-
-
-_BASE = Degradations(optics_blur_sigma_px=0.5, read_noise_dn=1.0, shot_noise_gain=0.02)
+    degradations: Degradations = BASE_DEGRADATIONS
 
 
 CONDITIONS: dict[str, SceneCondition] = {
@@ -85,12 +86,12 @@ CONDITIONS: dict[str, SceneCondition] = {
         SceneCondition("strip_1_4", "strip", 1.0 / 4.0),
         SceneCondition("corner", "corner", 0.25),
         SceneCondition("blob", "blob", 0.18),
-        SceneCondition("gaussian_blur", degradations=_BASE.with_(optics_blur_sigma_px=1.6)),
-        SceneCondition("motion_blur", degradations=_BASE.with_(motion_length_px=9.0)),
-        SceneCondition("noise", degradations=_BASE.with_(read_noise_dn=12.0, shot_noise_gain=0.5)),
-        SceneCondition("low_light", degradations=_BASE.with_(exposure_gain=0.15, read_noise_dn=2.5,
+        SceneCondition("gaussian_blur", degradations=BASE_DEGRADATIONS.with_(optics_blur_sigma_px=1.6)),
+        SceneCondition("motion_blur", degradations=BASE_DEGRADATIONS.with_(motion_length_px=9.0)),
+        SceneCondition("noise", degradations=BASE_DEGRADATIONS.with_(read_noise_dn=12.0, shot_noise_gain=0.5)),
+        SceneCondition("low_light", degradations=BASE_DEGRADATIONS.with_(exposure_gain=0.15, read_noise_dn=2.5,
                                                              shot_noise_gain=0.3)),
-        SceneCondition("jpeg", degradations=_BASE.with_(jpeg_quality=15)),
+        SceneCondition("jpeg", degradations=BASE_DEGRADATIONS.with_(jpeg_quality=15)),
     )
 }
 

@@ -4,9 +4,12 @@ The world is built from the map: every marker as its printed texture on a
 small backing sheet, shelving faces or walls behind groups of markers that
 share a plane, a floor, a ceiling and enclosing walls. A trajectory (a CSV of
 body poses or a built-in pattern) moves the vehicle; the configured camera
-(intrinsics, distortion, mounting) looks out of it; ``companion.sim``
-draws each frame and applies the realism knobs. Output: a sequence folder as
-``docs/simulator.md`` (and the project conventions) describe::
+(intrinsics, distortion, mounting) looks out of it; the rasteriser
+(``companion.sim.raster``) draws each frame, people and boxes
+(``companion.sim.occluders``) may cross the view, and the image-realism knobs
+(``companion.sim.degrade.Degradations``) make it look like a real camera's.
+Output: a sequence folder as ``docs/simulator.md`` (and the project
+conventions) describe::
 
     SEQ/sequence.yaml, frames/NNNNNN.png (or video.avi), timestamps.csv,
     groundtruth.csv, markers.csv (per-frame marker corners in pixels)
@@ -17,31 +20,36 @@ import csv
 import math
 import os
 import sys
-import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
+from tqdm import tqdm
 
 from companion.geometry import frames
-from companion.sim import degrade
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import FacilityMap
+from companion.markers.layout import MarkerLayout
 from companion.sim import occluders
 from companion.sim import raster
 from companion.sim import trajectory as trajectories
-from companion.geometry.camera import CameraModel
-from companion.geometry.facility_map import FacilityMap
+from companion.sim.degrade import Degradations
 from companion.yaml_input import read_yaml
 
 DEFAULT_CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,
                   "mount": {"lever_arm_m": [0.1, 0.0, 0.05], "facing": "forward", "tilt_down_deg": 20.0}}
+# a realistic small camera: motion blur over the exposure, a little optics blur, vignetting, sensor noise
+DEFAULT_DEGRADATIONS = Degradations(motion_blur=True, optics_blur_sigma_px=0.6, vignette_strength=0.15,
+                                    read_noise_dn=1.5, shot_noise_gain=0.03)
 GROUNDTRUTH_COLUMNS = ("frame", "t_ns", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz",
                        "north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "yaw_rad")
 MARKERS_COLUMNS = ("frame", "t_ns", "marker_id", "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
                    "corners_visible", "visible_fraction", "inner_px")
 PX_PER_CELL = 16
 TILE_M = 1.5
+PROGRESS_MIN_FRAMES = 60  # longer renders show a progress bar unless told otherwise
 
 
 class SimulationError(ValueError):
@@ -74,8 +82,6 @@ class World:
 
 def build_world(facility_map: FacilityMap, seed: int = 0) -> World:
     """Markers on sheets, shelf faces or walls behind marker groups, floor, ceiling and walls."""
-    from companion.markers.layout import MarkerLayout
-
     rng = np.random.default_rng(seed)
     layout = MarkerLayout(parity=facility_map.parity)
     markers = sorted(facility_map.markers.values(), key=lambda m: m.id)
@@ -115,12 +121,12 @@ class _SurfaceTextures:
         self.rng = rng
         self.floor = [raster.make_texture(self._concrete(256)) for _ in range(3)]
         self.wall = [raster.make_texture(self._blocks(256)) for _ in range(2)]
-        self.ceiling = raster.make_texture(occluders.solid_texture(rng, (64, 64), 200.0, 10.0))
-        self.sheet = raster.make_texture(occluders.solid_texture(rng, (64, 64), 235.0, 6.0))
+        self.ceiling = raster.make_texture(raster.solid_texture(rng, (64, 64), 200.0, 10.0))
+        self.sheet = raster.make_texture(raster.solid_texture(rng, (64, 64), 235.0, 6.0))
 
     def _concrete(self, n: int) -> np.ndarray:
         rng = self.rng
-        base = occluders.solid_texture(rng, (n, n), 150.0, 18.0).astype(np.float32)
+        base = raster.solid_texture(rng, (n, n), 150.0, 18.0).astype(np.float32)
         base += 2.0 * cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 1.5)
         for _ in range(3):  # scuffs and cracks
             p0 = rng.integers(0, n, 2)
@@ -132,7 +138,7 @@ class _SurfaceTextures:
 
     def _blocks(self, n: int) -> np.ndarray:
         rng = self.rng
-        wall = occluders.solid_texture(rng, (n, n), 175.0, 8.0)
+        wall = raster.solid_texture(rng, (n, n), 175.0, 8.0)
         course = n // 8
         for row in range(8):
             y = row * course
@@ -145,7 +151,7 @@ class _SurfaceTextures:
     def shelving(self, width_px: int, height_px: int, height_m: float) -> raster.Texture:
         """Rack face: dark interior, boxes on beams every ~0.8 m, uprights at the edges."""
         rng = self.rng
-        face = occluders.solid_texture(rng, (width_px, height_px), 55.0, 10.0)
+        face = raster.solid_texture(rng, (width_px, height_px), 55.0, 10.0)
         px_per_m = height_px / height_m
         beams = np.arange(0.05, height_m, 0.8)
         for z in beams:
@@ -270,37 +276,8 @@ def _sheet_behind(quad: raster.TexturedQuad, scale: float, textures: _SurfaceTex
 
 # ---------------------------------------------------------------- occluders
 
-@dataclass(frozen=True)
-class PassingOccluder:
-    """A person or a box crossing in front of the camera along a straight floor path.
-
-    start_m, velocity_m_s: (3,) feet position at t_start_s and its velocity;
-    facing: (3,) horizontal unit normal of its face; kind: "person" or "box".
-    """
-
-    kind: str
-    t_start_s: float
-    t_end_s: float
-    start_m: np.ndarray
-    velocity_m_s: np.ndarray
-    facing: np.ndarray
-    quad_texture_seed: int
-
-    def quad_at(self, t_s: float) -> raster.TexturedQuad | None:
-        if not (self.t_start_s <= t_s <= self.t_end_s):
-            return None
-        feet = self.start_m + (t_s - self.t_start_s) * self.velocity_m_s
-        # plane frame: z = facing, y = up, x = y cross z
-        up = np.array([0.0, 0.0, 1.0])
-        T = frames.make_transform(np.column_stack([np.cross(up, self.facing), up, self.facing]), feet)
-        rng = np.random.default_rng(self.quad_texture_seed)
-        if self.kind == "person":
-            return occluders.person_occluder(rng, T)
-        return occluders.box_occluder(rng, T, 1.1, 1.3)
-
-
 def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: int, world: World,
-                   rng: np.random.Generator) -> list[PassingOccluder]:
+                   rng: np.random.Generator) -> list[occluders.PassingOccluder]:
     """``count`` crossings spread over the flight, each well in front of what the camera sees.
 
     Each walks straight across the view the camera has at the crossing's
@@ -308,7 +285,7 @@ def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: in
     the range of the nearest marker in view (0.7-2 m), so it passes between
     the camera and the markers, and is in the middle of the image at t_mid.
     """
-    occluders = []
+    crossings = []
     for k in range(count):
         t_mid = (k + rng.uniform(0.3, 0.7)) * traj.duration_s / max(count, 1)
         T_map_camera = traj.pose_at(t_mid) @ camera.T_body_camera
@@ -326,9 +303,10 @@ def plan_occluders(traj: trajectories.Trajectory, camera: CameraModel, count: in
         half_time = half_width / speed
         kind = "person" if rng.uniform() < 0.6 else "box"
         # in the middle of the view at t_mid
-        occluders.append(PassingOccluder(kind, t_mid - half_time, t_mid + half_time, start,
-                                         direction * speed * right, -forward, int(rng.integers(0, 2**31))))
-    return occluders
+        crossings.append(occluders.PassingOccluder(kind, t_mid - half_time, t_mid + half_time, start,
+                                                   direction * speed * right, -forward,
+                                                   int(rng.integers(0, 2**31))))
+    return crossings
 
 
 def _nearest_marker_range(world: World, camera: CameraModel, T_map_camera: np.ndarray) -> float:
@@ -344,41 +322,6 @@ def _nearest_marker_range(world: World, camera: CameraModel, T_map_camera: np.nd
 
 # ---------------------------------------------------------------- rendering
 
-@dataclass(frozen=True)
-class Realism:
-    """The simulator's realism knobs (all stored in sequence.yaml).
-
-    exposure_ms: exposure time; the motion blur is the image motion during it.
-    motion_blur: smear by the vehicle's motion.
-    optics_blur_sigma_px, read_noise_dn, shot_noise_gain, jpeg_quality,
-    vignette_strength: as in ``degrade.Degradations``.
-    exposure_wander: amplitude of slow auto-exposure changes (0.3 = the
-        light level varies by about x/÷ 1.35).
-    occluders: number of people/boxes crossing in front of the camera.
-    """
-
-    exposure_ms: float = 8.0
-    motion_blur: bool = True
-    optics_blur_sigma_px: float = 0.6
-    read_noise_dn: float = 1.5
-    shot_noise_gain: float = 0.03
-    jpeg_quality: int = 0
-    vignette_strength: float = 0.15
-    exposure_wander: float = 0.0
-    occluders: int = 0
-
-
-def exposure_gain_at(t_s: float, amplitude: float, seed: int) -> float:
-    """Slow auto-exposure drift: exp(amplitude * smooth noise in [-1, 1])."""
-    if amplitude <= 0:
-        return 1.0
-    rng = np.random.default_rng(seed + 7919)
-    periods = rng.uniform(2.0, 7.0, 3)
-    phases = rng.uniform(0, 2 * np.pi, 3)
-    wave = float(np.mean(np.sin(2 * np.pi * t_s / periods + phases)))
-    return math.exp(amplitude * wave)
-
-
 @dataclass
 class RenderedFrame:
     image: np.ndarray
@@ -388,14 +331,19 @@ class RenderedFrame:
 
 
 class Simulator:
-    """Renders frames of a trajectory through a world with a camera and realism knobs."""
+    """Renders frames of a trajectory through a world with a camera and image-realism knobs.
+
+    occluder_count: people or boxes crossing the view during the flight
+    (``plan_occluders``); ``occluders`` lists them.
+    """
 
     def __init__(self, world: World, camera: CameraModel, traj: trajectories.Trajectory,
-                 realism: Realism = Realism(), seed: int = 0, supersample: int = 1):
-        self.world, self.camera, self.trajectory, self.realism, self.seed = world, camera, traj, realism, seed
+                 degradations: Degradations = DEFAULT_DEGRADATIONS, seed: int = 0, supersample: int = 1,
+                 occluder_count: int = 0):
+        self.world, self.camera, self.trajectory, self.seed = world, camera, traj, seed
+        self.degradations = degradations
         self.renderer = raster.Renderer.from_camera(camera, supersample)
-        self.occluders = plan_occluders(traj, camera, realism.occluders, world,
-                                        np.random.default_rng(seed + 104729))
+        self.occluders = plan_occluders(traj, camera, occluder_count, world, np.random.default_rng(seed + 104729))
 
     def T_camera_map(self, t_s: float) -> np.ndarray:
         return frames.invert_transform(self.trajectory.pose_at(t_s) @ self.camera.T_body_camera)
@@ -414,15 +362,9 @@ class Simulator:
                                       T_camera_map, m.quad_index, m.marker_id)
                   for m in self.world.markers]
         truths = [t for t in truths if t.corners_visible.any() or t.inner_visible_fraction > 0]
-        r = self.realism
-        degradations = degrade.Degradations(
-            optics_blur_sigma_px=r.optics_blur_sigma_px, motion_blur=r.motion_blur,
-            exposure_gain=exposure_gain_at(t_s, r.exposure_wander, self.seed),
-            vignette_strength=r.vignette_strength, read_noise_dn=r.read_noise_dn,
-            shot_noise_gain=r.shot_noise_gain, jpeg_quality=r.jpeg_quality)
-        motion = self.image_motion_px(t_s, truths) if r.motion_blur else None
+        motion = self.image_motion_px(t_s, truths) if self.degradations.motion_blur else None
         rng = np.random.default_rng([self.seed, index])
-        image = degradations.apply(rendering.image, rng, motion)
+        image = self.degradations.at(t_s, self.seed).apply(rendering.image, rng, motion)
         return RenderedFrame(image, t_ns, T_map_body, truths)
 
     def image_motion_px(self, t_s: float, truths: list[raster.MarkerTruth]) -> tuple[float, float]:
@@ -431,7 +373,7 @@ class Simulator:
         The median over the visible markers' centres, or, with none in view,
         of the point 3 m ahead on the optical axis.
         """
-        half = self.realism.exposure_ms * 1e-3 / 2
+        half = self.degradations.exposure_ms * 1e-3 / 2
         seen = {t.key for t in truths if t.corners_visible.any()}
         points = np.array([m.T_map_marker[:3, 3] for m in self.world.markers if m.marker_id in seen])
         if len(points) == 0:
@@ -448,31 +390,11 @@ class Simulator:
 
 # ------------------------------------------------------------------ output
 
-class Progress:
-    """A plain progress bar on stderr (only for long renders or when asked)."""
-
-    def __init__(self, total: int, enabled: bool, stream=sys.stderr):
-        self.total, self.enabled, self.stream = total, enabled, stream
-        self.start = time.monotonic()
-        self.last = 0.0
-
-    def update(self, done: int) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if done < self.total and now - self.last < 0.25:
-            return
-        self.last = now
-        elapsed = now - self.start
-        rate = done / elapsed if elapsed > 0 else 0.0
-        eta = (self.total - done) / rate if rate > 0 else 0.0
-        width = 30
-        filled = int(width * done / max(self.total, 1))
-        self.stream.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{self.total} frames "
-                          f"{rate:5.1f} fps  eta {eta:5.1f} s ")
-        if done >= self.total:
-            self.stream.write("\n")
-        self.stream.flush()
+def progress_bar(total: int, progress: bool | None) -> tqdm:
+    """A progress bar of ``total`` frames on stderr; ``progress`` None: only for more than
+    ``PROGRESS_MIN_FRAMES`` frames."""
+    enabled = total > PROGRESS_MIN_FRAMES if progress is None else progress
+    return tqdm(total=total, unit="frame", disable=not enabled, file=sys.stderr)
 
 
 def frame_times_ns(duration_s: float, fps: float) -> list[int]:
@@ -489,6 +411,7 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     """Render every frame and write the sequence folder; returns its path.
 
     video: one ``video.avi`` in ``codec`` ("mp4v" or "ffv1") instead of PNG frames.
+    progress: a progress bar on stderr (None: for more than ``PROGRESS_MIN_FRAMES`` frames).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -504,10 +427,9 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
             raise SimulationError(f"{out / 'video.avi'}: OpenCV cannot write a {codec} video here")
     else:
         (out / "frames").mkdir(exist_ok=True)
-    bar = Progress(len(times), len(times) > 60 if progress is None else progress)
     T_ned_map = simulator.world.T_ned_map
     with open(out / "timestamps.csv", "w", newline="") as ft, open(out / "groundtruth.csv", "w", newline="") as fg, \
-            open(out / "markers.csv", "w", newline="") as fm:
+            open(out / "markers.csv", "w", newline="") as fm, progress_bar(len(times), progress) as bar:
         ts, gt, mk = csv.writer(ft), csv.writer(fg), csv.writer(fm)
         ts.writerow(("frame", "t_ns", "file"))
         gt.writerow(GROUNDTRUTH_COLUMNS)
@@ -526,7 +448,7 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
                 mk.writerow((index, t_ns, truth.key, *(f"{v:.4f}" for v in truth.corners_px.ravel()),
                              "".join("1" if v else "0" for v in truth.corners_visible),
                              f"{truth.inner_visible_fraction:.3f}", f"{truth.inner_px:.2f}"))
-            bar.update(index + 1)
+            bar.update(1)
     if writer is not None:
         writer.release()
     info = {
@@ -538,7 +460,8 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
         "duration_s": simulator.trajectory.duration_s,
         "trajectory": simulator.trajectory.describe(),
         "seed": simulator.seed,
-        "degradations": asdict(simulator.realism),
+        "degradations": asdict(simulator.degradations),
+        "occluders": len(simulator.occluders),
         "video": "video.avi" if video else None,
         "video_codec": codec if video else None,
     }
