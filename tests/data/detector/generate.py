@@ -59,7 +59,7 @@ def scene(name: str, markers, parity: int = 2, note: str = "", seed: int = 0, de
         if occluder is not None:
             quads.append(occluder)
     rendering = renderer.render(quads, np.eye(4), background)
-    degradations = degradations or degrade.Degradations(optics_blur_sigma_px=0.5, read_noise_dn=1.0, shot_noise_gain=0.02)
+    degradations = degradations or scenes.BASE_DEGRADATIONS
     image = degradations.apply(rendering.image, rng)
     expected = []
     layout = MarkerLayout(parity)
