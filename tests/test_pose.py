@@ -2,6 +2,7 @@
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -31,9 +32,9 @@ def body_pose(position_map, look_at_map, pitch_deg=0.0, roll_deg=0.0):
     return frames.make_transform(FACILITY.T_ned_map[:3, :3].T @ R_ned_body, position_map)
 
 
-def detections_for(T_map_body, symbols=None, noise_px=0.0, rng=None, margin_px=3.0):
+def detections_for(T_map_body, symbols=None, noise_px=0.0, rng=None, margin_px=3.0, camera=CAMERA):
     """Detections of every map marker fully visible from T_map_body (corners projected, noise added)."""
-    T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
+    T_camera_map = camera.T_camera_body @ frames.invert_transform(T_map_body)
     camera_position = frames.invert_transform(T_camera_map)[:3, 3]
     found = []
     for marker in FACILITY.markers.values():
@@ -41,8 +42,8 @@ def detections_for(T_map_body, symbols=None, noise_px=0.0, rng=None, margin_px=3
             continue
         if np.dot(camera_position - marker.T_map_marker[:3, 3], marker.normal_map) <= 0:
             continue  # seen from behind
-        corners = CAMERA.project_from(T_camera_map, marker.corners_map())
-        if not CAMERA.in_image(corners, margin_px).all():
+        corners = camera.project_from(T_camera_map, marker.corners_map())
+        if not camera.in_image(corners, margin_px).all():
             continue
         if noise_px:
             corners = corners + rng.normal(0.0, noise_px, corners.shape)
@@ -314,6 +315,65 @@ def test_position_covariance_matches_scatter_in_ned_axes():
     assert eigenvalues[-1] > 5 * eigenvalues[0]  # anisotropic, so the axes matter
     ratios = np.linalg.eigvals(np.linalg.solve(predicted, scatter)).real
     assert ratios.min() > 0.4 and ratios.max() < 2.0
+
+
+def finite_difference_jacobian(camera, T_map_body, points_map, step=1e-6):
+    """(2K, 6) central differences of the projected pixels by [dp_map, dtheta_map], R' = exp(dtheta) R."""
+    columns = []
+    for k in range(6):
+        delta = np.zeros(6)
+        delta[k] = step
+        projected = []
+        for sign in (1.0, -1.0):
+            R = cv2.Rodrigues(sign * delta[3:])[0] @ T_map_body[:3, :3]
+            T = frames.make_transform(R, T_map_body[:3, 3] + sign * delta[:3])
+            projected.append(camera.project_from(camera.T_camera_body @ np.linalg.inv(T), points_map))
+        columns.append((projected[0] - projected[1]).reshape(-1) / (2.0 * step))
+    return np.column_stack(columns)
+
+
+FISHEYE_CAMERA = CameraModel.from_config(
+    {"width": 640, "height": 480, "hfov_deg": 90.0, "distortion": [-0.3, 0.1, 0.001, -0.002, -0.02],
+     "mount": {"lever_arm_m": [0.05, -0.03, 0.1], "roll_deg": 5.0, "pitch_deg": -25.0, "yaw_deg": 10.0}},
+    "test",
+)
+
+
+@pytest.mark.parametrize("camera", [CAMERA, FISHEYE_CAMERA], ids=["mild lens", "strong lens"])
+@pytest.mark.parametrize("view", ["aisle", "B", "far N"])
+def test_pose_jacobian_matches_finite_differences(camera, view):
+    T_map_body = {"aisle": AISLE_VIEW, "B": B_VIEW, "far N": FAR_N_VIEW}[view]
+    solver = PoseSolver(FACILITY, camera)
+    observations, _ = solver.observations(detections_for(T_map_body, camera=camera))
+    assert observations
+    points_map = np.vstack([o.points_map for o in observations])
+    # Away from the pose the points were seen from, with a rotation part that matters.
+    T = T_map_body @ frames.make_transform(cv2.Rodrigues(np.array([0.02, -0.03, 0.05]))[0], [0.03, -0.02, 0.01])
+    analytic = solver._pose_jacobian(T, observations)
+    numeric = finite_difference_jacobian(camera, T, points_map)
+    assert analytic.shape == numeric.shape == (2 * len(points_map), 6)
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-8 * np.abs(numeric).max())
+
+
+def test_covariance_is_sigma2_times_the_inverse_normal_matrix():
+    """The covariance sent, recomputed here from a finite-difference Jacobian on map axes."""
+    rng = np.random.default_rng(4)
+    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5))
+    for _ in range(3):
+        detections = detections_for(AISLE_VIEW, noise_px=0.5, rng=rng, camera=FISHEYE_CAMERA)
+        solution = solver.solve_detailed(detections, t_ns=0)
+        m = solution.measurement
+        assert m is not None
+        used = [d for d in detections if d.id in m.marker_ids]
+        points_map = np.vstack([FACILITY.markers[d.id].corners_map() for d in used])
+        points_px = np.vstack([d.corners_px for d in used])
+        J = finite_difference_jacobian(FISHEYE_CAMERA, m.T_map_body, points_map)
+        residuals = FISHEYE_CAMERA.project_from(FISHEYE_CAMERA.T_camera_body @ np.linalg.inv(m.T_map_body), points_map) - points_px
+        # sigma^2 = r.r / (2K - 6), at least corner_sigma_px^2
+        sigma2 = max(float(np.sum(residuals ** 2)) / (residuals.size - 6), 0.5 ** 2)
+        covariance_map = sigma2 * np.linalg.inv(J.T @ J)
+        B = np.kron(np.eye(2), FACILITY.T_ned_map[:3, :3])
+        np.testing.assert_allclose(m.covariance_ned, B @ covariance_map @ B.T, rtol=1e-5, atol=1e-12)
 
 
 # ------------------------------------------------------------------ circles

@@ -122,10 +122,15 @@ def rotvec_from_rotation(R: np.ndarray) -> np.ndarray:
     return _from_matrix(R).as_rotvec()
 
 
-def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle (radians, [0, pi]) of the rotation taking R_b to R_a."""
+def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> float | np.ndarray:
+    """Angle (radians, [0, pi]) of the rotation taking R_b to R_a.
+
+    (3, 3) rotations give a float; stacks (..., 3, 3) broadcast to (...) angles.
+    """
     # the magnitude of R_a R_b^T
-    return float(_from_matrix(np.asarray(R_a) @ np.asarray(R_b).T).magnitude())
+    R_a, R_b = np.asarray(R_a, dtype=float), np.asarray(R_b, dtype=float)
+    angle = _from_matrix(R_a @ np.swapaxes(R_b, -1, -2)).magnitude()
+    return float(angle) if np.ndim(angle) == 0 else angle
 
 
 def skew(v) -> np.ndarray:

@@ -50,7 +50,6 @@ from companion.geometry.facility_map import FacilityMap, MapMarker
 from companion.types import Detection, PoseMeasurement
 
 NS_PER_S = 1_000_000_000
-JACOBIAN_STEP = 1e-6  # metres and radians, central differences
 
 
 @dataclass(frozen=True)
@@ -291,7 +290,7 @@ class PoseSolver:
         fits: list[Fit] = []
         for T_camera_map in starts:
             fit = self._grow_and_refine(T_camera_map, observations)
-            if fit is not None and not any(self._same_pose(fit, other) for other in fits):
+            if fit is not None and not self._same_pose_as_any(fit, fits):
                 fits.append(fit)
         return fits
 
@@ -393,14 +392,19 @@ class PoseSolver:
         limit_px2 = best.sse_px2 + self.params.ambiguity_chi2 * sigma2
         return [
             f for f in fits
-            if f is not best and f.inliers == best.inliers and f.sse_px2 < limit_px2 and not self._same_pose(f, best)
+            if f is not best and f.inliers == best.inliers and f.sse_px2 < limit_px2 and not self._same_pose_as_any(f, [best])
         ]
 
-    def _same_pose(self, a: Fit, b: Fit) -> bool:
-        T_ab = a.T_camera_map @ frames.invert_transform(b.T_camera_map)
-        angle_deg = math.degrees(frames.rotation_angle_rad(T_ab[:3, :3], np.eye(3)))
-        position_m = float(np.linalg.norm(frames.invert_transform(a.T_camera_map)[:3, 3] - frames.invert_transform(b.T_camera_map)[:3, 3]))
-        return angle_deg < self.params.distinct_rotation_deg and position_m < self.params.distinct_position_m
+    def _same_pose_as_any(self, fit: Fit, others: list[Fit]) -> bool:
+        """Whether one of the others is the same camera pose: closer than both distinct_rotation_deg and distinct_position_m."""
+        if not others:
+            return False
+        # one vectorised call: this runs for every pair of hypotheses
+        R_others = np.stack([other.T_camera_map[:3, :3] for other in others])
+        angles_deg = np.degrees(frames.rotation_angle_rad(R_others, fit.T_camera_map[:3, :3]))
+        positions_m = np.linalg.norm(np.stack([_camera_position_m(other) for other in others]) - _camera_position_m(fit), axis=1)
+        same = (angles_deg < self.params.distinct_rotation_deg) & (positions_m < self.params.distinct_position_m)
+        return bool(same.any())
 
     def _prior(self, t_ns: int, prior_T_map_body: np.ndarray | None) -> np.ndarray | None:
         if prior_T_map_body is not None:
@@ -440,20 +444,20 @@ class PoseSolver:
     def _pose_jacobian(self, T_map_body: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
         """(2K, 6) derivative of the projected pixels by [dp_map (3), dtheta_map (3)].
 
-        Perturbed pose: R' = exp(dtheta) R, p' = p + dp (map axes).
+        Perturbed pose: R' = exp(dtheta) R, p' = p + dp (map axes). A map
+        point X is seen at X_c = R_cm (X - p) + t_cb with R_cm = R_cb R^T, so
+        to first order dX_c = R_cm (-dp + (X - p) x dtheta); the camera
+        gives d(pixels)/dX_c (OpenCV's projectPoints).
         """
-        columns = []
-        for k in range(6):
-            delta = np.zeros(6)
-            delta[k] = JACOBIAN_STEP
-            plus = self._project_body(_perturb(T_map_body, delta), observations)
-            minus = self._project_body(_perturb(T_map_body, -delta), observations)
-            columns.append((plus - minus).reshape(-1) / (2.0 * JACOBIAN_STEP))
-        return np.column_stack(columns)
-
-    def _project_body(self, T_map_body: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
         points_map = np.vstack([o.points_map for o in observations])
-        return self.camera.project_from(self._T_camera_map(T_map_body), points_map)
+        T_camera_map = self._T_camera_map(T_map_body)
+        # A_i = d(pixels_i)/dX_c R_cm: (K, 2, 3)
+        A = self.camera.projection_jacobian(frames.transform_points(T_camera_map, points_map)) @ T_camera_map[:3, :3]
+        # d(pixels_i)/d(dp) = -A_i
+        d_position = -A
+        # d(pixels_i)/d(dtheta) = A_i skew(X_i - p): row a of it is a x (X_i - p)
+        d_rotation = np.cross(A, (points_map - T_map_body[:3, 3])[:, None, :])
+        return np.concatenate([d_position, d_rotation], axis=2).reshape(-1, 6)
 
     def _T_camera_map(self, T_map_body: np.ndarray) -> np.ndarray:
         # T_camera_map = T_camera_body T_body_map
@@ -483,9 +487,9 @@ def chi2_quantile(dof: int, z: float) -> float:
     return dof * (1.0 - a + z * math.sqrt(a)) ** 3
 
 
-def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """T with position + delta[:3] and rotation exp(delta[3:]) R."""
-    return frames.make_transform(frames.rotation_from_rotvec(delta[3:]) @ T[:3, :3], T[:3, 3] + delta[:3])
+def _camera_position_m(fit: Fit) -> np.ndarray:
+    """(3,) the camera's optical centre in the map."""
+    return frames.invert_transform(fit.T_camera_map)[:3, 3]
 
 
 def _body_pose(T_camera_map: np.ndarray, T_camera_body: np.ndarray) -> np.ndarray:
