@@ -29,9 +29,11 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from filterpy.kalman import KalmanFilter
+from scipy.stats import chi2
 
 from companion.geometry import frames
 from companion.types import Estimate, PoseMeasurement
@@ -67,8 +69,9 @@ class FusionParams:
 
     accel_noise_m_s2: float = 3.0
     yaw_accel_noise_rad_s2: float = 3.0
-    # Chi-square quantile with 4 degrees of freedom: 99.9 % is 18.47.
-    gate_chi2: float = 18.47
+    # A pose consistent with the track passes the Mahalanobis gate with this
+    # probability (the chi-square quantile with 4 degrees of freedom: 18.47 at 0.999).
+    gate_probability: float = 0.999
     max_coast_s: float = 0.25
     confirm_frames: int = 3
     reset_distance_m: float = 0.25
@@ -76,14 +79,21 @@ class FusionParams:
     initial_velocity_std_m_s: float = 2.0
     initial_yaw_rate_std_rad_s: float = 1.0
 
+    # Config keys that were replaced: the old key is an error naming the new one.
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {
+        "gate_chi2": "gate_probability, the gate as a probability (gate_chi2 18.47 was 0.999)",
+    }
+
     def __post_init__(self) -> None:
-        positive = ("accel_noise_m_s2", "yaw_accel_noise_rad_s2", "gate_chi2",
+        positive = ("accel_noise_m_s2", "yaw_accel_noise_rad_s2",
                     "reset_distance_m", "reset_yaw_rad",
                     "initial_velocity_std_m_s", "initial_yaw_rate_std_rad_s")
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise FusionError(f"fusion parameter {name} must be a positive number, got {value!r}")
+        if not (isinstance(self.gate_probability, (int, float)) and 0 < self.gate_probability <= 1):
+            raise FusionError(f"fusion parameter gate_probability must be in (0, 1], got {self.gate_probability!r}")
         if not (isinstance(self.max_coast_s, (int, float)) and 0 <= self.max_coast_s <= 5):
             raise FusionError(f"fusion parameter max_coast_s must be in [0, 5] s, got {self.max_coast_s!r}")
         if not (isinstance(self.confirm_frames, int) and self.confirm_frames >= 1):
@@ -210,6 +220,8 @@ class PoseFilter:
 
     def __init__(self, params: FusionParams | None = None):
         self.params = params or FusionParams()
+        # Squared Mahalanobis distance passed with probability gate_probability.
+        self.gate_chi2 = float(chi2.ppf(self.params.gate_probability, MEASUREMENT_DIM))
         self.counters = FusionCounters()
         self.state = TrackState.ACQUIRING
         self.reset_counter = 0
@@ -238,7 +250,7 @@ class PoseFilter:
         track.predict_to(t_ns)
         if measurement is not None:
             z, R, d_sq = track.innovation(measurement)
-            if d_sq <= self.params.gate_chi2:
+            if d_sq <= self.gate_chi2:
                 track.update(measurement, z, R)
                 self.counters.accepted += 1
                 self.state = TrackState.TRACKING
@@ -263,7 +275,7 @@ class PoseFilter:
         else:
             candidate.predict_to(measurement.t_ns)
             z, R, d_sq = candidate.innovation(measurement)
-            if d_sq <= self.params.gate_chi2:
+            if d_sq <= self.gate_chi2:
                 candidate.update(measurement, z, R)
                 self._candidate_count += 1
             else:

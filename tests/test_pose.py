@@ -9,19 +9,18 @@ import pytest
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import load_map
-from companion.geometry.pose import PoseParams, PoseSolver
+from companion.daemon.config import ConfigError, config_from_dict
+from companion.geometry.pose import PoseParams, PoseSolver, chi2_quantile
 from companion.types import Detection
 
 REPO = Path(__file__).resolve().parents[1]
 FACILITY = load_map(REPO / "maps" / "warehouse.yaml")
-CAMERA = CameraModel.from_config(
-    {
-        "width": 640, "height": 480, "hfov_deg": 70.0,
-        "distortion": [-0.08, 0.03, 0.0005, -0.0003, 0.0],
-        "mount": {"lever_arm_m": [0.12, 0.02, 0.05], "facing": "forward", "tilt_down_deg": 10.0},
-    },
-    "test",
-)
+CAMERA_SECTION = {
+    "width": 640, "height": 480, "hfov_deg": 70.0,
+    "distortion": [-0.08, 0.03, 0.0005, -0.0003, 0.0],
+    "mount": {"lever_arm_m": [0.12, 0.02, 0.05], "facing": "forward", "tilt_down_deg": 10.0},
+}
+CAMERA = CameraModel.from_config(CAMERA_SECTION, "test")
 
 
 def body_pose(position_map, look_at_map, pitch_deg=0.0, roll_deg=0.0):
@@ -261,8 +260,8 @@ def test_noise_beyond_the_expected_corner_noise_is_rejected():
 
 def test_covariance_grows_with_noise_and_range():
     rng = np.random.default_rng(3)
-    # Chi-square gates off (huge gate_z): the residual variance alone scales the covariance.
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.2, gate_z=100.0, max_rms_px=10.0, max_position_sd_m=1.0))
+    # Chi-square gates off (gate_probability 1): the residual variance alone scales the covariance.
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.2, gate_probability=1.0, max_rms_px=10.0, max_position_sd_m=1.0))
     quiet = solver.solve(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), t_ns=0)
     loud = solver.solve(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), t_ns=0)
     assert np.trace(loud.covariance_ned[:3, :3]) > 10 * np.trace(quiet.covariance_ned[:3, :3])
@@ -374,6 +373,30 @@ def test_covariance_is_sigma2_times_the_inverse_normal_matrix():
         covariance_map = sigma2 * np.linalg.inv(J.T @ J)
         B = np.kron(np.eye(2), FACILITY.T_ned_map[:3, :3])
         np.testing.assert_allclose(m.covariance_ned, B @ covariance_map @ B.T, rtol=1e-5, atol=1e-12)
+
+
+# -------------------------------------------------------------------- gates
+
+@pytest.mark.parametrize("dof, quantile", [(1, 10.828), (2, 13.816), (8, 26.124), (20, 45.315)])
+def test_chi2_quantile_matches_the_table(dof, quantile):
+    # 99.9 % points of the chi-square distribution (printed tables, e.g. NIST/SEMATECH e-Handbook 1.3.6.7.4)
+    assert chi2_quantile(0.999, dof) == pytest.approx(quantile, abs=1e-3)
+
+
+def config_with(section: str, values: dict) -> dict:
+    return {"source": {"kind": "v4l2"}, "camera": CAMERA_SECTION, "map": str(REPO / "maps" / "warehouse.yaml"), section: values}
+
+
+def test_gate_probability_from_the_config():
+    config = config_from_dict(config_with("pose", {"gate_probability": 0.99}), "site.yaml")
+    assert config.pose.gate_probability == 0.99
+    with pytest.raises(ConfigError, match=r"^site.yaml: pose: pose parameter gate_probability must be in \(0, 1\], got 1.5$"):
+        config_from_dict(config_with("pose", {"gate_probability": 1.5}), "site.yaml")
+
+
+def test_replaced_gate_z_key_names_its_successor():
+    with pytest.raises(ConfigError, match=r"^site.yaml: pose.gate_z: replaced by gate_probability"):
+        config_from_dict(config_with("pose", {"gate_z": 3.09}), "site.yaml")
 
 
 # ------------------------------------------------------------------ circles

@@ -38,11 +38,14 @@ All axis conventions come from ``companion.geometry.frames``.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import cv2
 import numpy as np
+from scipy.stats import chi2
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -58,7 +61,8 @@ class PoseParams:
 
     corner_sigma_px: expected standard deviation of a detected point's x and
         y (detector noise); the consistency gates are chi-square tests at it.
-    gate_z: one-sided normal quantile of those tests (3.09: 99.9 %).
+    gate_probability: probability that corner noise alone passes those tests
+        (0.999: one honest marker in a thousand fails; 1.0 turns them off).
     max_rms_px: reject any fit whose RMS point error is above this.
     hypothesis_gate_px: loose RMS gate to gather markers before refining a
         hypothesis made from one marker.
@@ -77,7 +81,7 @@ class PoseParams:
     """
 
     corner_sigma_px: float = 0.5
-    gate_z: float = 3.09
+    gate_probability: float = 0.999
     max_rms_px: float = 2.0
     hypothesis_gate_px: float = 30.0
     ambiguity_chi2: float = 25.0
@@ -88,6 +92,15 @@ class PoseParams:
     prior_max_age_s: float = 1.0
     accept_ambiguous_without_prior: bool = False
     max_markers: int | None = None
+
+    # Config keys that were replaced: the old key is an error naming the new one.
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {
+        "gate_z": "gate_probability, the chi-square tests' probability (gate_z 3.09 was 0.999)",
+    }
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.gate_probability, (int, float)) and 0.0 < self.gate_probability <= 1.0):
+            raise ValueError(f"pose parameter gate_probability must be in (0, 1], got {self.gate_probability!r}")
 
 
 @dataclass(frozen=True)
@@ -343,7 +356,7 @@ class PoseSolver:
 
     def _within_noise(self, sse_px2: float, dof: int) -> bool:
         """Chi-square test: squared errors explained by corner noise at ``corner_sigma_px``."""
-        return sse_px2 / self.params.corner_sigma_px ** 2 < chi2_quantile(dof, self.params.gate_z)
+        return sse_px2 / self.params.corner_sigma_px ** 2 < chi2_quantile(self.params.gate_probability, dof)
 
     def _refine(self, T_camera_map: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
         """Levenberg-Marquardt over all points of these markers, from T_camera_map."""
@@ -476,15 +489,13 @@ def _best(fits: list[Fit]) -> Fit | None:
     return min(fits, key=lambda f: (-len(f.inliers), f.sse_px2), default=None)
 
 
-def chi2_quantile(dof: int, z: float) -> float:
-    """Chi-square quantile with ``dof`` degrees of freedom at normal quantile ``z``.
+@functools.lru_cache(maxsize=1024)
+def chi2_quantile(probability: float, dof: int) -> float:
+    """q with P(X <= q) = probability for X chi-square with ``dof`` degrees of freedom.
 
-    Wilson-Hilferty: (X / k)^(1/3) is close to normal with mean 1 - 2/(9k)
-    and variance 2/(9k); within 1 % for k >= 3.
+    Cached: a solve asks for a few small dof many times, and scipy's call costs ~50 us.
     """
-    # q = k (1 - 2/(9k) + z sqrt(2/(9k)))^3
-    a = 2.0 / (9.0 * dof)
-    return dof * (1.0 - a + z * math.sqrt(a)) ** 3
+    return float(chi2.ppf(probability, dof))
 
 
 def _camera_position_m(fit: Fit) -> np.ndarray:
