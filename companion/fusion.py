@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
+from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
 from scipy.stats import chi2
 
@@ -201,14 +202,17 @@ class _Track:
 
 
 def process_noise(dt: float, params: FusionParams) -> np.ndarray:
-    """(8, 8) discrete white-noise-acceleration Q for one step of dt seconds."""
-    q = np.array([params.accel_noise_m_s2] * 3 + [params.yaw_accel_noise_rad_s2]) ** 2
-    Q = np.zeros((STATE_DIM, STATE_DIM))
-    # Per axis: [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * sigma_a^2
-    Q[0:4, 0:4] = np.diag(q * dt ** 4 / 4)
-    Q[0:4, 4:8] = Q[4:8, 0:4] = np.diag(q * dt ** 3 / 2)
-    Q[4:8, 4:8] = np.diag(q * dt ** 2)
-    return Q
+    """(8, 8) discrete white-noise-acceleration Q for one step of dt seconds.
+
+    filterpy's per-axis block [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] in the
+    state's order (north, east, down, yaw, then their rates), each axis
+    scaled by its acceleration variance.
+    """
+    # sigma_a of each state's axis
+    sigma = np.tile([params.accel_noise_m_s2] * 3 + [params.yaw_accel_noise_rad_s2], 2)
+    unit = Q_discrete_white_noise(dim=2, dt=dt, var=1.0, block_size=4, order_by_dim=False)
+    # Q_ij = unit_ij sigma_i sigma_j: unit couples a state only with its own axis's rate
+    return unit * np.outer(sigma, sigma)
 
 
 class PoseFilter:
