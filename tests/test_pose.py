@@ -8,9 +8,12 @@ import pytest
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
-from companion.geometry.facility_map import load_map
+from companion.detect.detector import Detector, DetectorParams
+from companion.geometry.facility_map import load_map, map_from_dict
 from companion.daemon.config import ConfigError, config_from_dict
 from companion.geometry.pose import PoseParams, PoseSolver, chi2_quantile
+from companion.markers.layout import MarkerLayout
+from companion.sim import occluders, raster
 from companion.types import Detection
 
 REPO = Path(__file__).resolve().parents[1]
@@ -408,7 +411,7 @@ def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
     layout = MarkerLayout(parity=FACILITY.parity)
     marker = FACILITY.markers[detection.id]
     ids = np.arange(len(layout.circles)) if circle_ids is None else np.asarray(circle_ids)
-    points_marker = frames.grid_to_marker_m(layout.circles[ids, :2], layout.inner_origin, marker.size_m)
+    points_marker = frames.grid_to_marker_m(layout.circles[ids, :2], layout.inner_origin, layout.inner_cells, marker.size_m)
     T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
     circles_px = CAMERA.project_from(T_camera_map, frames.transform_points(marker.T_map_marker, points_marker))
     circles_px = circles_px + rng.normal(0.0, noise_px, circles_px.shape)
@@ -438,3 +441,92 @@ def test_circle_ids_select_the_circles():
     # The same centres labelled as other circles cannot be fitted.
     wrong = Detection(good.symbol, good.id, good.corners_px, "circles", 0, 1.0, good.circles_px, np.array([1, 2, 5, 6, 8]))
     assert PoseSolver(FACILITY, CAMERA).solve([wrong], t_ns=0) is None
+
+
+# ------------------------------------------- other dictionaries, rendered
+
+def wall_map(dictionary, parity):
+    """One 0.15 m marker on a wall at x = 3 m facing -x, in a map of this dictionary and parity."""
+    return map_from_dict({"name": "wall", "frame": {"origin": "corner", "x_bearing_deg": 0.0},
+                          "dictionary": dictionary, "parity": parity,
+                          "markers": [{"symbol": "B", "size_m": 0.15, "position_m": [3.0, 0.0, 1.4], "facing": "-x"}]},
+                         f"wall-{dictionary}.yaml")
+
+
+def level_body_looking_at(position_map, target_map):
+    """(4, 4) T_map_body: level, forward axis toward the target (horizontally)."""
+    d = np.asarray(target_map, float) - position_map
+    # a level FRD body with forward along map +x has R_map_body = diag(1, -1, -1)
+    return frames.make_transform(frames.rot_z(math.atan2(d[1], d[0])) @ np.diag([1.0, -1.0, -1.0]), position_map)
+
+
+def rendered_views(facility, count, rng, strip_side=None):
+    """(image, T_map_body, MarkerTruth) of the map's one marker from 0.8-1.3 m, up to 30 degrees off its normal.
+
+    strip_side: hide an eighth of the inner square from that side (its border
+    broken there), so the detector can find the marker only by its circles.
+    """
+    marker = next(iter(facility.markers.values()))
+    layout = MarkerLayout(parity=facility.parity, dictionary=facility.dictionary)
+    texture = raster.rs_marker_texture(layout, marker.id, 16)
+    renderer = raster.Renderer.from_camera(CAMERA, supersample=2)
+    views = []
+    for _ in range(count):
+        distance_m, angle = rng.uniform(0.8, 1.3), math.radians(rng.uniform(-30.0, 30.0))
+        position = marker.T_map_marker[:3, 3] + [-distance_m * math.cos(angle), distance_m * math.sin(angle), 0.1]
+        T_map_body = level_body_looking_at(position, marker.T_map_marker[:3, 3])
+        T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
+        quads = [raster.marker_quad(texture, marker.size_m, marker.T_map_marker, gain=0.84, offset=18.0)]
+        if strip_side is not None:
+            quads.append(occluders.strip_occluder(texture, marker.size_m, marker.T_map_marker, 0.125, strip_side, rng))
+        rendering = renderer.render(quads, T_camera_map, background=90.0)
+        truth = raster.marker_truth(renderer, rendering, texture, marker.size_m, marker.T_map_marker, T_camera_map, 0)
+        # a little optics blur and read noise
+        image = cv2.GaussianBlur(rendering.image.astype(np.float32), (0, 0), 0.6) + rng.normal(0.0, 1.5, rendering.image.shape)
+        views.append((np.clip(np.rint(image), 0, 255).astype(np.uint8), T_map_body, truth))
+    return views
+
+
+@pytest.mark.parametrize("dictionary, parity", [("5x5", 2), ("6x6", 2), ("8x8", 2), ("5x5", 4), ("8x8", 4)])
+def test_circle_centres_of_every_dictionary_fit_the_rendered_truth(dictionary, parity):
+    """Corners and circle centres where the renderer drew them (plus 0.2 px noise) give the rendered pose.
+
+    The circles' 3-D points come from the grid geometry of the map's
+    dictionary: with a 6x6 square assumed, a 5x5 or 8x8 marker's circles are
+    ~24 / ~45 mm off and the fit fails.
+    """
+    rng = np.random.default_rng(8)
+    facility = wall_map(dictionary, parity)
+    marker = next(iter(facility.markers.values()))
+    solver = PoseSolver(facility, CAMERA, PoseParams(corner_sigma_px=0.3))
+    errors, rotation_errors_deg = [], []
+    for _, T_map_body, truth in rendered_views(facility, 4, rng):
+        assert truth.corners_visible.all() and truth.circles_visible.all()
+        ids = np.arange(len(truth.circles_px))
+        detection = Detection(marker.symbol, marker.id, truth.corners_px + rng.normal(0.0, 0.2, (4, 2)), "circles", 0, 1.0,
+                              truth.circles_px + rng.normal(0.0, 0.2, truth.circles_px.shape), ids)
+        solution = solver.solve_detailed([detection], t_ns=0, prior_T_map_body=T_map_body)
+        assert solution.status == "ok", solution.status
+        m = solution.measurement
+        errors.append(position_error_m(m, T_map_body))
+        rotation_errors_deg.append(math.degrees(frames.rotation_angle_rad(m.T_map_body[:3, :3], T_map_body[:3, :3])))
+    assert max(errors) < 0.01
+    assert max(rotation_errors_deg) < 0.5
+
+
+@pytest.mark.parametrize("dictionary", ["5x5", "6x6", "8x8"])
+def test_detector_circles_path_poses_of_every_dictionary(dictionary):
+    """A rendered marker with a strip over its border, found by the detector on its circles path: an accurate pose."""
+    rng = np.random.default_rng(3)
+    facility = wall_map(dictionary, 2)
+    detector = Detector(DetectorParams(parity=2, dictionary=dictionary))
+    solver = PoseSolver(facility, CAMERA, PoseParams(corner_sigma_px=0.3))
+    errors = []
+    for side in ("left", "top", "right", "bottom"):
+        for image, T_map_body, _ in rendered_views(facility, 1, rng, strip_side=side):
+            detections = detector.detect(image)
+            assert [d.path for d in detections] == ["circles"]
+            m = solver.solve(detections, t_ns=0, prior_T_map_body=T_map_body)
+            assert m is not None
+            errors.append(position_error_m(m, T_map_body))
+    assert np.median(errors) < 0.02 and max(errors) < 0.05

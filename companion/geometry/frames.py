@@ -238,17 +238,19 @@ def R_camera_marker_face_on() -> np.ndarray:
 
 # ----------------------------------------------------------------- marker
 
-def grid_to_marker_m(uv_cells, inner_origin_cells: float, size_m: float) -> np.ndarray:
+def grid_to_marker_m(uv_cells, inner_origin_cells: float, inner_cells: float, size_m: float) -> np.ndarray:
     """(N, 3) marker-frame points (metres, z = 0) of (N, 2) grid coordinates.
 
     Grid coordinates (u, v) are in cells from the grid's outer top-left
     corner, u right, v down; the inner black square spans
-    [o, o + 8] x [o, o + 8] with o = ``inner_origin_cells`` and side ``size_m``.
+    [o, o + c] x [o, o + c] with o = ``inner_origin_cells``,
+    c = ``inner_cells`` (a marker layout's ``inner_origin`` and
+    ``inner_cells``: n + 2 for an n x n dictionary) and side ``size_m``.
     """
     uv = np.asarray(uv_cells, dtype=float).reshape(-1, 2)
-    cell_m = size_m / 8.0
-    centre = inner_origin_cells + 4.0
-    # x = (u - (o + 4)) cell_m, y = ((o + 4) - v) cell_m
+    cell_m = size_m / inner_cells
+    centre = inner_origin_cells + inner_cells / 2.0
+    # x = (u - (o + c/2)) cell_m, y = ((o + c/2) - v) cell_m
     x = (uv[:, 0] - centre) * cell_m
     y = (centre - uv[:, 1]) * cell_m
     return np.column_stack([x, y, np.zeros(len(uv))])

@@ -274,7 +274,8 @@ class PoseSolver:
             circles_uv = self._circles_uv()
             ids = np.asarray(detection.circle_ids, dtype=int).reshape(-1)
             valid = (ids >= 0) & (ids < len(circles_uv))  # a detector bug must not stop the pipeline
-            points_marker.append(frames.grid_to_marker_m(circles_uv[ids[valid]], self._inner_origin(), marker.size_m))
+            layout = self._marker_layout()
+            points_marker.append(frames.grid_to_marker_m(circles_uv[ids[valid]], layout.inner_origin, layout.inner_cells, marker.size_m))
             points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid])
         points_map = frames.transform_points(marker.T_map_marker, np.vstack(points_marker))
         return MarkerObservation(marker, detection, points_map, np.vstack(points_px))
@@ -289,9 +290,6 @@ class PoseSolver:
     def _circles_uv(self) -> np.ndarray:
         """(12, 2) circle centres (u, v) in grid cells."""
         return np.asarray(self._marker_layout().circles, dtype=float)[:, :2]
-
-    def _inner_origin(self) -> float:
-        return float(self._marker_layout().inner_origin)
 
     # ----------------------------------------------------------- hypotheses
 
