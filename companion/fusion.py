@@ -128,6 +128,22 @@ def measurement_vector(measurement: PoseMeasurement) -> tuple[np.ndarray, np.nda
     return z, R, roll, pitch
 
 
+@dataclass(frozen=True)
+class _Innovation:
+    """A measurement against a track's prediction.
+
+    z: (4,) with its yaw unwrapped next to the state's; R: (4, 4);
+    roll_rad, pitch_rad: the measured attitude's (not filtered);
+    d_sq: squared Mahalanobis distance to the prediction.
+    """
+
+    z: np.ndarray
+    R: np.ndarray
+    roll_rad: float
+    pitch_rad: float
+    d_sq: float
+
+
 class _Track:
     """One Kalman filter over the 8-state model, started from one measurement."""
 
@@ -156,9 +172,8 @@ class _Track:
         self.kf.predict(F=F, Q=process_noise(dt, self.params))
         self.t_ns = t_ns
 
-    def innovation(self, measurement: PoseMeasurement) -> tuple[np.ndarray, np.ndarray, float]:
-        """z (4,) with its yaw unwrapped next to the state's, R (4, 4), Mahalanobis^2."""
-        z, R, _, _ = measurement_vector(measurement)
+    def innovation(self, measurement: PoseMeasurement) -> _Innovation:
+        z, R, roll_rad, pitch_rad = measurement_vector(measurement)
         x_yaw = float(self.kf.x[YAW, 0])
         # Compare yaw modulo 2 pi: the state's yaw is continuous (unwrapped).
         z[3] = x_yaw + wrap_angle_rad(z[3] - x_yaw)
@@ -166,11 +181,11 @@ class _Track:
         # S = H P H' + R;  d^2 = y' S^-1 y
         S = H @ self.kf.P @ H.T + R
         d_sq = float(y @ np.linalg.solve(S, y))
-        return z, R, d_sq
+        return _Innovation(z, R, roll_rad, pitch_rad, d_sq)
 
-    def update(self, measurement: PoseMeasurement, z: np.ndarray, R: np.ndarray) -> None:
-        self.kf.update(z.reshape(MEASUREMENT_DIM, 1), R=R)
-        _, _, self.roll_rad, self.pitch_rad = measurement_vector(measurement)
+    def update(self, measurement: PoseMeasurement, innovation: _Innovation) -> None:
+        self.kf.update(innovation.z.reshape(MEASUREMENT_DIM, 1), R=innovation.R)
+        self.roll_rad, self.pitch_rad = innovation.roll_rad, innovation.pitch_rad
         self.rotation_cov = measurement.covariance_ned[3:6, 3:6].copy()
         self.t_last_fix_ns = measurement.t_ns
 
@@ -253,9 +268,9 @@ class PoseFilter:
         track = self._track
         track.predict_to(t_ns)
         if measurement is not None:
-            z, R, d_sq = track.innovation(measurement)
-            if d_sq <= self.gate_chi2:
-                track.update(measurement, z, R)
+            innovation = track.innovation(measurement)
+            if innovation.d_sq <= self.gate_chi2:
+                track.update(measurement, innovation)
                 self.counters.accepted += 1
                 self.state = TrackState.TRACKING
                 return track.estimate(self.reset_counter, tracking=True)
@@ -278,9 +293,9 @@ class PoseFilter:
             self._start_candidate(measurement)
         else:
             candidate.predict_to(measurement.t_ns)
-            z, R, d_sq = candidate.innovation(measurement)
-            if d_sq <= self.gate_chi2:
-                candidate.update(measurement, z, R)
+            innovation = candidate.innovation(measurement)
+            if innovation.d_sq <= self.gate_chi2:
+                candidate.update(measurement, innovation)
                 self._candidate_count += 1
             else:
                 self.counters.rejected += 1
