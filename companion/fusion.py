@@ -29,9 +29,12 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
+from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
+from scipy.stats import chi2
 
 from companion.geometry import frames
 from companion.types import Estimate, PoseMeasurement
@@ -67,8 +70,9 @@ class FusionParams:
 
     accel_noise_m_s2: float = 3.0
     yaw_accel_noise_rad_s2: float = 3.0
-    # Chi-square quantile with 4 degrees of freedom: 99.9 % is 18.47.
-    gate_chi2: float = 18.47
+    # A pose consistent with the track passes the Mahalanobis gate with this
+    # probability (the chi-square quantile with 4 degrees of freedom: 18.47 at 0.999).
+    gate_probability: float = 0.999
     max_coast_s: float = 0.25
     confirm_frames: int = 3
     reset_distance_m: float = 0.25
@@ -76,14 +80,21 @@ class FusionParams:
     initial_velocity_std_m_s: float = 2.0
     initial_yaw_rate_std_rad_s: float = 1.0
 
+    # Config keys that were replaced: the old key is an error naming the new one.
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {
+        "gate_chi2": "gate_probability, the gate as a probability (gate_chi2 18.47 was 0.999)",
+    }
+
     def __post_init__(self) -> None:
-        positive = ("accel_noise_m_s2", "yaw_accel_noise_rad_s2", "gate_chi2",
+        positive = ("accel_noise_m_s2", "yaw_accel_noise_rad_s2",
                     "reset_distance_m", "reset_yaw_rad",
                     "initial_velocity_std_m_s", "initial_yaw_rate_std_rad_s")
         for name in positive:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise FusionError(f"fusion parameter {name} must be a positive number, got {value!r}")
+        if not (isinstance(self.gate_probability, (int, float)) and 0 < self.gate_probability <= 1):
+            raise FusionError(f"fusion parameter gate_probability must be in (0, 1], got {self.gate_probability!r}")
         if not (isinstance(self.max_coast_s, (int, float)) and 0 <= self.max_coast_s <= 5):
             raise FusionError(f"fusion parameter max_coast_s must be in [0, 5] s, got {self.max_coast_s!r}")
         if not (isinstance(self.confirm_frames, int) and self.confirm_frames >= 1):
@@ -117,6 +128,22 @@ def measurement_vector(measurement: PoseMeasurement) -> tuple[np.ndarray, np.nda
     return z, R, roll, pitch
 
 
+@dataclass(frozen=True)
+class _Innovation:
+    """A measurement against a track's prediction.
+
+    z: (4,) with its yaw unwrapped next to the state's; R: (4, 4);
+    roll_rad, pitch_rad: the measured attitude's (not filtered);
+    d_sq: squared Mahalanobis distance to the prediction.
+    """
+
+    z: np.ndarray
+    R: np.ndarray
+    roll_rad: float
+    pitch_rad: float
+    d_sq: float
+
+
 class _Track:
     """One Kalman filter over the 8-state model, started from one measurement."""
 
@@ -145,9 +172,8 @@ class _Track:
         self.kf.predict(F=F, Q=process_noise(dt, self.params))
         self.t_ns = t_ns
 
-    def innovation(self, measurement: PoseMeasurement) -> tuple[np.ndarray, np.ndarray, float]:
-        """z (4,) with its yaw unwrapped next to the state's, R (4, 4), Mahalanobis^2."""
-        z, R, _, _ = measurement_vector(measurement)
+    def innovation(self, measurement: PoseMeasurement) -> _Innovation:
+        z, R, roll_rad, pitch_rad = measurement_vector(measurement)
         x_yaw = float(self.kf.x[YAW, 0])
         # Compare yaw modulo 2 pi: the state's yaw is continuous (unwrapped).
         z[3] = x_yaw + wrap_angle_rad(z[3] - x_yaw)
@@ -155,11 +181,11 @@ class _Track:
         # S = H P H' + R;  d^2 = y' S^-1 y
         S = H @ self.kf.P @ H.T + R
         d_sq = float(y @ np.linalg.solve(S, y))
-        return z, R, d_sq
+        return _Innovation(z, R, roll_rad, pitch_rad, d_sq)
 
-    def update(self, measurement: PoseMeasurement, z: np.ndarray, R: np.ndarray) -> None:
-        self.kf.update(z.reshape(MEASUREMENT_DIM, 1), R=R)
-        _, _, self.roll_rad, self.pitch_rad = measurement_vector(measurement)
+    def update(self, measurement: PoseMeasurement, innovation: _Innovation) -> None:
+        self.kf.update(innovation.z.reshape(MEASUREMENT_DIM, 1), R=innovation.R)
+        self.roll_rad, self.pitch_rad = innovation.roll_rad, innovation.pitch_rad
         self.rotation_cov = measurement.covariance_ned[3:6, 3:6].copy()
         self.t_last_fix_ns = measurement.t_ns
 
@@ -191,14 +217,17 @@ class _Track:
 
 
 def process_noise(dt: float, params: FusionParams) -> np.ndarray:
-    """(8, 8) discrete white-noise-acceleration Q for one step of dt seconds."""
-    q = np.array([params.accel_noise_m_s2] * 3 + [params.yaw_accel_noise_rad_s2]) ** 2
-    Q = np.zeros((STATE_DIM, STATE_DIM))
-    # Per axis: [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] * sigma_a^2
-    Q[0:4, 0:4] = np.diag(q * dt ** 4 / 4)
-    Q[0:4, 4:8] = Q[4:8, 0:4] = np.diag(q * dt ** 3 / 2)
-    Q[4:8, 4:8] = np.diag(q * dt ** 2)
-    return Q
+    """(8, 8) discrete white-noise-acceleration Q for one step of dt seconds.
+
+    filterpy's per-axis block [[dt^4/4, dt^3/2], [dt^3/2, dt^2]] in the
+    state's order (north, east, down, yaw, then their rates), each axis
+    scaled by its acceleration variance.
+    """
+    # sigma_a of each state's axis
+    sigma = np.tile([params.accel_noise_m_s2] * 3 + [params.yaw_accel_noise_rad_s2], 2)
+    unit = Q_discrete_white_noise(dim=2, dt=dt, var=1.0, block_size=4, order_by_dim=False)
+    # Q_ij = unit_ij sigma_i sigma_j: unit couples a state only with its own axis's rate
+    return unit * np.outer(sigma, sigma)
 
 
 class PoseFilter:
@@ -210,6 +239,8 @@ class PoseFilter:
 
     def __init__(self, params: FusionParams | None = None):
         self.params = params or FusionParams()
+        # Squared Mahalanobis distance passed with probability gate_probability.
+        self.gate_chi2 = float(chi2.ppf(self.params.gate_probability, MEASUREMENT_DIM))
         self.counters = FusionCounters()
         self.state = TrackState.ACQUIRING
         self.reset_counter = 0
@@ -237,9 +268,9 @@ class PoseFilter:
         track = self._track
         track.predict_to(t_ns)
         if measurement is not None:
-            z, R, d_sq = track.innovation(measurement)
-            if d_sq <= self.params.gate_chi2:
-                track.update(measurement, z, R)
+            innovation = track.innovation(measurement)
+            if innovation.d_sq <= self.gate_chi2:
+                track.update(measurement, innovation)
                 self.counters.accepted += 1
                 self.state = TrackState.TRACKING
                 return track.estimate(self.reset_counter, tracking=True)
@@ -262,9 +293,9 @@ class PoseFilter:
             self._start_candidate(measurement)
         else:
             candidate.predict_to(measurement.t_ns)
-            z, R, d_sq = candidate.innovation(measurement)
-            if d_sq <= self.params.gate_chi2:
-                candidate.update(measurement, z, R)
+            innovation = candidate.innovation(measurement)
+            if innovation.d_sq <= self.gate_chi2:
+                candidate.update(measurement, innovation)
                 self._candidate_count += 1
             else:
                 self.counters.rejected += 1

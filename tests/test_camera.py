@@ -157,6 +157,20 @@ def test_undistort_inverts_project(tmp_path):
     np.testing.assert_allclose(camera.undistort_px(px), (points[:, :2] * [600, 590]) + [330, 235], atol=1e-3)
 
 
+def test_projection_jacobian_by_hand_and_by_differences(tmp_path):
+    # Pinhole: u = fx X/Z + cx, v = fy Y/Z + cy, so du/dX = fx/Z, du/dZ = -fx X/Z^2, dv/dY = fy/Z, dv/dZ = -fy Y/Z^2.
+    pinhole = CameraModel.from_config(inline(), "x.yaml")
+    J = pinhole.projection_jacobian([[0.2, -0.1, 2.0]])
+    np.testing.assert_allclose(J[0], [[250.0, 0.0, -25.0], [0.0, 250.0, 12.5]], atol=1e-9)
+    # With distortion: central differences of project().
+    camera = load_camera(write_opencv_calibration(tmp_path / "calib.yaml"))
+    points = np.array([[0.3, -0.2, 1.5], [-0.4, 0.3, 1.0], [0.0, 0.05, 3.0]])
+    step = 1e-6
+    numeric = np.stack([(camera.project(points + step * e) - camera.project(points - step * e)) / (2 * step)
+                        for e in np.eye(3)], axis=2)
+    np.testing.assert_allclose(camera.projection_jacobian(points), numeric, rtol=1e-6, atol=1e-6)
+
+
 def test_project_from_map_frame():
     camera = CameraModel.from_config(inline(), "x.yaml")
     # Camera 2 m in front of a point on its optical axis.

@@ -238,10 +238,21 @@ def test_rotation_angle():
 
 
 def test_grid_to_marker_inner_corners():
-    # p = 2, g = 1: o = 3; the inner square spans u, v in [3, 11].
+    # 6x6 data, p = 2, g = 1: o = 3, the inner square is 8 cells, u, v in [3, 11].
     uv = [[3, 3], [11, 3], [11, 11], [3, 11], [7, 7]]
-    points = frames.grid_to_marker_m(uv, 3.0, 0.16)
+    points = frames.grid_to_marker_m(uv, 3.0, 8, 0.16)
     expected = [[-0.08, 0.08, 0], [0.08, 0.08, 0], [0.08, -0.08, 0], [-0.08, -0.08, 0], [0, 0, 0]]
     np.testing.assert_allclose(points, expected, atol=1e-12)
     # One cell right and one cell down of the centre: +cell_m in x, -cell_m in y.
-    np.testing.assert_allclose(frames.grid_to_marker_m([[8, 8]], 3.0, 0.16), [[0.02, -0.02, 0]], atol=1e-12)
+    np.testing.assert_allclose(frames.grid_to_marker_m([[8, 8]], 3.0, 8, 0.16), [[0.02, -0.02, 0]], atol=1e-12)
+
+
+@pytest.mark.parametrize("inner_cells, cell_m", [(7, 0.15 / 7), (10, 0.015)], ids=["5x5", "8x8"])
+def test_grid_to_marker_other_dictionaries(inner_cells, cell_m):
+    # 5x5 data: a 7-cell inner square; 8x8: 10 cells. With o = 5 and a 0.15 m square:
+    # its corners at +-0.075 m, the centre at u = v = o + c/2, one cell = 0.15 / c.
+    o, c = 5.0, inner_cells
+    uv = [[o, o], [o + c, o + c], [o + c / 2, o + c / 2], [o + c / 2 + 1, o + c / 2 - 2], [o - 2, o - 2]]
+    expected = [[-0.075, 0.075, 0], [0.075, -0.075, 0], [0, 0, 0], [cell_m, 2 * cell_m, 0],
+                [-0.075 - 2 * cell_m, 0.075 + 2 * cell_m, 0]]
+    np.testing.assert_allclose(frames.grid_to_marker_m(uv, o, c, 0.15), expected, atol=1e-12)

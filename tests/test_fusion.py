@@ -2,14 +2,17 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from companion.daemon.config import ConfigError, config_from_dict
 from companion.geometry import frames
-from companion.fusion import FusionError, FusionParams, PoseFilter, TrackState, wrap_angle_rad
+from companion.fusion import FusionError, FusionParams, PoseFilter, TrackState, process_noise, wrap_angle_rad
 from companion.types import PoseMeasurement
 
+REPO = Path(__file__).resolve().parents[1]
 POS_STD_M = 0.03
 YAW_STD_RAD = math.radians(1.5)
 
@@ -206,8 +209,34 @@ def test_roll_and_pitch_pass_through_from_the_newest_pose():
     assert est.yaw_rad == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("bad", [dict(gate_chi2=0), dict(confirm_frames=0), dict(max_coast_s=-1),
+@pytest.mark.parametrize("bad", [dict(gate_probability=0), dict(gate_probability=1.5), dict(confirm_frames=0), dict(max_coast_s=-1),
                                  dict(accel_noise_m_s2=float("nan"))])
 def test_bad_parameters_name_the_parameter(bad):
     with pytest.raises(FusionError, match=next(iter(bad))):
         FusionParams(**bad)
+
+
+def test_gate_is_the_chi2_quantile_of_its_probability():
+    # 99.9 % and 99 % points of the chi-square distribution with 4 dof (printed tables)
+    assert PoseFilter().gate_chi2 == pytest.approx(18.467, abs=1e-3)
+    assert PoseFilter(FusionParams(gate_probability=0.99)).gate_chi2 == pytest.approx(13.277, abs=1e-3)
+
+
+def test_replaced_gate_chi2_key_names_its_successor():
+    config = {"source": {"kind": "v4l2"}, "map": str(REPO / "maps" / "warehouse.yaml"),
+              "camera": {"width": 640, "height": 480, "hfov_deg": 70.0}, "fusion": {"gate_chi2": 18.47}}
+    with pytest.raises(ConfigError, match=r"^site.yaml: fusion.gate_chi2: replaced by gate_probability"):
+        config_from_dict(config, "site.yaml")
+
+
+@pytest.mark.parametrize("dt, accel, yaw_accel", [(1 / 30, 3.0, 3.0), (0.2, 1.5, 0.4), (1.0, 0.7, 2.5)])
+def test_process_noise_is_the_white_noise_acceleration_closed_form(dt, accel, yaw_accel):
+    # Per axis, an acceleration a held over dt moves the state by G a with G = [dt^2 / 2, dt]:
+    # Q_axis = G G^T sigma_a^2; the state is [n, e, d, yaw, vn, ve, vd, yaw_rate].
+    Q = process_noise(dt, FusionParams(accel_noise_m_s2=accel, yaw_accel_noise_rad_s2=yaw_accel))
+    expected = np.zeros((8, 8))
+    for axis, sigma in enumerate([accel, accel, accel, yaw_accel]):
+        G = np.zeros(8)
+        G[axis], G[axis + 4] = dt ** 2 / 2, dt
+        expected += np.outer(G, G) * sigma ** 2
+    np.testing.assert_allclose(Q, expected, rtol=1e-12, atol=0)

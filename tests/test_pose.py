@@ -2,25 +2,28 @@
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
-from companion.geometry.facility_map import load_map
-from companion.geometry.pose import PoseParams, PoseSolver
+from companion.detect.detector import Detector, DetectorParams
+from companion.geometry.facility_map import load_map, map_from_dict
+from companion.daemon.config import ConfigError, config_from_dict
+from companion.geometry.pose import PoseParams, PoseSolver, chi2_quantile
+from companion.markers.layout import MarkerLayout
+from companion.sim import occluders, raster
 from companion.types import Detection
 
 REPO = Path(__file__).resolve().parents[1]
 FACILITY = load_map(REPO / "maps" / "warehouse.yaml")
-CAMERA = CameraModel.from_config(
-    {
-        "width": 640, "height": 480, "hfov_deg": 70.0,
-        "distortion": [-0.08, 0.03, 0.0005, -0.0003, 0.0],
-        "mount": {"lever_arm_m": [0.12, 0.02, 0.05], "facing": "forward", "tilt_down_deg": 10.0},
-    },
-    "test",
-)
+CAMERA_SECTION = {
+    "width": 640, "height": 480, "hfov_deg": 70.0,
+    "distortion": [-0.08, 0.03, 0.0005, -0.0003, 0.0],
+    "mount": {"lever_arm_m": [0.12, 0.02, 0.05], "facing": "forward", "tilt_down_deg": 10.0},
+}
+CAMERA = CameraModel.from_config(CAMERA_SECTION, "test")
 
 
 def body_pose(position_map, look_at_map, pitch_deg=0.0, roll_deg=0.0):
@@ -31,9 +34,9 @@ def body_pose(position_map, look_at_map, pitch_deg=0.0, roll_deg=0.0):
     return frames.make_transform(FACILITY.T_ned_map[:3, :3].T @ R_ned_body, position_map)
 
 
-def detections_for(T_map_body, symbols=None, noise_px=0.0, rng=None, margin_px=3.0):
+def detections_for(T_map_body, symbols=None, noise_px=0.0, rng=None, margin_px=3.0, camera=CAMERA):
     """Detections of every map marker fully visible from T_map_body (corners projected, noise added)."""
-    T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
+    T_camera_map = camera.T_camera_body @ frames.invert_transform(T_map_body)
     camera_position = frames.invert_transform(T_camera_map)[:3, 3]
     found = []
     for marker in FACILITY.markers.values():
@@ -41,8 +44,8 @@ def detections_for(T_map_body, symbols=None, noise_px=0.0, rng=None, margin_px=3
             continue
         if np.dot(camera_position - marker.T_map_marker[:3, 3], marker.normal_map) <= 0:
             continue  # seen from behind
-        corners = CAMERA.project_from(T_camera_map, marker.corners_map())
-        if not CAMERA.in_image(corners, margin_px).all():
+        corners = camera.project_from(T_camera_map, marker.corners_map())
+        if not camera.in_image(corners, margin_px).all():
             continue
         if noise_px:
             corners = corners + rng.normal(0.0, noise_px, corners.shape)
@@ -260,8 +263,8 @@ def test_noise_beyond_the_expected_corner_noise_is_rejected():
 
 def test_covariance_grows_with_noise_and_range():
     rng = np.random.default_rng(3)
-    # Chi-square gates off (huge gate_z): the residual variance alone scales the covariance.
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.2, gate_z=100.0, max_rms_px=10.0, max_position_sd_m=1.0))
+    # Chi-square gates off (gate_probability 1): the residual variance alone scales the covariance.
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.2, gate_probability=1.0, max_rms_px=10.0, max_position_sd_m=1.0))
     quiet = solver.solve(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), t_ns=0)
     loud = solver.solve(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), t_ns=0)
     assert np.trace(loud.covariance_ned[:3, :3]) > 10 * np.trace(quiet.covariance_ned[:3, :3])
@@ -316,6 +319,89 @@ def test_position_covariance_matches_scatter_in_ned_axes():
     assert ratios.min() > 0.4 and ratios.max() < 2.0
 
 
+def finite_difference_jacobian(camera, T_map_body, points_map, step=1e-6):
+    """(2K, 6) central differences of the projected pixels by [dp_map, dtheta_map], R' = exp(dtheta) R."""
+    columns = []
+    for k in range(6):
+        delta = np.zeros(6)
+        delta[k] = step
+        projected = []
+        for sign in (1.0, -1.0):
+            R = cv2.Rodrigues(sign * delta[3:])[0] @ T_map_body[:3, :3]
+            T = frames.make_transform(R, T_map_body[:3, 3] + sign * delta[:3])
+            projected.append(camera.project_from(camera.T_camera_body @ np.linalg.inv(T), points_map))
+        columns.append((projected[0] - projected[1]).reshape(-1) / (2.0 * step))
+    return np.column_stack(columns)
+
+
+FISHEYE_CAMERA = CameraModel.from_config(
+    {"width": 640, "height": 480, "hfov_deg": 90.0, "distortion": [-0.3, 0.1, 0.001, -0.002, -0.02],
+     "mount": {"lever_arm_m": [0.05, -0.03, 0.1], "roll_deg": 5.0, "pitch_deg": -25.0, "yaw_deg": 10.0}},
+    "test",
+)
+
+
+@pytest.mark.parametrize("camera", [CAMERA, FISHEYE_CAMERA], ids=["mild lens", "strong lens"])
+@pytest.mark.parametrize("view", ["aisle", "B", "far N"])
+def test_pose_jacobian_matches_finite_differences(camera, view):
+    T_map_body = {"aisle": AISLE_VIEW, "B": B_VIEW, "far N": FAR_N_VIEW}[view]
+    solver = PoseSolver(FACILITY, camera)
+    observations, _ = solver.observations(detections_for(T_map_body, camera=camera))
+    assert observations
+    points_map = np.vstack([o.points_map for o in observations])
+    # Away from the pose the points were seen from, with a rotation part that matters.
+    T = T_map_body @ frames.make_transform(cv2.Rodrigues(np.array([0.02, -0.03, 0.05]))[0], [0.03, -0.02, 0.01])
+    analytic = solver._pose_jacobian(T, observations)
+    numeric = finite_difference_jacobian(camera, T, points_map)
+    assert analytic.shape == numeric.shape == (2 * len(points_map), 6)
+    np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-8 * np.abs(numeric).max())
+
+
+def test_covariance_is_sigma2_times_the_inverse_normal_matrix():
+    """The covariance sent, recomputed here from a finite-difference Jacobian on map axes."""
+    rng = np.random.default_rng(4)
+    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5))
+    for _ in range(3):
+        detections = detections_for(AISLE_VIEW, noise_px=0.5, rng=rng, camera=FISHEYE_CAMERA)
+        solution = solver.solve_detailed(detections, t_ns=0)
+        m = solution.measurement
+        assert m is not None
+        used = [d for d in detections if d.id in m.marker_ids]
+        points_map = np.vstack([FACILITY.markers[d.id].corners_map() for d in used])
+        points_px = np.vstack([d.corners_px for d in used])
+        J = finite_difference_jacobian(FISHEYE_CAMERA, m.T_map_body, points_map)
+        residuals = FISHEYE_CAMERA.project_from(FISHEYE_CAMERA.T_camera_body @ np.linalg.inv(m.T_map_body), points_map) - points_px
+        # sigma^2 = r.r / (2K - 6), at least corner_sigma_px^2
+        sigma2 = max(float(np.sum(residuals ** 2)) / (residuals.size - 6), 0.5 ** 2)
+        covariance_map = sigma2 * np.linalg.inv(J.T @ J)
+        B = np.kron(np.eye(2), FACILITY.T_ned_map[:3, :3])
+        np.testing.assert_allclose(m.covariance_ned, B @ covariance_map @ B.T, rtol=1e-5, atol=1e-12)
+
+
+# -------------------------------------------------------------------- gates
+
+@pytest.mark.parametrize("dof, quantile", [(1, 10.828), (2, 13.816), (8, 26.124), (20, 45.315)])
+def test_chi2_quantile_matches_the_table(dof, quantile):
+    # 99.9 % points of the chi-square distribution (printed tables, e.g. NIST/SEMATECH e-Handbook 1.3.6.7.4)
+    assert chi2_quantile(0.999, dof) == pytest.approx(quantile, abs=1e-3)
+
+
+def config_with(section: str, values: dict) -> dict:
+    return {"source": {"kind": "v4l2"}, "camera": CAMERA_SECTION, "map": str(REPO / "maps" / "warehouse.yaml"), section: values}
+
+
+def test_gate_probability_from_the_config():
+    config = config_from_dict(config_with("pose", {"gate_probability": 0.99}), "site.yaml")
+    assert config.pose.gate_probability == 0.99
+    with pytest.raises(ConfigError, match=r"^site.yaml: pose: pose parameter gate_probability must be in \(0, 1\], got 1.5$"):
+        config_from_dict(config_with("pose", {"gate_probability": 1.5}), "site.yaml")
+
+
+def test_replaced_gate_z_key_names_its_successor():
+    with pytest.raises(ConfigError, match=r"^site.yaml: pose.gate_z: replaced by gate_probability"):
+        config_from_dict(config_with("pose", {"gate_z": 3.09}), "site.yaml")
+
+
 # ------------------------------------------------------------------ circles
 
 def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
@@ -325,7 +411,7 @@ def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
     layout = MarkerLayout(parity=FACILITY.parity)
     marker = FACILITY.markers[detection.id]
     ids = np.arange(len(layout.circles)) if circle_ids is None else np.asarray(circle_ids)
-    points_marker = frames.grid_to_marker_m(layout.circles[ids, :2], layout.inner_origin, marker.size_m)
+    points_marker = frames.grid_to_marker_m(layout.circles[ids, :2], layout.inner_origin, layout.inner_cells, marker.size_m)
     T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
     circles_px = CAMERA.project_from(T_camera_map, frames.transform_points(marker.T_map_marker, points_marker))
     circles_px = circles_px + rng.normal(0.0, noise_px, circles_px.shape)
@@ -355,3 +441,92 @@ def test_circle_ids_select_the_circles():
     # The same centres labelled as other circles cannot be fitted.
     wrong = Detection(good.symbol, good.id, good.corners_px, "circles", 0, 1.0, good.circles_px, np.array([1, 2, 5, 6, 8]))
     assert PoseSolver(FACILITY, CAMERA).solve([wrong], t_ns=0) is None
+
+
+# ------------------------------------------- other dictionaries, rendered
+
+def wall_map(dictionary, parity):
+    """One 0.15 m marker on a wall at x = 3 m facing -x, in a map of this dictionary and parity."""
+    return map_from_dict({"name": "wall", "frame": {"origin": "corner", "x_bearing_deg": 0.0},
+                          "dictionary": dictionary, "parity": parity,
+                          "markers": [{"symbol": "B", "size_m": 0.15, "position_m": [3.0, 0.0, 1.4], "facing": "-x"}]},
+                         f"wall-{dictionary}.yaml")
+
+
+def level_body_looking_at(position_map, target_map):
+    """(4, 4) T_map_body: level, forward axis toward the target (horizontally)."""
+    d = np.asarray(target_map, float) - position_map
+    # a level FRD body with forward along map +x has R_map_body = diag(1, -1, -1)
+    return frames.make_transform(frames.rot_z(math.atan2(d[1], d[0])) @ np.diag([1.0, -1.0, -1.0]), position_map)
+
+
+def rendered_views(facility, count, rng, strip_side=None):
+    """(image, T_map_body, MarkerTruth) of the map's one marker from 0.8-1.3 m, up to 30 degrees off its normal.
+
+    strip_side: hide an eighth of the inner square from that side (its border
+    broken there), so the detector can find the marker only by its circles.
+    """
+    marker = next(iter(facility.markers.values()))
+    layout = MarkerLayout(parity=facility.parity, dictionary=facility.dictionary)
+    texture = raster.rs_marker_texture(layout, marker.id, 16)
+    renderer = raster.Renderer.from_camera(CAMERA, supersample=2)
+    views = []
+    for _ in range(count):
+        distance_m, angle = rng.uniform(0.8, 1.3), math.radians(rng.uniform(-30.0, 30.0))
+        position = marker.T_map_marker[:3, 3] + [-distance_m * math.cos(angle), distance_m * math.sin(angle), 0.1]
+        T_map_body = level_body_looking_at(position, marker.T_map_marker[:3, 3])
+        T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(T_map_body)
+        quads = [raster.marker_quad(texture, marker.size_m, marker.T_map_marker, gain=0.84, offset=18.0)]
+        if strip_side is not None:
+            quads.append(occluders.strip_occluder(texture, marker.size_m, marker.T_map_marker, 0.125, strip_side, rng))
+        rendering = renderer.render(quads, T_camera_map, background=90.0)
+        truth = raster.marker_truth(renderer, rendering, texture, marker.size_m, marker.T_map_marker, T_camera_map, 0)
+        # a little optics blur and read noise
+        image = cv2.GaussianBlur(rendering.image.astype(np.float32), (0, 0), 0.6) + rng.normal(0.0, 1.5, rendering.image.shape)
+        views.append((np.clip(np.rint(image), 0, 255).astype(np.uint8), T_map_body, truth))
+    return views
+
+
+@pytest.mark.parametrize("dictionary, parity", [("5x5", 2), ("6x6", 2), ("8x8", 2), ("5x5", 4), ("8x8", 4)])
+def test_circle_centres_of_every_dictionary_fit_the_rendered_truth(dictionary, parity):
+    """Corners and circle centres where the renderer drew them (plus 0.2 px noise) give the rendered pose.
+
+    The circles' 3-D points come from the grid geometry of the map's
+    dictionary: with a 6x6 square assumed, a 5x5 or 8x8 marker's circles are
+    ~24 / ~45 mm off and the fit fails.
+    """
+    rng = np.random.default_rng(8)
+    facility = wall_map(dictionary, parity)
+    marker = next(iter(facility.markers.values()))
+    solver = PoseSolver(facility, CAMERA, PoseParams(corner_sigma_px=0.3))
+    errors, rotation_errors_deg = [], []
+    for _, T_map_body, truth in rendered_views(facility, 4, rng):
+        assert truth.corners_visible.all() and truth.circles_visible.all()
+        ids = np.arange(len(truth.circles_px))
+        detection = Detection(marker.symbol, marker.id, truth.corners_px + rng.normal(0.0, 0.2, (4, 2)), "circles", 0, 1.0,
+                              truth.circles_px + rng.normal(0.0, 0.2, truth.circles_px.shape), ids)
+        solution = solver.solve_detailed([detection], t_ns=0, prior_T_map_body=T_map_body)
+        assert solution.status == "ok", solution.status
+        m = solution.measurement
+        errors.append(position_error_m(m, T_map_body))
+        rotation_errors_deg.append(math.degrees(frames.rotation_angle_rad(m.T_map_body[:3, :3], T_map_body[:3, :3])))
+    assert max(errors) < 0.01
+    assert max(rotation_errors_deg) < 0.5
+
+
+@pytest.mark.parametrize("dictionary", ["5x5", "6x6", "8x8"])
+def test_detector_circles_path_poses_of_every_dictionary(dictionary):
+    """A rendered marker with a strip over its border, found by the detector on its circles path: an accurate pose."""
+    rng = np.random.default_rng(3)
+    facility = wall_map(dictionary, 2)
+    detector = Detector(DetectorParams(parity=2, dictionary=dictionary))
+    solver = PoseSolver(facility, CAMERA, PoseParams(corner_sigma_px=0.3))
+    errors = []
+    for side in ("left", "top", "right", "bottom"):
+        for image, T_map_body, _ in rendered_views(facility, 1, rng, strip_side=side):
+            detections = detector.detect(image)
+            assert [d.path for d in detections] == ["circles"]
+            m = solver.solve(detections, t_ns=0, prior_T_map_body=T_map_body)
+            assert m is not None
+            errors.append(position_error_m(m, T_map_body))
+    assert np.median(errors) < 0.02 and max(errors) < 0.05

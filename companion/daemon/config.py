@@ -198,8 +198,14 @@ def _sequence_map_path(name, info_path: Path) -> Path:
 
 
 def _parameters(section, where: Where, params_type, what: str):
-    """A section whose keys are the fields of a parameters dataclass (all optional)."""
+    """A section whose keys are the fields of a parameters dataclass (all optional).
+
+    A key the dataclass lists in ``RENAMED_KEYS`` is an error naming its successor.
+    """
     section = where.mapping(section, what)
+    for old_key, successor in getattr(params_type, "RENAMED_KEYS", {}).items():
+        if old_key in section:
+            raise where.error(f"replaced by {successor}", old_key)
     where.reject_unknown(section, {f.name for f in dataclasses.fields(params_type)})
     try:
         return params_type(**section)

@@ -90,6 +90,17 @@ class CameraModel:
         px[p[:, 2] <= 0.0] = np.nan
         return px
 
+    def projection_jacobian(self, points_camera) -> np.ndarray:
+        """(N, 2, 3) derivative of each point's pixel position by its camera-frame position, with distortion.
+
+        OpenCV's d(pixels)/d(tvec): with the pose at zero, a point's camera
+        coordinates are X + tvec, so d(pixels)/d(tvec) = d(pixels)/dX.
+        """
+        p = np.asarray(points_camera, dtype=float).reshape(-1, 3)
+        _, jacobian = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
+        # columns: rvec (3), tvec (3), focal lengths (2), principal point (2), distortion
+        return jacobian[:, 3:6].reshape(-1, 2, 3)
+
     def project_from(self, T_camera_x: np.ndarray, points_x) -> np.ndarray:
         """(N, 2) pixel positions of (N, 3) points given in frame x."""
         return self.project(frames.transform_points(T_camera_x, points_x))

@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 # Columns are the OpenCV camera axes (x right, y down, z forward) in camera FRD.
 R_CAMFRD_CAMERA = np.array(
@@ -46,23 +47,30 @@ MAP_UP_IN_NED = np.array([0.0, 0.0, -1.0])
 
 
 # ---------------------------------------------------------------- rotations
+#
+# scipy's Rotation does the arithmetic; these functions fix the conventions
+# (axis order, scalar-first quaternions, w >= 0, angle ranges). Matrices given
+# to them are products of rotations, so scipy's orthogonality check (and its
+# SVD re-orthogonalisation) is skipped: it triples the cost of a call on the
+# per-frame pose path.
+
+def _from_matrix(R: np.ndarray) -> Rotation:
+    return Rotation.from_matrix(np.asarray(R, dtype=float), assume_valid=True)
+
 
 def rot_x(angle_rad: float) -> np.ndarray:
     """(3, 3) rotation by ``angle_rad`` about +x (right-hand rule)."""
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    return Rotation.from_euler("x", angle_rad).as_matrix()
 
 
 def rot_y(angle_rad: float) -> np.ndarray:
     """(3, 3) rotation by ``angle_rad`` about +y (right-hand rule)."""
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return Rotation.from_euler("y", angle_rad).as_matrix()
 
 
 def rot_z(angle_rad: float) -> np.ndarray:
     """(3, 3) rotation by ``angle_rad`` about +z (right-hand rule)."""
-    c, s = math.cos(angle_rad), math.sin(angle_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Rotation.from_euler("z", angle_rad).as_matrix()
 
 
 def rotation_from_euler_321(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
@@ -71,28 +79,20 @@ def rotation_from_euler_321(roll_rad: float, pitch_rad: float, yaw_rad: float) -
     The ``from`` frame is reached by yawing about z, then pitching about the
     new y, then rolling about the newest x (MAVLink's body -> NED attitude).
     """
-    # R = Rz(yaw) Ry(pitch) Rx(roll)
-    return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+    # R = Rz(yaw) Ry(pitch) Rx(roll): intrinsic rotations, upper-case axes in scipy
+    return Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
 
 
 def euler_321_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
     """(roll_rad, pitch_rad, yaw_rad) of a (3, 3) rotation, Z-Y-X order.
 
-    pitch is in [-pi/2, pi/2], roll and yaw in (-pi, pi]. At gimbal lock
-    (|pitch| = pi/2) roll is reported as 0 and yaw carries the rotation.
+    pitch is in [-pi/2, pi/2], roll and yaw in [-pi, pi]. At gimbal lock
+    (pitch within 1e-7 rad of +-pi/2) only yaw -/+ roll is observable: roll
+    is reported as 0 and yaw carries the rotation.
     """
-    # R[2,0] = -sin(pitch)
-    sin_pitch = float(np.clip(-R[2, 0], -1.0, 1.0))
-    pitch = math.asin(sin_pitch)
-    if abs(sin_pitch) > 1.0 - 1e-12:
-        # Only yaw -/+ roll is observable; put it all in yaw.
-        yaw = math.atan2(-R[0, 1], R[1, 1])
-        return 0.0, pitch, yaw
-    # R[2,1] = cos(pitch) sin(roll), R[2,2] = cos(pitch) cos(roll)
-    roll = math.atan2(R[2, 1], R[2, 2])
-    # R[1,0] = cos(pitch) sin(yaw), R[0,0] = cos(pitch) cos(yaw)
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    return roll, pitch, yaw
+    # scipy's rule at gimbal lock is ours: the third angle (roll) is set to 0.
+    yaw, pitch, roll = _from_matrix(R).as_euler("ZYX", suppress_warnings=True)
+    return float(roll), float(pitch), float(yaw)
 
 
 def rotation_from_quaternion(q_wxyz) -> np.ndarray:
@@ -104,64 +104,33 @@ def rotation_from_quaternion(q_wxyz) -> np.ndarray:
     norm = float(np.linalg.norm(q))
     if not math.isfinite(norm) or norm < 1e-12:
         raise ValueError(f"quaternion {q.tolist()} has no direction (norm {norm})")
-    w, x, y, z = q / norm
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return Rotation.from_quat(q, scalar_first=True).as_matrix()
 
 
 def quaternion_from_rotation(R: np.ndarray) -> np.ndarray:
     """(4,) unit quaternion (w, x, y, z), w >= 0, of a (3, 3) rotation."""
-    # Shepperd's method: divide by the largest of the four diagonal combinations.
-    R = np.asarray(R, dtype=float)
-    trace = R[0, 0] + R[1, 1] + R[2, 2]
-    candidates = [trace, R[0, 0], R[1, 1], R[2, 2]]
-    k = int(np.argmax(candidates))
-    if k == 0:
-        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif k == 1:
-        s = 2.0 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif k == 2:
-        s = 2.0 * math.sqrt(max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 0.0))
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 0.0))
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    return _from_matrix(R).as_quat(canonical=True, scalar_first=True)
 
 
 def rotation_from_rotvec(rotvec) -> np.ndarray:
     """(3, 3) rotation from a (3,) axis-angle vector (radians), as cv2.Rodrigues."""
-    r = np.asarray(rotvec, dtype=float).reshape(3)
-    angle = float(np.linalg.norm(r))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = skew(r / angle)
-    # Rodrigues: R = I + sin(a) K + (1 - cos(a)) K^2
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+    return Rotation.from_rotvec(np.asarray(rotvec, dtype=float).reshape(3)).as_matrix()
 
 
 def rotvec_from_rotation(R: np.ndarray) -> np.ndarray:
     """(3,) axis-angle vector (radians, angle in [0, pi]) of a (3, 3) rotation."""
-    q = quaternion_from_rotation(R)
-    sin_half = float(np.linalg.norm(q[1:]))
-    if sin_half < 1e-15:
-        return np.zeros(3)
-    angle = 2.0 * math.atan2(sin_half, q[0])
-    return q[1:] / sin_half * angle
+    return _from_matrix(R).as_rotvec()
 
 
-def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Angle (radians, [0, pi]) of the rotation taking R_b to R_a."""
-    # cos(angle) = (trace(R_a R_b^T) - 1) / 2
-    cos_angle = (float(np.trace(R_a @ R_b.T)) - 1.0) / 2.0
-    return math.acos(max(-1.0, min(1.0, cos_angle)))
+def rotation_angle_rad(R_a: np.ndarray, R_b: np.ndarray) -> float | np.ndarray:
+    """Angle (radians, [0, pi]) of the rotation taking R_b to R_a.
+
+    (3, 3) rotations give a float; stacks (..., 3, 3) broadcast to (...) angles.
+    """
+    # the magnitude of R_a R_b^T
+    R_a, R_b = np.asarray(R_a, dtype=float), np.asarray(R_b, dtype=float)
+    angle = _from_matrix(R_a @ np.swapaxes(R_b, -1, -2)).magnitude()
+    return float(angle) if np.ndim(angle) == 0 else angle
 
 
 def skew(v) -> np.ndarray:
@@ -269,17 +238,19 @@ def R_camera_marker_face_on() -> np.ndarray:
 
 # ----------------------------------------------------------------- marker
 
-def grid_to_marker_m(uv_cells, inner_origin_cells: float, size_m: float) -> np.ndarray:
+def grid_to_marker_m(uv_cells, inner_origin_cells: float, inner_cells: float, size_m: float) -> np.ndarray:
     """(N, 3) marker-frame points (metres, z = 0) of (N, 2) grid coordinates.
 
     Grid coordinates (u, v) are in cells from the grid's outer top-left
     corner, u right, v down; the inner black square spans
-    [o, o + 8] x [o, o + 8] with o = ``inner_origin_cells`` and side ``size_m``.
+    [o, o + c] x [o, o + c] with o = ``inner_origin_cells``,
+    c = ``inner_cells`` (a marker layout's ``inner_origin`` and
+    ``inner_cells``: n + 2 for an n x n dictionary) and side ``size_m``.
     """
     uv = np.asarray(uv_cells, dtype=float).reshape(-1, 2)
-    cell_m = size_m / 8.0
-    centre = inner_origin_cells + 4.0
-    # x = (u - (o + 4)) cell_m, y = ((o + 4) - v) cell_m
+    cell_m = size_m / inner_cells
+    centre = inner_origin_cells + inner_cells / 2.0
+    # x = (u - (o + c/2)) cell_m, y = ((o + c/2) - v) cell_m
     x = (uv[:, 0] - centre) * cell_m
     y = (centre - uv[:, 1]) * cell_m
     return np.column_stack([x, y, np.zeros(len(uv))])

@@ -38,11 +38,14 @@ All axis conventions come from ``companion.geometry.frames``.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import cv2
 import numpy as np
+from scipy.stats import chi2
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -50,7 +53,6 @@ from companion.geometry.facility_map import FacilityMap, MapMarker
 from companion.types import Detection, PoseMeasurement
 
 NS_PER_S = 1_000_000_000
-JACOBIAN_STEP = 1e-6  # metres and radians, central differences
 
 
 @dataclass(frozen=True)
@@ -59,7 +61,8 @@ class PoseParams:
 
     corner_sigma_px: expected standard deviation of a detected point's x and
         y (detector noise); the consistency gates are chi-square tests at it.
-    gate_z: one-sided normal quantile of those tests (3.09: 99.9 %).
+    gate_probability: probability that corner noise alone passes those tests
+        (0.999: one honest marker in a thousand fails; 1.0 turns them off).
     max_rms_px: reject any fit whose RMS point error is above this.
     hypothesis_gate_px: loose RMS gate to gather markers before refining a
         hypothesis made from one marker.
@@ -78,7 +81,7 @@ class PoseParams:
     """
 
     corner_sigma_px: float = 0.5
-    gate_z: float = 3.09
+    gate_probability: float = 0.999
     max_rms_px: float = 2.0
     hypothesis_gate_px: float = 30.0
     ambiguity_chi2: float = 25.0
@@ -89,6 +92,15 @@ class PoseParams:
     prior_max_age_s: float = 1.0
     accept_ambiguous_without_prior: bool = False
     max_markers: int | None = None
+
+    # Config keys that were replaced: the old key is an error naming the new one.
+    RENAMED_KEYS: ClassVar[dict[str, str]] = {
+        "gate_z": "gate_probability, the chi-square tests' probability (gate_z 3.09 was 0.999)",
+    }
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.gate_probability, (int, float)) and 0.0 < self.gate_probability <= 1.0):
+            raise ValueError(f"pose parameter gate_probability must be in (0, 1], got {self.gate_probability!r}")
 
 
 @dataclass(frozen=True)
@@ -262,7 +274,8 @@ class PoseSolver:
             circles_uv = self._circles_uv()
             ids = np.asarray(detection.circle_ids, dtype=int).reshape(-1)
             valid = (ids >= 0) & (ids < len(circles_uv))  # a detector bug must not stop the pipeline
-            points_marker.append(frames.grid_to_marker_m(circles_uv[ids[valid]], self._inner_origin(), marker.size_m))
+            layout = self._marker_layout()
+            points_marker.append(frames.grid_to_marker_m(circles_uv[ids[valid]], layout.inner_origin, layout.inner_cells, marker.size_m))
             points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid])
         points_map = frames.transform_points(marker.T_map_marker, np.vstack(points_marker))
         return MarkerObservation(marker, detection, points_map, np.vstack(points_px))
@@ -278,9 +291,6 @@ class PoseSolver:
         """(12, 2) circle centres (u, v) in grid cells."""
         return np.asarray(self._marker_layout().circles, dtype=float)[:, :2]
 
-    def _inner_origin(self) -> float:
-        return float(self._marker_layout().inner_origin)
-
     # ----------------------------------------------------------- hypotheses
 
     def _hypothesis_fits(self, observations: list[MarkerObservation]) -> list[Fit]:
@@ -291,7 +301,7 @@ class PoseSolver:
         fits: list[Fit] = []
         for T_camera_map in starts:
             fit = self._grow_and_refine(T_camera_map, observations)
-            if fit is not None and not any(self._same_pose(fit, other) for other in fits):
+            if fit is not None and not self._same_pose_as_any(fit, fits):
                 fits.append(fit)
         return fits
 
@@ -344,7 +354,7 @@ class PoseSolver:
 
     def _within_noise(self, sse_px2: float, dof: int) -> bool:
         """Chi-square test: squared errors explained by corner noise at ``corner_sigma_px``."""
-        return sse_px2 / self.params.corner_sigma_px ** 2 < chi2_quantile(dof, self.params.gate_z)
+        return sse_px2 / self.params.corner_sigma_px ** 2 < chi2_quantile(self.params.gate_probability, dof)
 
     def _refine(self, T_camera_map: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
         """Levenberg-Marquardt over all points of these markers, from T_camera_map."""
@@ -393,14 +403,19 @@ class PoseSolver:
         limit_px2 = best.sse_px2 + self.params.ambiguity_chi2 * sigma2
         return [
             f for f in fits
-            if f is not best and f.inliers == best.inliers and f.sse_px2 < limit_px2 and not self._same_pose(f, best)
+            if f is not best and f.inliers == best.inliers and f.sse_px2 < limit_px2 and not self._same_pose_as_any(f, [best])
         ]
 
-    def _same_pose(self, a: Fit, b: Fit) -> bool:
-        T_ab = a.T_camera_map @ frames.invert_transform(b.T_camera_map)
-        angle_deg = math.degrees(frames.rotation_angle_rad(T_ab[:3, :3], np.eye(3)))
-        position_m = float(np.linalg.norm(frames.invert_transform(a.T_camera_map)[:3, 3] - frames.invert_transform(b.T_camera_map)[:3, 3]))
-        return angle_deg < self.params.distinct_rotation_deg and position_m < self.params.distinct_position_m
+    def _same_pose_as_any(self, fit: Fit, others: list[Fit]) -> bool:
+        """Whether one of the others is the same camera pose: closer than both distinct_rotation_deg and distinct_position_m."""
+        if not others:
+            return False
+        # one vectorised call: this runs for every pair of hypotheses
+        R_others = np.stack([other.T_camera_map[:3, :3] for other in others])
+        angles_deg = np.degrees(frames.rotation_angle_rad(R_others, fit.T_camera_map[:3, :3]))
+        positions_m = np.linalg.norm(np.stack([_camera_position_m(other) for other in others]) - _camera_position_m(fit), axis=1)
+        same = (angles_deg < self.params.distinct_rotation_deg) & (positions_m < self.params.distinct_position_m)
+        return bool(same.any())
 
     def _prior(self, t_ns: int, prior_T_map_body: np.ndarray | None) -> np.ndarray | None:
         if prior_T_map_body is not None:
@@ -440,20 +455,20 @@ class PoseSolver:
     def _pose_jacobian(self, T_map_body: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
         """(2K, 6) derivative of the projected pixels by [dp_map (3), dtheta_map (3)].
 
-        Perturbed pose: R' = exp(dtheta) R, p' = p + dp (map axes).
+        Perturbed pose: R' = exp(dtheta) R, p' = p + dp (map axes). A map
+        point X is seen at X_c = R_cm (X - p) + t_cb with R_cm = R_cb R^T, so
+        to first order dX_c = R_cm (-dp + (X - p) x dtheta); the camera
+        gives d(pixels)/dX_c (OpenCV's projectPoints).
         """
-        columns = []
-        for k in range(6):
-            delta = np.zeros(6)
-            delta[k] = JACOBIAN_STEP
-            plus = self._project_body(_perturb(T_map_body, delta), observations)
-            minus = self._project_body(_perturb(T_map_body, -delta), observations)
-            columns.append((plus - minus).reshape(-1) / (2.0 * JACOBIAN_STEP))
-        return np.column_stack(columns)
-
-    def _project_body(self, T_map_body: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
         points_map = np.vstack([o.points_map for o in observations])
-        return self.camera.project_from(self._T_camera_map(T_map_body), points_map)
+        T_camera_map = self._T_camera_map(T_map_body)
+        # A_i = d(pixels_i)/dX_c R_cm: (K, 2, 3)
+        A = self.camera.projection_jacobian(frames.transform_points(T_camera_map, points_map)) @ T_camera_map[:3, :3]
+        # d(pixels_i)/d(dp) = -A_i
+        d_position = -A
+        # d(pixels_i)/d(dtheta) = A_i skew(X_i - p): row a of it is a x (X_i - p)
+        d_rotation = np.cross(A, (points_map - T_map_body[:3, 3])[:, None, :])
+        return np.concatenate([d_position, d_rotation], axis=2).reshape(-1, 6)
 
     def _T_camera_map(self, T_map_body: np.ndarray) -> np.ndarray:
         # T_camera_map = T_camera_body T_body_map
@@ -472,20 +487,18 @@ def _best(fits: list[Fit]) -> Fit | None:
     return min(fits, key=lambda f: (-len(f.inliers), f.sse_px2), default=None)
 
 
-def chi2_quantile(dof: int, z: float) -> float:
-    """Chi-square quantile with ``dof`` degrees of freedom at normal quantile ``z``.
+@functools.lru_cache(maxsize=1024)
+def chi2_quantile(probability: float, dof: int) -> float:
+    """q with P(X <= q) = probability for X chi-square with ``dof`` degrees of freedom.
 
-    Wilson-Hilferty: (X / k)^(1/3) is close to normal with mean 1 - 2/(9k)
-    and variance 2/(9k); within 1 % for k >= 3.
+    Cached: a solve asks for a few small dof many times, and scipy's call costs ~50 us.
     """
-    # q = k (1 - 2/(9k) + z sqrt(2/(9k)))^3
-    a = 2.0 / (9.0 * dof)
-    return dof * (1.0 - a + z * math.sqrt(a)) ** 3
+    return float(chi2.ppf(probability, dof))
 
 
-def _perturb(T: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """T with position + delta[:3] and rotation exp(delta[3:]) R."""
-    return frames.make_transform(frames.rotation_from_rotvec(delta[3:]) @ T[:3, :3], T[:3, 3] + delta[:3])
+def _camera_position_m(fit: Fit) -> np.ndarray:
+    """(3,) the camera's optical centre in the map."""
+    return frames.invert_transform(fit.T_camera_map)[:3, 3]
 
 
 def _body_pose(T_camera_map: np.ndarray, T_camera_body: np.ndarray) -> np.ndarray:
