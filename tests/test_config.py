@@ -123,7 +123,7 @@ def test_commented_raspberry_pi_example_is_a_valid_config(site):
      "mavlink.origin.latitude_deg", "[-90, 90]"),
     (lambda d: d["mavlink"].update(origin={"latitude_deg": 1, "longitude_deg": 0}), "mavlink.origin.altitude_m",
      "missing"),
-    (lambda d: d["fusion"].update(gate_chi2=-1), "fusion", "gate_chi2"),
+    (lambda d: d["fusion"].update(gate_probability=-1), "fusion", "gate_probability"),
     (lambda d: d["fusion"].update(gate=3), "fusion.gate", "unknown key"),
     (lambda d: d.update(pose={"corner_sigma": 0.2}), "pose.corner_sigma", "unknown key"),
     (lambda d: d["status"].update(interval_s="fast"), "status.interval_s", "number"),

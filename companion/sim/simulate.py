@@ -83,7 +83,7 @@ class World:
 def build_world(facility_map: FacilityMap, seed: int = 0) -> World:
     """Markers on sheets, shelf faces or walls behind marker groups, floor, ceiling and walls."""
     rng = np.random.default_rng(seed)
-    layout = MarkerLayout(parity=facility_map.parity)
+    layout = MarkerLayout(parity=facility_map.parity, dictionary=facility_map.dictionary)
     markers = sorted(facility_map.markers.values(), key=lambda m: m.id)
     if not markers:
         raise SimulationError(f"{facility_map.path}: the map has no markers to render")
