@@ -25,7 +25,7 @@ from companion.capture.replay import open_recording
 from mavlink_peer import PeerProcess, free_port
 
 REPO = Path(__file__).resolve().parent.parent
-SEQUENCES = REPO / "tests" / "data" / "sequences"
+SEQUENCES = REPO / "sequences"
 HOVER = SEQUENCES / "warehouse_hover"     # 1 s hovering in an aisle, PNG frames
 AISLE = SEQUENCES / "warehouse_aisle"     # a flight along an aisle at 1.4 m/s, video
 MAP = REPO / "maps" / "warehouse.yaml"

@@ -10,7 +10,7 @@ from companion.localize import groundtruth, localize, resources
 from companion.geometry.pose import PoseSolver
 
 REPO = Path(__file__).resolve().parents[1]
-SEQUENCES = REPO / "tests" / "data" / "sequences"
+SEQUENCES = REPO / "sequences"
 
 
 def run(name):

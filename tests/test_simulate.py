@@ -20,7 +20,7 @@ from companion.geometry.facility_map import load_map
 REPO = Path(__file__).resolve().parents[1]
 MAP = REPO / "maps" / "warehouse.yaml"
 CAMERA = REPO / "config" / "camera-example.yaml"
-SEQUENCES = REPO / "tests" / "data" / "sequences"
+SEQUENCES = REPO / "sequences"
 
 
 @pytest.fixture(scope="module")

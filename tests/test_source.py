@@ -1,6 +1,7 @@
 """Frame sources on real files read by real OpenCV: replay, corrupt frames, a capture that vanishes."""
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -200,22 +201,72 @@ def test_latest_frame_mailbox_keeps_only_the_newest():
     assert box.take(5.0) is None  # returns at once when closed
 
 
+class ConsumerPacedVideo:
+    """Real cv2.VideoCaptures over a video file that hand a frame over only once the consumer took
+    the previous one, as a camera's frame period would: a file reads far faster than a camera
+    delivers, and the one-frame mailbox would drop frames whenever the consumer is slow (load)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._turns = threading.Semaphore(1)  # frames that may be handed over before the next take
+        self._stopped = threading.Event()
+
+    def open(self) -> PacedCapture:
+        return PacedCapture(cv2.VideoCapture(str(self.path)), self._wait_for_turn)
+
+    def took(self, frame: Frame) -> Frame:
+        """The consumer calls this for every frame it takes."""
+        self._turns.release()
+        return frame
+
+    def stop(self) -> None:
+        """No more consumer: a capture waiting for its turn gives up."""
+        self._stopped.set()
+
+    def _wait_for_turn(self) -> bool:
+        while not self._turns.acquire(timeout=0.05):
+            if self._stopped.is_set():
+                return False
+        return True
+
+
+class PacedCapture:
+    """The reading side of a cv2.VideoCapture whose grabbed frame waits for its turn;
+    the end of the file needs no turn (nothing is handed over)."""
+
+    def __init__(self, capture: cv2.VideoCapture, wait_for_turn):
+        self._capture, self._wait_for_turn = capture, wait_for_turn
+
+    def isOpened(self) -> bool:
+        return self._capture.isOpened()
+
+    def grab(self) -> bool:
+        return self._capture.grab() and self._wait_for_turn()
+
+    def retrieve(self):
+        return self._capture.retrieve()
+
+    def release(self) -> None:
+        self._capture.release()
+
+
 def test_capture_that_vanishes_is_reopened_with_backoff_and_resumes(tmp_path):
     """A real cv2.VideoCapture over a file: its end is a camera that stops delivering,
     its removal a device that vanished; frames resume when it is back."""
-    video = write_video(tmp_path / "cam.avi", 5)
+    video = ConsumerPacedVideo(write_video(tmp_path / "cam.avi", 5))
     hidden = tmp_path / "cam.hidden"
-    source = CaptureSource(lambda: cv2.VideoCapture(str(video)), name="test",
+    source = CaptureSource(video.open, name="test",
                            stall_timeout_s=0.15, backoff_initial_s=0.05, backoff_max_s=0.2)
     source.start()
-    first = drain_until(source, count=5)
-    video.rename(hidden)  # the device goes away after its first 5 frames
+    first = drain_until(source, count=5, took=video.took)
+    video.path.rename(hidden)  # the device goes away after its first 5 frames
     deadline = time.monotonic() + 5
     while source.counters.reopens < 3 and time.monotonic() < deadline:
         time.sleep(0.05)
     reopens_while_gone = source.counters.reopens
-    hidden.rename(video)  # and comes back
-    second = drain_until(source, count=5)
+    hidden.rename(video.path)  # and comes back
+    second = drain_until(source, count=5, took=video.took)
+    video.stop()
     source.close()
     assert [number_of(f.image) for f in first] == list(range(5))
     assert [number_of(f.image) for f in second] == list(range(5))
@@ -224,13 +275,13 @@ def test_capture_that_vanishes_is_reopened_with_backoff_and_resumes(tmp_path):
     assert not source._thread.is_alive()
 
 
-def drain_until(source, count: int, limit_s: float = 10.0) -> list[Frame]:
+def drain_until(source, count: int, took, limit_s: float = 10.0) -> list[Frame]:
     frames = []
     deadline = time.monotonic() + limit_s
     while len(frames) < count and time.monotonic() < deadline:
         frame = source.get(timeout_s=0.1)
         if frame is not None:
-            frames.append(frame)
+            frames.append(took(frame))
     return frames
 
 

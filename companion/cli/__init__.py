@@ -1,14 +1,18 @@
 """The `companion` command: one sub-command per module, imported on use.
 
-Each sub-command module exposes ``configure_parser(parser)`` and
-``main(args) -> int``.
+The dispatcher knows every sub-command's name and one-line help without
+importing its module, and imports only the chosen one: ``companion --help``
+loads no numpy, OpenCV, filterpy or pymavlink. Each sub-command module exposes
+``configure_parser(parser)`` and ``main(args) -> int``.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import sys
+from types import ModuleType
 
+# name -> (module, one-line help)
 COMMANDS = {
     "run": ("companion.cli.run", "run the positioning daemon (default: bundled replay to udpout:127.0.0.1:14550)"),
     "markers": ("companion.cli.markers", "write printable RS markers (PNG, SVG, PDF sheets)"),
@@ -19,29 +23,49 @@ COMMANDS = {
 }
 
 
-def build_parser() -> tuple[argparse.ArgumentParser, dict[str, object]]:
+class CommandUnavailable(RuntimeError):
+    """A sub-command whose module cannot be imported (a missing dependency, a broken install)."""
+
+
+def load_command(name: str) -> ModuleType:
+    """Import the module of sub-command ``name``; CommandUnavailable names the module and what is missing."""
+    module_name = COMMANDS[name][0]
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as error:
+        missing = f"the package providing {error.name!r} is not installed" if error.name else str(error)
+        raise CommandUnavailable(f"companion {name}: cannot import {module_name}: {missing} "
+                                 "(reinstall companion with pip to get its dependencies)") from None
+    except ImportError as error:
+        raise CommandUnavailable(f"companion {name}: cannot import {module_name}: {error}") from None
+
+
+def build_parser(command: str | None = None, module: ModuleType | None = None) -> argparse.ArgumentParser:
+    """Every sub-command's name and help; the options of ``command`` alone, from its imported ``module``."""
     parser = argparse.ArgumentParser(prog="companion", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    modules = {}
-    for name, (module_name, help_text) in COMMANDS.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as error:
-            if error.name != module_name:
-                raise
-            continue
-        modules[name] = module
-        module.configure_parser(sub.add_parser(name, help=help_text, description=help_text))
-    return parser, modules
+    for name, (_, help_text) in COMMANDS.items():
+        sub_parser = sub.add_parser(name, help=help_text, description=help_text)
+        if name == command:
+            module.configure_parser(sub_parser)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser, modules = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    # No option comes before the sub-command: a known name in first place is the chosen one.
+    command = argv[0] if argv and argv[0] in COMMANDS else None
+    try:
+        module = load_command(command) if command else None
+    except CommandUnavailable as error:
+        print(error, file=sys.stderr)
+        return 1
+    parser = build_parser(command, module)
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return 2
-    return int(modules[args.command].main(args) or 0)
+    return int(module.main(args) or 0)
 
 
 if __name__ == "__main__":

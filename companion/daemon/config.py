@@ -74,11 +74,13 @@ class Config:
 
 
 def default_config_path() -> Path:
-    """``config/default.yaml`` from the installed package's data, else from the source tree."""
-    packaged = Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
-    if packaged.is_file():
-        return packaged
-    return Path(__file__).resolve().parents[2] / DEFAULT_CONFIG
+    """The embedded default, ``config/default.yaml``, from the package's data.
+
+    ``companion/data`` mirrors the repository paths it ships (in a clone they are
+    links to the top-level files), so the config's relative paths to the map and
+    the sequence hold both in a clone and in an installed package.
+    """
+    return Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
 
 
 def load_config(path=None) -> Config:
