@@ -76,7 +76,7 @@ class UdpSink:
 
 # The committed warehouse_aisle flight (along aisle 1, looking at the racks), read from its sequence.yaml.
 AISLE_WAYPOINTS = [tuple(p) for p in yaml.safe_load(
-    (REPO / "sequences" / "warehouse_aisle" / "sequence.yaml").read_text())["trajectory"]["points"]]
+    (REPO / "companion" / "data" / "sequences" / "warehouse_aisle" / "sequence.yaml").read_text())["trajectory"]["points"]]
 
 
 def render_sequence(folder: Path, width: int, height: int, waypoints) -> Path:

@@ -160,9 +160,9 @@ def test_unreadable_and_invalid_files(site):
         config_from_dict([1, 2], "list.yaml")
 
 
-@pytest.mark.parametrize("name, kind", [("default.yaml", "udpout"), ("sitl.yaml", "tcp")])
-def test_shipped_configs_load(name, kind):
-    config = load_config(REPO / "config" / name)
+@pytest.mark.parametrize("path, kind", [("companion/data/default.yaml", "udpout"), ("config/sitl.yaml", "tcp")])
+def test_shipped_configs_load(path, kind):
+    config = load_config(REPO / path)
     assert isinstance(config.source, ReplayConfig) and config.source.path.is_dir()
     assert config.mavlink.connection.startswith(kind)
     assert config.mavlink.origin is not None  # from the map

@@ -25,9 +25,11 @@ from companion.capture.replay import open_recording
 from mavlink_peer import PeerProcess, free_port
 
 REPO = Path(__file__).resolve().parent.parent
-SEQUENCES = REPO / "sequences"
-HOVER = SEQUENCES / "warehouse_hover"     # 1 s hovering in an aisle, PNG frames
-AISLE = SEQUENCES / "warehouse_aisle"     # a flight along an aisle at 1.4 m/s, video
+# the hover flight is test data; the aisle flight ships with the package (the embedded default replays it)
+SEQUENCES = {"warehouse_hover": REPO / "tests" / "data" / "sequences" / "warehouse_hover",
+             "warehouse_aisle": REPO / "companion" / "data" / "sequences" / "warehouse_aisle"}
+HOVER = SEQUENCES["warehouse_hover"]     # 1 s hovering in an aisle, PNG frames
+AISLE = SEQUENCES["warehouse_aisle"]     # a flight along an aisle at 1.4 m/s, video
 MAP = REPO / "maps" / "warehouse.yaml"
 OFFSET_RE = re.compile(r"recorded t_ns 0 is monotonic (\d+) ns")
 

@@ -10,11 +10,13 @@ from companion.localize import groundtruth, localize, resources
 from companion.geometry.pose import PoseSolver
 
 REPO = Path(__file__).resolve().parents[1]
-SEQUENCES = REPO / "sequences"
+# the hover flight is test data; the aisle flight ships with the package (the embedded default replays it)
+SEQUENCES = {"warehouse_hover": REPO / "tests" / "data" / "sequences" / "warehouse_hover",
+             "warehouse_aisle": REPO / "companion" / "data" / "sequences" / "warehouse_aisle"}
 
 
 def run(name):
-    sequence = SEQUENCES / name
+    sequence = SEQUENCES[name]
     facility_map, camera = resources(sequence, None, None)
     truth = groundtruth(sequence)
     results = list(localize(sequence, PoseSolver(facility_map, camera), truth))
@@ -52,7 +54,7 @@ def test_aisle_sequence_has_no_outliers():
 
 
 def test_localize_command_json(capsys):
-    assert cli.main(["localize", str(SEQUENCES / "warehouse_hover"), "--json"]) == 0
+    assert cli.main(["localize", str(SEQUENCES["warehouse_hover"]), "--json"]) == 0
     captured = capsys.readouterr()
     lines = [json.loads(line) for line in captured.out.splitlines()]
     assert [line["frame"] for line in lines] == list(range(31))
@@ -65,7 +67,7 @@ def test_localize_command_json(capsys):
 
 
 def test_localize_command_table(capsys):
-    assert cli.main(["localize", str(SEQUENCES / "warehouse_hover"), "--max-markers", "1"]) == 0
+    assert cli.main(["localize", str(SEQUENCES["warehouse_hover"]), "--max-markers", "1"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[0].split()[:5] == ["frame", "t_ms", "seen", "used", "status"]
     assert len(out) == 1 + 31 + 1
@@ -73,11 +75,11 @@ def test_localize_command_table(capsys):
 
 
 def test_localize_command_errors_name_the_file(tmp_path, capsys):
-    assert cli.main(["localize", str(SEQUENCES / "warehouse_hover"), "--map", str(tmp_path / "none.yaml")]) == 2
+    assert cli.main(["localize", str(SEQUENCES["warehouse_hover"]), "--map", str(tmp_path / "none.yaml")]) == 2
     assert "none.yaml" in capsys.readouterr().err
     bad_camera = tmp_path / "camera.yaml"
     bad_camera.write_text("camera: {width: 640, height: 480, hfov_deg: -3}\n")
-    assert cli.main(["localize", str(SEQUENCES / "warehouse_hover"), "--camera", str(bad_camera)]) == 2
+    assert cli.main(["localize", str(SEQUENCES["warehouse_hover"]), "--camera", str(bad_camera)]) == 2
     assert "camera.yaml: key 'camera.hfov_deg'" in capsys.readouterr().err
     assert cli.main(["localize", str(tmp_path)]) == 2
     assert "no --map given" in capsys.readouterr().err

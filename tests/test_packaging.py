@@ -1,9 +1,10 @@
 """The package data: what an installed companion (no repository around it) runs on.
 
-``companion/data`` mirrors the repository paths it ships: ``companion/data/P`` is a
-link to the top-level ``P`` (one copy of each file), and an sdist or wheel holds
-the content. `.ci/run` builds and runs the real wheel; here a copy of the package
-with the links replaced by their content stands in for it.
+``companion/data`` holds the embedded default (``default.yaml``), the bundled
+sequence it replays and, as a link to the top-level ``maps/warehouse.yaml`` (one
+copy of the file), the example map; an sdist or wheel holds the content.
+`.ci/run` builds and runs the real wheel; here a copy of the package with the
+link replaced by its content stands in for it.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "companion" / "data"
-SHIPPED = {"config/default.yaml", "maps/warehouse.yaml", "sequences/warehouse_aisle"}
+LINKED = {"maps/warehouse.yaml"}
 
 # Loads the embedded default and prints what it found, as JSON.
 PROBE = """
@@ -30,9 +31,9 @@ print(json.dumps({"package": companion.__file__, "config": str(default_config_pa
 """
 
 
-def test_package_data_links_to_the_one_copy_at_the_same_path_in_the_repository():
+def test_package_data_links_to_the_one_copy_of_the_map_in_the_repository():
     links = {p.relative_to(DATA).as_posix(): p for p in DATA.rglob("*") if p.is_symlink()}
-    assert set(links) == SHIPPED
+    assert set(links) == LINKED
     for relative, link in links.items():
         top = REPO / relative
         assert top.exists() and not top.is_symlink(), relative
@@ -50,7 +51,7 @@ def test_embedded_default_loads_from_the_package_alone(tmp_path):
     found = json.loads(result.stdout)
     package = site / "companion"
     assert Path(found["package"]).parent == package  # not the repository's
-    assert Path(found["config"]) == package / "data" / "config" / "default.yaml"
+    assert Path(found["config"]) == package / "data" / "default.yaml"
     assert Path(found["sequence"]) == package / "data" / "sequences" / "warehouse_aisle"
     assert Path(found["map"]).resolve() == package / "data" / "maps" / "warehouse.yaml"
     # the sequence's own camera (sequence.yaml: 640 x 480) and the map's 49 markers (maps/warehouse.yaml)

@@ -20,7 +20,9 @@ from companion.geometry.facility_map import load_map
 REPO = Path(__file__).resolve().parents[1]
 MAP = REPO / "maps" / "warehouse.yaml"
 CAMERA = REPO / "config" / "camera-example.yaml"
-SEQUENCES = REPO / "sequences"
+# the hover flight is test data; the aisle flight ships with the package (the embedded default replays it)
+SEQUENCES = {"warehouse_hover": REPO / "tests" / "data" / "sequences" / "warehouse_hover",
+             "warehouse_aisle": REPO / "companion" / "data" / "sequences" / "warehouse_aisle"}
 
 
 @pytest.fixture(scope="module")
@@ -370,7 +372,7 @@ def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, came
 
 @pytest.mark.parametrize("name", ["warehouse_hover", "warehouse_aisle"])
 def test_committed_sequences_ground_truth(name, facility_map):
-    sequence = simulate.read_sequence(SEQUENCES / name)
+    sequence = simulate.read_sequence(SEQUENCES[name])
     assert sequence.map_path().resolve() == MAP.resolve()
     count = sum(1 for _ in sequence.images())
     assert count == len(sequence.t_ns) == sequence.info["frames"]

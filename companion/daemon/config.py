@@ -35,7 +35,7 @@ MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
 MAVLINK_SPECIAL_KEYS = {"messages", "origin"}
 LINK_FIELDS = {f.name for f in dataclasses.fields(LinkParams)} - {"origin"} - set(MESSAGES.values())
 STATUS_KEYS = {"interval_s"}
-DEFAULT_CONFIG = "config/default.yaml"
+DEFAULT_CONFIG = "default.yaml"
 
 
 class ConfigError(ValueError):
@@ -74,12 +74,8 @@ class Config:
 
 
 def default_config_path() -> Path:
-    """The embedded default, ``config/default.yaml``, from the package's data.
-
-    ``companion/data`` mirrors the repository paths it ships (in a clone they are
-    links to the top-level files), so the config's relative paths to the map and
-    the sequence hold both in a clone and in an installed package.
-    """
+    """The embedded default, ``companion/data/default.yaml``: the bundled sequence and the example map
+    ship beside it as package data, so its relative paths hold in a clone and in an installed package."""
     return Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
 
 
