@@ -1,17 +1,25 @@
-"""The pipeline of the daemon: per frame, detect -> solve -> fuse -> publish, timing each stage."""
+"""The pipeline of the daemon: per frame, detect -> solve -> fuse -> publish, timing each stage.
+
+Each frame gives one ``FrameRecord``. Observers (``Pipeline.observers``) get
+every frame with its record right after it was sent; they run on the pipeline
+thread, so an observer only takes what it needs and hands slow work (encoding,
+disk, network) to a thread of its own.
+"""
 from __future__ import annotations
 
 import collections
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 from companion.fusion import PoseFilter, TrackState
 from companion.geometry import frames
+from companion.geometry.pose import PoseSolution
 from companion.mavlink.link import SEVERITY_INFO, SEVERITY_WARNING, MavlinkLink
-from companion.types import Estimate, Frame, PoseMeasurement
+from companion.types import Detection, Estimate, Frame, PoseMeasurement
 
 log = logging.getLogger("companion")
 
@@ -20,15 +28,37 @@ STAGES = ("detect", "pose", "fuse", "send")
 
 @dataclass(frozen=True)
 class FrameRecord:
-    """What the pipeline did with one frame (times in nanoseconds)."""
+    """What the pipeline did with one frame (times in nanoseconds).
+
+    detections: the markers decoded in the frame.
+    solution: the pose stage's decision (its ``status`` says why there is no
+        pose); None when no marker was seen.
+    estimate: what the filter gave to send (None while acquiring).
+    latency_ns: capture -> sent; None if nothing was sent.
+    """
 
     index: int
     t_ns: int
     stage_ns: tuple[int, int, int, int]   # detect, pose, fuse, send
-    latency_ns: int | None                 # capture -> sent; None if nothing was sent
-    markers: int
-    measurement: PoseMeasurement | None
+    latency_ns: int | None
+    detections: tuple[Detection, ...]
+    solution: PoseSolution | None
     estimate: Estimate | None
+
+    @property
+    def markers(self) -> int:
+        return len(self.detections)
+
+    @property
+    def measurement(self) -> PoseMeasurement | None:
+        return None if self.solution is None else self.solution.measurement
+
+    @property
+    def sent(self) -> bool:
+        return self.latency_ns is not None
+
+
+FrameObserver = Callable[[Frame, FrameRecord], None]
 
 
 @dataclass
@@ -79,13 +109,15 @@ class Pipeline:
         self.link = link
         self.T_map_ned = T_map_ned
         self.stats = PipelineStats()
+        self.observers: list[FrameObserver] = []
         self._previous_state = pose_filter.state
 
     def process(self, frame: Frame) -> FrameRecord:
         t0 = time.perf_counter_ns()
         detections = self.detector.detect(frame.image)
         t1 = time.perf_counter_ns()
-        measurement = self.solver.solve(detections, frame.t_ns, self._prior()) if detections else None
+        solution = self.solver.solve_detailed(detections, frame.t_ns, self._prior()) if detections else None
+        measurement = None if solution is None else solution.measurement
         t2 = time.perf_counter_ns()
         estimate = self.pose_filter.step(frame.t_ns, measurement)
         t3 = time.perf_counter_ns()
@@ -96,8 +128,10 @@ class Pipeline:
         latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
         self._report_state_change()
         record = FrameRecord(frame.index, frame.t_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), latency_ns,
-                             len(detections), measurement, estimate)
+                             tuple(detections), solution, estimate)
         self.stats.add(record)
+        for observer in self.observers:
+            observer(frame, record)
         return record
 
     def _prior(self) -> np.ndarray | None:

@@ -22,13 +22,11 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import os
 import sys
 import threading
 import time
 
-import numpy as np
 
 from companion.geometry import frames
 from companion.daemon.config import Config, ConfigError, ReplayConfig
@@ -37,6 +35,7 @@ from companion.fusion import PoseFilter
 from companion.mavlink.link import MavlinkLink
 from companion.daemon.notify import Notifier
 from companion.daemon.pipeline import Pipeline
+from companion.daemon.status import DaemonStatus, recent_activity
 from companion.geometry.pose import PoseSolver
 from companion.capture.replay import replay_source
 from companion.capture.source import FrameSource
@@ -163,23 +162,17 @@ class Daemon:
             self.status_stream.write(("\r\x1b[K" if tty else "") + self.status_line() + "\n")
             self.status_stream.flush()
 
-    def status_line(self) -> str:
-        """fps, markers seen, pose, latency, tracking and link state on one line."""
-        recent = self.pipeline.stats.recent(1.0)
-        fps = (len(recent) - 1) / ((recent[-1].t_ns - recent[0].t_ns) * 1e-9) if len(recent) > 1 else 0.0
-        last = recent[-1] if recent else None
-        latencies = [r.latency_ns for r in recent if r.latency_ns is not None]
-        latency = f"{np.median(latencies) / 1e6:.1f} ms" if latencies else "-"
-        estimate = last.estimate if last else None
-        if estimate is not None:
-            n, e, d = estimate.position_ned_m
-            pose = f"N {n:+.2f} E {e:+.2f} D {d:+.2f} m yaw {math.degrees(estimate.yaw_rad):+.1f} deg"
-        else:
-            pose = "no pose"
+    def status(self) -> DaemonStatus:
+        """The daemon's state over the last second (see ``companion.daemon.status``)."""
+        fps, markers, latency_ms, estimate = recent_activity(self.pipeline.stats)
         counters = self.pipeline.pose_filter.counters
-        return (f"{fps:5.1f} fps | markers {last.markers if last else 0} | {pose} | latency {latency} | "
-                f"{self.pipeline.pose_filter.state.value} | link {self.link.state.value} | "
-                f"sent {self.pipeline.stats.sent} rejected {counters.rejected} resets {counters.resets}")
+        return DaemonStatus(fps=fps, markers=markers, latency_ms=latency_ms, estimate=estimate,
+                            track_state=self.pipeline.pose_filter.state.value, link_state=self.link.state.value,
+                            frames=self.pipeline.stats.frames, sent=self.pipeline.stats.sent,
+                            rejected=counters.rejected, resets=counters.resets)
+
+    def status_line(self) -> str:
+        return self.status().line()
 
     def _print_summary(self) -> None:
         stats, source = self.pipeline.stats, self.source.counters
