@@ -35,7 +35,7 @@ from companion.detect.circles import (CircleCandidate, CircleParams, assemble_ca
                                       find_blobs, fit_error_cells, missing_corner_cells)
 from companion.detect.square import SquareFinder, SquareParams
 from companion.detect.edges import EdgeRefiner
-from companion.markers.codec import DEFAULT_FALSE_ACCEPT_BOUND, GridDecoder
+from companion.markers.codec import DecoderParams, GridDecoder
 from companion.markers.layout import MarkerLayout
 from companion.detect.refine import MarkerRefiner
 from companion.types import Detection
@@ -78,7 +78,7 @@ class DetectorParams:
     circles: str = "when_square_empty"
     ambiguity: float = 0.15
     min_contrast: float = 20.0
-    false_accept_bound: float = DEFAULT_FALSE_ACCEPT_BOUND
+    false_accept_bound: float = 1e-12
     min_gap: int = 6
 
     def __post_init__(self):
@@ -111,7 +111,8 @@ class Detector:
     def __init__(self, params: DetectorParams | None = None):
         self.params = params = params or DetectorParams()
         self.layout = MarkerLayout(parity=params.parity, dictionary=params.dictionary)
-        self.decoder = GridDecoder(self.layout, params.false_accept_bound, params.min_gap)
+        self.decoder = GridDecoder(self.layout, DecoderParams(false_accept_probability=params.false_accept_bound,
+                                                             min_gap_cells=params.min_gap))
         self.square = SquareFinder(self.layout, SquareParams(
             error_correction_rate=params.aruco_error_correction_rate,
             decode_rejected=params.decode_rejected, min_contrast=params.min_contrast,
