@@ -15,6 +15,7 @@ from companion.sim import occluders
 from companion.sim import raster
 from companion.sim import scenes
 from companion.geometry.camera import intrinsics_from_hfov
+from companion.detect import homography
 from companion.detect.detector import Detector, DetectorError, DetectorParams, DetectorParamsError
 from companion.markers.codec import GridDecoder
 from companion.markers.layout import UNKNOWN, MarkerLayout
@@ -237,3 +238,28 @@ def test_bad_image_and_bad_params_raise_clear_errors(detector):
         DetectorParams(circles="sometimes")
     with pytest.raises(TypeError):
         DetectorParams(**{"no_such_key": 1})
+
+
+# ---------------------------------------------------------------- homography
+
+def test_the_homography_helper_agrees_with_opencv():
+    rng = np.random.default_rng(2)
+    grid = np.array([[3.0, 3.0], [11.0, 3.0], [11.0, 11.0], [3.0, 11.0]])
+    quads = grid[None] * rng.uniform(8, 12, (5, 1, 1)) + rng.uniform(-6, 6, (5, 4, 2)) + 100
+    H = homography.from_quads(grid, quads)
+    points = rng.uniform(0, 14, (20, 2))
+    expected = np.stack([cv2.perspectiveTransform(points[None], cv2.getPerspectiveTransform(
+        grid.astype(np.float32), q.astype(np.float32)).astype(np.float64))[0] for q in quads])
+    np.testing.assert_allclose(homography.project(H, points), expected, atol=1e-3)  # float32 corners in OpenCV
+    np.testing.assert_allclose(homography.project(H, grid), quads, atol=1e-9)
+    np.testing.assert_allclose(homography.project(H[1], points), homography.project(H, points)[1], atol=1e-9)
+    each = np.stack([points + k for k in range(5)])
+    np.testing.assert_allclose(homography.project(H, each)[3], homography.project(H[3], points + 3), atol=1e-9)
+    assert np.isnan(homography.from_quads(grid, np.zeros((1, 4, 2)))).all()  # degenerate quad
+    # a least-squares fit through exact points, and its error in cells: a 2-cell shift of one of 8 points
+    fitted = homography.fit(points[:8], homography.project(H[0], points[:8]))
+    np.testing.assert_allclose(homography.project(fitted, points), homography.project(H[0], points), atol=1e-6)
+    _, cell_px = homography.project_with_cell_px(H[0], points[:1])
+    moved = homography.project(H[0], points[:8])
+    moved[0] += [2 * cell_px, 0.0]
+    assert homography.fit_error_cells(H[0], points[:8], moved) == pytest.approx(2 / np.sqrt(8), rel=1e-6)

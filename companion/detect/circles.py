@@ -31,7 +31,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from companion.detect import sampling
+from companion.detect import homography, sampling
 from companion.markers.layout import MarkerLayout
 
 RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
@@ -356,7 +356,7 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, mi
         H = _fit(grid[ids], centres[index])
         for corner in (1, 3, 2):
             circles = np.arange(3 * corner, 3 * corner + 3)
-            predicted, cell_px = _predict(H, grid[circles])
+            predicted, cell_px = homography.project_with_cell_px(H, grid[circles])
             if not np.isfinite(cell_px):
                 break
             # 1. a whole triple
@@ -376,7 +376,7 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, mi
                 blobs_added = [b for b in found if b >= 0]
                 H_new = _fit(grid[ids + added], centres[index + blobs_added])
                 checkable = len(ids) + len(added) >= 6  # below six points the fit is affine and always "fits"
-                if not checkable or fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]) <= 0.3:
+                if not checkable or homography.fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]) <= 0.3:
                     ids, index, H = ids + added, index + blobs_added, H_new
                     in_candidate[blobs_added] = True
                     break
@@ -420,14 +420,6 @@ def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used,
     return found
 
 
-def fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
-    """RMS distance between image points and their grid points mapped by H, in cells (at the first point)."""
-    projected, cell_px = _predict(H, grid_points)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
-    return float(error) if np.isfinite(error) else np.inf
-
-
 def _fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
     """(3, 3) grid -> image: least-squares affine below 6 points, homography from 6.
 
@@ -436,25 +428,8 @@ def _fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
     until a second corner is complete.
     """
     if len(grid_points) < 6:
-        design = np.column_stack([grid_points, np.ones(len(grid_points))])
-        # normal equations of [x y] = [u v 1] A (3 x 2); tiny, so solve directly
-        A = np.linalg.solve(design.T @ design, design.T @ image_points)
-        return np.vstack([A.T, [0.0, 0.0, 1.0]])
-    H, _ = cv2.findHomography(grid_points, image_points, 0)
-    return H if H is not None else np.full((3, 3), np.nan)
-
-
-def _predict(H: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
-    """Image positions (K, 2) of grid points uv (K, 2) through H, and the size of one cell (px) at the first."""
-    pts = np.concatenate([uv, uv[:1] + [[1.0, 0.0], [0.0, 1.0]]])
-    w = pts @ H[2, :2] + H[2, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p = (pts @ H[:2, :2].T + H[:2, 2]) / w[:, None]
-    if not np.all(np.isfinite(p)):
-        return p[:-2], np.nan
-    a, b = p[-2] - p[0], p[-1] - p[0]
-    cell_px = float(np.sqrt(abs(a[0] * b[1] - a[1] * b[0])))
-    return p[:-2], cell_px if cell_px > 0 else np.nan
+        return homography.fit_affine(grid_points, image_points)
+    return homography.fit(grid_points, image_points)
 
 
 def missing_corner_cells(layout: MarkerLayout, present_corners: np.ndarray) -> np.ndarray:

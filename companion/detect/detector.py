@@ -27,12 +27,11 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 
-from companion.detect import sampling
+from companion.detect import homography, sampling
 from companion.detect.circles import (CircleCandidate, CircleParams, assemble_candidates, corner_triples,
-                                      find_blobs, fit_error_cells, missing_corner_cells)
+                                      find_blobs, missing_corner_cells)
 from companion.detect.square import SquareFinder, SquareParams
 from companion.detect.edges import EdgeRefiner
 from companion.markers.codec import DecoderParams, GridDecoder
@@ -159,10 +158,10 @@ class Detector:
         if rough.any():
             quads = quads.copy()
             quads[rough] = self.edges.refine_square_corners(
-                gray, sampling.homographies_from_quads(inner, quads[rough]), quads[rough],
+                gray, homography.from_quads(inner, quads[rough]), quads[rough],
                 half_width_cells=0.7, samples=21)
-        quads = self.edges.refine_square_corners(gray, sampling.homographies_from_quads(inner, quads), quads)
-        H = sampling.homographies_from_quads(inner, quads)
+        quads = self.edges.refine_square_corners(gray, homography.from_quads(inner, quads), quads)
+        H = homography.from_quads(inner, quads)
         cells = sampling.sample_cells(gray, H, self.layout.n_cells)
         levels = sampling.grid_levels(cells, self._border, self._gap)
         grids = sampling.classify_cells(cells, levels, self.params.ambiguity)
@@ -195,7 +194,7 @@ class Detector:
     def _inside_found(self, points_px: np.ndarray, found: list[Detection]) -> np.ndarray:
         """(K,) bool: points inside the full grid outline of an already found marker."""
         corners = np.stack([d.corners_px for d in found])
-        H = sampling.homographies_from_quads(self.layout.inner_corners_cells, corners)
+        H = homography.from_quads(self.layout.inner_corners_cells, corners)
         return sampling.inside_grids(points_px, H, self.layout.n_cells)
 
     def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate]) -> list[Detection]:
@@ -203,8 +202,8 @@ class Detector:
         fitted = []
         for candidate in candidates:
             grid_points = self.layout.circles[candidate.circle_ids, :2]
-            H, _ = cv2.findHomography(grid_points, candidate.circles_px, 0)
-            if H is not None and fit_error_cells(H, grid_points, candidate.circles_px) <= 0.3:
+            H = homography.fit(grid_points, candidate.circles_px)
+            if homography.fit_error_cells(H, grid_points, candidate.circles_px) <= 0.3:
                 fitted.append((candidate, H, (grid_points, candidate.circles_px)))
         if fitted:  # a first look at one sample per cell: a wrong pairing of corners reads as no marker
             reading = self.probe.read(gray, np.stack([h for _, h, _ in fitted]))
@@ -240,7 +239,7 @@ class Detector:
         detections = []
         for i, result in decoded.items():
             k, candidate = result.rotation, candidates[i]
-            inner = sampling.project(H[i][None], self.layout.inner_corners_cells)[0]
+            inner = homography.project(H[i], self.layout.inner_corners_cells)
             corner, slot = divmod(candidate.circle_ids, 3)
             detections.append(Detection(
                 symbol=result.symbol, id=result.id, corners_px=np.roll(inner, -k, axis=0), path="circles",

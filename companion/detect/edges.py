@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.detect import sampling
+from companion.detect import homography, sampling
 from companion.markers.layout import MarkerLayout
 
 EDGE_STEP_CELLS = 0.5
@@ -93,7 +93,7 @@ class EdgeRefiner:
         m, e = len(H), len(points)
         offsets = np.linspace(-half_width_cells, half_width_cells, samples)  # inside (black) -> outside (white)
         grid = (points[:, None, :] + offsets[None, :, None] * normals[:, None, :]).reshape(-1, 2)
-        values, inside = sampling.sample_image(gray, sampling.project(H, grid))
+        values, inside = sampling.sample_image(gray, homography.project(H, grid))
         values = values.reshape(m, e, samples)
         inside = inside.reshape(m, e, samples).all(axis=2)
         end = max(samples // 6, 1)
@@ -113,9 +113,7 @@ class EdgeRefiner:
             frac = np.clip((mid - before) / (after - before), 0.0, 1.0)
         offset = offsets[k - 1] + frac * (offsets[1] - offsets[0])
         on_edge = points[None] + offset[..., None] * normals[None]  # (M, E, 2) grid
-        px = (np.concatenate([on_edge, np.ones((m, e, 1))], axis=2) @ np.transpose(H, (0, 2, 1)))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            px = px[..., :2] / px[..., 2:3]
+        px = homography.project(H, on_edge)
         px[~good] = np.nan
         return EdgePoints(px, edge, keep)
 
@@ -239,7 +237,7 @@ def _solve(anchors_grid, anchors_px, on_edge_px, axis, value) -> np.ndarray | No
 
 def _line_residuals(G, on_edge_px, axis, value) -> np.ndarray:
     """(E,) distance in cells of each edge point, mapped by G, from its grid line."""
-    grid = sampling.project(G[None], on_edge_px)[0]
+    grid = homography.project(G, on_edge_px)
     return np.abs(grid[np.arange(len(grid)), axis] - value)
 
 
@@ -247,4 +245,4 @@ def _grid_distances(G: np.ndarray, points_px: np.ndarray, points_grid: np.ndarra
     """(K,) distances in cells between image points mapped by G and their grid positions."""
     if len(points_px) == 0:
         return np.zeros(0)
-    return np.linalg.norm(sampling.project(G[None], points_px)[0] - points_grid, axis=1)
+    return np.linalg.norm(homography.project(G, points_px) - points_grid, axis=1)

@@ -61,6 +61,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from companion.detect import homography
 from companion.markers.layout import MarkerLayout, marker_image
 
 RefineStatus = Literal["refined", "worse", "mismatch", "diverged", "low_contrast", "not_visible", "degenerate"]
@@ -256,7 +257,7 @@ class _View:
     def read(self, template: _Template, M: np.ndarray) -> np.ndarray:
         """(P,) float32 frame intensities at the template points through M (NaN outside the frame)."""
         if self.lens is None:
-            xy = cv2.perspectiveTransform(template.points, self.S_crop_image @ M)
+            xy = homography.project_float32(self.S_crop_image @ M, template.points)
             return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                              borderValue=np.nan)[0]
         m = M.astype(np.float32).ravel()
@@ -303,8 +304,8 @@ class MarkerRefiner:
         """
         gray, initial = self._check(gray, marker_id, corners_px)
         initial_ideal = initial if self.lens is None else self.lens.undistort_points(initial)
-        H0 = _homography(self._corners_grid, initial_ideal)
-        if H0 is None:
+        H0 = homography.from_quads(self._corners_grid, initial_ideal)[0]
+        if not np.all(np.isfinite(H0)):
             return self._fit(gray, initial, None, "degenerate")
         cell_px = _cell_px(initial_ideal, self.layout.inner_cells)
         px_per_cell = int(np.clip(round(cell_px), self.params.min_px_per_cell, self.params.max_px_per_cell))
@@ -324,7 +325,7 @@ class MarkerRefiner:
             return self._fit(gray, initial, H0, "diverged", **kept)
         H = M @ self.N_norm_grid
         H = H / H[2, 2]
-        corners = self._to_frame(_project(H, self._corners_grid))
+        corners = self._to_frame(homography.project(H, self._corners_grid))
         status = self._verdict(first, last, corners, initial, cell_px)
         if status != "refined":
             return self._fit(gray, initial, H0, status, **kept)
@@ -425,7 +426,7 @@ class MarkerRefiner:
 
     def _view(self, gray: np.ndarray, H: np.ndarray) -> _View | None:
         """The frame around the marker (grid H: grid -> ideal pixels), None if it is all outside."""
-        outline = self._to_frame(_project(H, self._outline_grid))
+        outline = self._to_frame(homography.project(H, self._outline_grid))
         if not np.all(np.isfinite(outline)):
             return None
         height, width = gray.shape
@@ -458,7 +459,7 @@ class MarkerRefiner:
             H = np.full((3, 3), np.nan)
             circles = np.full((len(self._circles_grid), 2), np.nan)
         else:
-            circles = self._to_frame(_project(H, self._circles_grid))
+            circles = self._to_frame(homography.project(H, self._circles_grid))
         height, width = gray.shape
         with np.errstate(invalid="ignore"):
             inside = ((circles[:, 0] >= -0.5) & (circles[:, 0] <= width - 0.5)
@@ -488,7 +489,7 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
     n = layout.n_cells
     keep = ((uv >= -0.5) & (uv <= n + 0.5)).all(axis=1)
     rows, columns, uv = rows[keep], columns[keep], uv[keep]
-    xy = _project(N_norm_grid, uv)
+    xy = homography.project(N_norm_grid, uv)
     # dT/d(normalised) = dT/d(template pixel) * template pixels per normalised unit
     scale = px_per_cell / N_norm_grid[0, 0]
     grad = np.column_stack([gx[rows, columns], gy[rows, columns]]).astype(np.float64) * scale
@@ -504,22 +505,6 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
                      steepest=steepest.astype(np.float32),
                      hessian_inverse=np.linalg.inv(steepest.T @ steepest), sum=float(values.sum()),
                      sum_squares=float(values @ values))
-
-
-def _homography(grid: np.ndarray, image: np.ndarray) -> np.ndarray | None:
-    """(3, 3) grid -> image from four point pairs; None if the quad is degenerate."""
-    try:
-        H = cv2.getPerspectiveTransform(grid.astype(np.float32), image.astype(np.float32))
-    except cv2.error:
-        return None
-    if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12 or abs(H[2, 2]) < 1e-12:
-        return None
-    return H / H[2, 2]
-
-
-def _project(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K, 2) float64 points through a (3, 3) homography."""
-    return cv2.perspectiveTransform(np.asarray(points, dtype=np.float64)[None], H)[0]
 
 
 def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:

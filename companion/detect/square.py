@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from companion.detect import sampling
+from companion.detect import homography, sampling
 from companion.markers.layout import MarkerLayout
 
 
@@ -118,7 +118,7 @@ class SquareFinder:
         """(M,) bool: quad centres inside the whole grid of an identified marker (its own cells)."""
         if len(markers) == 0:
             return np.zeros(len(quads), bool)
-        H = sampling.homographies_from_quads(self._inner_corners, markers)
+        H = homography.from_quads(self._inner_corners, markers)
         return sampling.inside_grids(quads.mean(axis=1), H, self.layout.n_cells)
 
     def marker_like(self, gray: np.ndarray, quads: np.ndarray) -> np.ndarray:
@@ -130,7 +130,7 @@ class SquareFinder:
         data moves that by ~10 %): a plain dark or light square is no marker;
         and, with a screen, the codeword read this roughly must be near a marker's.
         """
-        H = sampling.homographies_from_quads(self._inner_corners, quads)
+        H = homography.from_quads(self._inner_corners, quads)
         r = self._probe.read(gray, H)
         p = self.params
         ok = ((r.contrast >= p.min_contrast) & (r.border_black >= p.min_fixed_agreement)
