@@ -41,11 +41,12 @@ Points outside the image read as NaN and are left out, so a marker partly
 outside the frame is aligned on what is visible (its corners on the cut
 side come out to about 0.15 px). A marker is a homography of
 its grid only in an undistorted image: give the refiner the camera
-(``CameraModel`` or anything with ``K`` and ``dist``) and it aligns in the
-ideal pinhole image, reading the frame through the lens model. Without it,
-lens distortion bends large markers (k1 = -0.05: refined corners 0.04 px
-instead of 0.01 px; k1 = -0.3: worse than ArUco's on large markers near the
-image edge; ``benchmarks/bench_refine.py``).
+(``CameraModel``) and it aligns in the ideal pinhole image, drawn once per
+marker from the frame through OpenCV's lens model (all 14 coefficients;
+``cv2.initUndistortRectifyMap`` over the marker's box). Without it, lens
+distortion bends large markers (k1 = -0.05: refined corners 0.04 px instead
+of 0.01 px; k1 = -0.3: worse than ArUco's on large markers near the image
+edge; ``benchmarks/bench_refine.py``).
 
 Occluders are not modelled: on a marker partly hidden by something in front
 of it (the detector's circles path) the least-squares fit is pulled by the
@@ -65,7 +66,8 @@ from companion.detect import homography
 from companion.markers.layout import MarkerLayout, marker_image
 
 RefineStatus = Literal["refined", "worse", "mismatch", "diverged", "low_contrast", "not_visible", "degenerate"]
-MAX_DISTORTION_COEFFICIENTS = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (OpenCV's rational model)
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # OpenCV's lens model: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tau_x tau_y]]]]
+UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
 
 
 class MarkerRefineError(ValueError):
@@ -162,7 +164,7 @@ class MarkerFit:
 class _Template:
     """The edge points of one marker drawn at one scale, ready for inverse-compositional steps.
 
-    points: (1, P, 2) float32 normalised grid coordinates; x, y: (P,) the same, contiguous.
+    points: (1, P, 2) float32 normalised grid coordinates.
     values: (P,) float32 template intensity, 0 black .. 1 white.
     steepest: (P, 8) float32 grad T . dW/dp (the steepest-descent images).
     hessian_inverse: (8, 8) float64 (steepest^T steepest)^-1.
@@ -170,8 +172,6 @@ class _Template:
     """
 
     points: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
     values: np.ndarray
     steepest: np.ndarray
     hessian_inverse: np.ndarray
@@ -194,95 +194,39 @@ class _Sample:
     contrast: float
 
 
-class _Lens:
-    """OpenCV's distortion model (up to 8 coefficients) between ideal and frame pixels."""
-
-    def __init__(self, K: np.ndarray, dist: np.ndarray):
-        K = np.asarray(K, dtype=np.float64)
-        dist = np.asarray(dist, dtype=np.float64).ravel()
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise MarkerRefineError(f"camera.K must be a finite (3, 3) intrinsic matrix, got {K.tolist()}")
-        if len(dist) > MAX_DISTORTION_COEFFICIENTS or not np.all(np.isfinite(dist)):
-            raise MarkerRefineError(f"camera.dist must be at most {MAX_DISTORTION_COEFFICIENTS} finite coefficients "
-                                    f"(k1 k2 p1 p2 k3 k4 k5 k6), got {dist.tolist()}")
-        self.K = K
-        self.dist = np.zeros(MAX_DISTORTION_COEFFICIENTS)
-        self.dist[:len(dist)] = dist
-        self._tangential = bool(np.any(self.dist[2:4]))
-        self._rational = bool(np.any(self.dist[5:8]))
-
-    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Ideal pixel coordinates -> frame pixels; x, y: float arrays of one shape (float32 stays float32)."""
-        t = x.dtype.type
-        fx, fy, cx, cy = (t(v) for v in (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]))
-        k1, k2, p1, p2, k3, k4, k5, k6 = (t(v) for v in self.dist)
-        u = (x - cx) * (1 / fx)
-        v = (y - cy) * (1 / fy)
-        r2 = u * u + v * v
-        # radial = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
-        radial = ((k3 * r2 + k2) * r2 + k1) * r2 + 1
-        if self._rational:
-            radial /= ((k6 * r2 + k5) * r2 + k4) * r2 + 1
-        ud, vd = u * radial, v * radial
-        if self._tangential:
-            # u_d += 2 p1 u v + p2 (r^2 + 2 u^2),  v_d += p1 (r^2 + 2 v^2) + 2 p2 u v
-            uv2 = 2 * u * v
-            ud += p1 * uv2 + p2 * (r2 + 2 * u * u)
-            vd += p1 * (r2 + 2 * v * v) + p2 * uv2
-        return ud * fx + cx, vd * fy + cy
-
-    def distort_points(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) float64 ideal pixels -> frame pixels."""
-        x, y = self.distort(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]))
-        return np.column_stack([x, y])
-
-    def undistort_points(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) float64 frame pixels -> ideal pixels."""
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
-        return cv2.undistortPoints(np.asarray(xy, dtype=np.float64).reshape(-1, 1, 2), self.K, self.dist, R=None,
-                                   P=self.K, criteria=criteria).reshape(-1, 2)
-
-
 @dataclass(frozen=True, eq=False)
 class _View:
-    """The frame around one marker as float32, read at ideal-pixel positions.
+    """The image around one marker as float32, to be read at template points.
 
-    crop: (h, w) float32. S_crop_image: (3, 3) frame pixels -> crop pixels (a shift).
+    crop: (h, w) float32, NaN where the frame has no pixel; the frame itself,
+        or with a camera the ideal (undistorted) image drawn from it.
+    S_crop_image: (3, 3) frame (or ideal) pixels -> crop pixels (a shift).
     """
 
     crop: np.ndarray
     S_crop_image: np.ndarray
-    lens: _Lens | None
 
     def read(self, template: _Template, M: np.ndarray) -> np.ndarray:
-        """(P,) float32 frame intensities at the template points through M (NaN outside the frame)."""
-        if self.lens is None:
-            xy = homography.project_float32(self.S_crop_image @ M, template.points)
-            return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                             borderValue=np.nan)[0]
-        m = M.astype(np.float32).ravel()
-        x, y = template.x, template.y
-        # ideal pixel = M (x, y, 1) / w, w = m6 x + m7 y + m8
-        w = 1 / (m[6] * x + m[7] * y + m[8])
-        x_frame, y_frame = self.lens.distort((m[0] * x + m[1] * y + m[2]) * w, (m[3] * x + m[4] * y + m[5]) * w)
-        x_frame += np.float32(self.S_crop_image[0, 2])
-        y_frame += np.float32(self.S_crop_image[1, 2])
-        return cv2.remap(self.crop, x_frame[None], y_frame[None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+        """(P,) float32 intensities at the template points through M (NaN outside the frame)."""
+        xy = homography.project_float32(self.S_crop_image @ M, template.points)
+        return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=np.nan)[0]
 
 
 class MarkerRefiner:
     """Refines decoded markers of one layout. Not thread-safe (it caches templates): one per thread.
 
-    camera: optional, anything with ``K`` (3, 3) and ``dist`` (k,) (a
-    ``companion.geometry.camera.CameraModel``); with it the alignment runs in the
-    undistorted image.
+    camera: optional ``companion.geometry.camera.CameraModel`` (anything with
+    ``K`` (3, 3) and OpenCV's ``dist`` (4, 5, 8, 12 or 14 coefficients)); with
+    it the alignment runs in the ideal (undistorted) image, through OpenCV's
+    lens model.
     """
 
     def __init__(self, layout: MarkerLayout, params: RefineParams | None = None, camera=None):
         self.layout = layout
         self.params = params or RefineParams()
-        self.lens = None if camera is None else _Lens(camera.K, camera.dist)
+        self.camera = None if camera is None else _checked_camera(camera)
+        self._ideal_bounds: dict[tuple[int, int], np.ndarray] = {}
         n = layout.n_cells
         # grid (u, v) -> normalised (grid centre at 0, grid edges at -1 and +1)
         self.N_norm_grid = np.array([[2.0 / n, 0.0, -1.0], [0.0, 2.0 / n, -1.0], [0.0, 0.0, 1.0]])
@@ -303,7 +247,7 @@ class MarkerRefiner:
         marker's upright orientation (rotation already corrected by the decode).
         """
         gray, initial = self._check(gray, marker_id, corners_px)
-        initial_ideal = initial if self.lens is None else self.lens.undistort_points(initial)
+        initial_ideal = self._to_ideal(initial)
         H0 = homography.from_quads(self._corners_grid, initial_ideal)[0]
         if not np.all(np.isfinite(H0)):
             return self._fit(gray, initial, None, "degenerate")
@@ -421,24 +365,69 @@ class MarkerRefiner:
         return gray, corners
 
     def _to_frame(self, ideal_px: np.ndarray) -> np.ndarray:
-        """(K, 2) ideal pixels -> frame pixels (float64)."""
-        return ideal_px if self.lens is None else self.lens.distort_points(ideal_px)
+        """(K, 2) ideal pixels -> frame pixels (float64), through the camera's lens model."""
+        if self.camera is None:
+            return ideal_px
+        K = self.camera.K
+        # the ray of ideal pixel (x, y) is K^-1 (x, y, 1); OpenCV distorts and projects it
+        rays = np.column_stack([(ideal_px - K[:2, 2]) / np.diag(K)[:2], np.ones(len(ideal_px))])
+        frame_px, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, self.camera.dist)
+        return frame_px.reshape(-1, 2)
+
+    def _to_ideal(self, frame_px: np.ndarray) -> np.ndarray:
+        """(K, 2) frame pixels -> ideal pixels (float64), OpenCV's iterative undistortion to 1e-9."""
+        if self.camera is None:
+            return frame_px
+        return cv2.undistortPoints(frame_px.reshape(-1, 1, 2), self.camera.K, self.camera.dist, R=None,
+                                   P=self.camera.K, criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
 
     def _view(self, gray: np.ndarray, H: np.ndarray) -> _View | None:
-        """The frame around the marker (grid H: grid -> ideal pixels), None if it is all outside."""
-        outline = self._to_frame(homography.project(H, self._outline_grid))
+        """The image around the marker (H: grid -> ideal pixels), None if it is all outside the frame.
+
+        Without a camera that is a crop of the frame. With one, the ideal image
+        of the marker's box is drawn once from the frame (OpenCV's undistortion
+        map of that box, one ``cv2.remap``), so every alignment step reads it
+        like an undistorted frame.
+        """
+        outline = homography.project(H, self._outline_grid)
         if not np.all(np.isfinite(outline)):
             return None
         height, width = gray.shape
+        lo, hi = (np.zeros(2), np.array([width - 1, height - 1])) if self.camera is None else self._ideal_box(gray)
         margin = 2
-        x0 = int(max(np.floor(outline[:, 0].min()) - margin, 0))
-        y0 = int(max(np.floor(outline[:, 1].min()) - margin, 0))
-        x1 = int(min(np.ceil(outline[:, 0].max()) + margin, width - 1))
-        y1 = int(min(np.ceil(outline[:, 1].max()) + margin, height - 1))
+        x0, y0 = np.maximum(np.floor(outline.min(axis=0)) - margin, lo).astype(int)
+        x1, y1 = np.minimum(np.ceil(outline.max(axis=0)) + margin, hi).astype(int)
         if x1 - x0 < 2 or y1 - y0 < 2:
             return None
         S = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
-        return _View(gray[y0:y1 + 1, x0:x1 + 1].astype(np.float32), S, self.lens)
+        if self.camera is None:
+            return _View(gray[y0:y1 + 1, x0:x1 + 1].astype(np.float32), S)
+        # ideal pixel (x0 + i, y0 + j) of the box -> frame pixel (map_x, map_y)[j, i]
+        P = self.camera.K.copy()
+        P[:2, 2] -= [x0, y0]
+        map_x, map_y = cv2.initUndistortRectifyMap(self.camera.K, self.camera.dist, None, P,
+                                                   (x1 - x0 + 1, y1 - y0 + 1), cv2.CV_32FC1)
+        fx0, fy0 = max(int(np.floor(map_x.min())) - 1, 0), max(int(np.floor(map_y.min())) - 1, 0)
+        fx1, fy1 = min(int(np.ceil(map_x.max())) + 1, width - 1), min(int(np.ceil(map_y.max())) + 1, height - 1)
+        if fx1 - fx0 < 2 or fy1 - fy0 < 2:
+            return None
+        frame = gray[fy0:fy1 + 1, fx0:fx1 + 1].astype(np.float32)
+        ideal = cv2.remap(frame, map_x - np.float32(fx0), map_y - np.float32(fy0), cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        return _View(ideal, S)
+
+    def _ideal_box(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(lowest, highest) ideal pixel (x, y) of any frame pixel: the frame's outline, undistorted."""
+        shape = gray.shape
+        if shape not in self._ideal_bounds:
+            height, width = shape
+            side = np.linspace(0.0, 1.0, 33)[:, None]
+            outline = np.concatenate([side * [width - 1, 0], [width - 1, 0] + side * [0, height - 1],
+                                      side * [width - 1, 0] + [0, height - 1], side * [0, height - 1]])
+            ideal = self._to_ideal(outline)
+            self._ideal_bounds[shape] = np.stack([ideal.min(axis=0), ideal.max(axis=0)])
+        lo, hi = self._ideal_bounds[shape]
+        return lo, hi
 
     def _template(self, marker_id: int, px_per_cell: int) -> _Template:
         key = (marker_id, px_per_cell)
@@ -468,6 +457,18 @@ class MarkerRefiner:
                          circles_in_image=inside, refined=status == "refined", status=status,
                          residual=float(residual), initial_residual=float(initial_residual),
                          contrast=float(contrast), iterations=int(steps))
+
+
+def _checked_camera(camera):
+    """The camera, if its ``K`` and ``dist`` are usable by OpenCV's lens model."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    dist = np.asarray(camera.dist, dtype=np.float64).ravel()
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise MarkerRefineError(f"camera.K must be a finite (3, 3) intrinsic matrix, got {K.tolist()}")
+    if len(dist) not in DISTORTION_LENGTHS or not np.all(np.isfinite(dist)):
+        raise MarkerRefineError(f"camera.dist must be {', '.join(map(str, DISTORTION_LENGTHS[1:]))} finite "
+                                f"coefficients (OpenCV's lens model), got {dist.tolist()}")
+    return camera
 
 
 def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm_grid: np.ndarray) -> _Template:
@@ -501,7 +502,7 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
     steepest = grad[:, :1] * dW_dp_x + grad[:, 1:] * dW_dp_y
     values = image[rows, columns].astype(np.float32)
     points = xy.astype(np.float32)
-    return _Template(points=points[None], x=points[:, 0].copy(), y=points[:, 1].copy(), values=values,
+    return _Template(points=points[None], values=values,
                      steepest=steepest.astype(np.float32),
                      hessian_inverse=np.linalg.inv(steepest.T @ steepest), sum=float(values.sum()),
                      sum_squares=float(values @ values))
