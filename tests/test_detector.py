@@ -16,9 +16,11 @@ from companion.sim import raster
 from companion.sim import scenes
 from companion.geometry.camera import intrinsics_from_hfov
 from companion.detect import homography
-from companion.detect.detector import Detector, DetectorError, DetectorParams, DetectorParamsError
+from companion.detect.circles import CircleParams
+from companion.detect.detector import Detector, DetectorError, DetectorParams
 from companion.markers.codec import GridDecoder
 from companion.markers.layout import UNKNOWN, MarkerLayout
+from companion.params import ParamsError
 
 W, H = 640, 480
 SIZE_M = 0.15
@@ -191,13 +193,13 @@ def test_circles_mode_gates_the_occluded_path(layout):
     strip = occluders.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
     image, _ = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
                              (strip_texture, T_strip)], occluders=[strip])
-    found = {mode: {(d.id, d.path) for d in Detector(DetectorParams(circles=mode)).detect(image)}
+    found = {mode: {(d.id, d.path) for d in Detector(DetectorParams(circles=CircleParams(run=mode))).detect(image)}
              for mode in ("when_square_empty", "always", "never")}
     assert found["when_square_empty"] == found["never"] == {(3, "square")}
     assert found["always"] == {(3, "square"), (40, "circles")}
     strip_only, _ = render_scene([(strip_texture, T_strip)], occluders=[strip])
     assert [(d.id, d.path) for d in Detector().detect(strip_only)] == [(40, "circles")]
-    assert Detector(DetectorParams(circles="never")).detect(strip_only) == []
+    assert Detector(DetectorParams(circles=CircleParams(run="never"))).detect(strip_only) == []
 
 
 # ------------------------------------------------------------------- decoder
@@ -232,12 +234,33 @@ def test_decoder_radius_shrinks_with_erasures(layout):
 def test_bad_image_and_bad_params_raise_clear_errors(detector):
     with pytest.raises(DetectorError, match="uint8"):
         detector.detect(np.zeros((10, 10, 3), np.uint8))
-    with pytest.raises(DetectorParamsError, match="parity"):
+    with pytest.raises(ParamsError, match="parity"):
         DetectorParams(parity=3)
-    with pytest.raises(DetectorParamsError, match="circles"):
-        DetectorParams(circles="sometimes")
+    with pytest.raises(ParamsError, match="dictionary"):
+        DetectorParams(dictionary="7x7")
+    with pytest.raises(ParamsError, match="run"):
+        CircleParams(run="sometimes")
     with pytest.raises(TypeError):
         DetectorParams(**{"no_such_key": 1})
+
+
+def test_params_from_a_mapping_name_the_dotted_key():
+    params = DetectorParams.from_mapping({"parity": 4, "circles": {"run": "never", "max_blobs": 100},
+                                          "refine": {"max_iterations": 3}})
+    assert (params.parity, params.circles.run, params.circles.max_blobs, params.refine.max_iterations) == \
+        (4, "never", 100, 3)
+    assert params.circles.min_area_px == CircleParams().min_area_px
+    assert DetectorParams.from_mapping({}) == DetectorParams() == DetectorParams.from_mapping(None)
+    for mapping, message in [({"parity": 3}, "parity: must be 2 or 4, got 3"),
+                             ({"square": {"aruco_threshold_windows_px": [6, 27, 20]}},
+                              "square.aruco_threshold_windows_px: must be [min, max, step] integers"),
+                             ({"square": {"min_side_pix": 3}}, "square.min_side_pix: unknown key"),
+                             ({"edges": {"square_samples": 2.5}}, "edges.square_samples: must be an integer"),
+                             ({"decoder": {"algebraic": "yes"}}, "decoder.algebraic: must be true or false"),
+                             ({"sampling": {"min_contrast_gray": -1}}, "sampling.min_contrast_gray: must be > 0")]:
+        with pytest.raises(ParamsError) as error:
+            DetectorParams.from_mapping(mapping)
+        assert str(error.value).startswith(message), error.value
 
 
 # ---------------------------------------------------------------- homography

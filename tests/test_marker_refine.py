@@ -14,6 +14,7 @@ from companion.sim import scenes
 from companion.geometry.camera import CameraModel, intrinsics_from_hfov
 from companion.markers.dictionary import load_dictionary
 from companion.markers.layout import MarkerLayout
+from companion.params import ParamsError
 from companion.detect.refine import MarkerRefiner, MarkerRefineError, RefineParams
 
 W, H = 640, 480
@@ -106,7 +107,7 @@ def test_a_kept_fit_fits_better_than_the_initial_corners(refined_scenes):
     for (image, _, initial, _), fit in refined_scenes:
         if fit.refined:
             assert fit.residual <= fit.initial_residual
-            assert fit.residual <= RefineParams().max_residual
+            assert fit.residual <= RefineParams().max_residual_fraction
             assert fit.iterations >= 1
         else:
             np.testing.assert_array_equal(fit.corners_px, initial)
@@ -241,7 +242,7 @@ def test_bad_inputs_are_named(layout):
         refiner.refine(np.zeros((H, W), np.uint8), 0, corners[:3])
     with pytest.raises(MarkerRefineError, match="marker_id"):
         refiner.refine(np.zeros((H, W), np.uint8), 50, corners)
-    with pytest.raises(MarkerRefineError, match="max_iterations"):
+    with pytest.raises(ParamsError, match="max_iterations"):
         RefineParams(max_iterations=0)
     with pytest.raises(MarkerRefineError, match="dist"):
         MarkerRefiner(layout, camera=camera_with(np.zeros(7)))

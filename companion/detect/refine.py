@@ -64,6 +64,7 @@ import numpy as np
 
 from companion.detect import homography
 from companion.markers.layout import MarkerLayout, marker_image
+from companion.params import require
 
 RefineStatus = Literal["refined", "worse", "mismatch", "diverged", "low_contrast", "not_visible", "degenerate"]
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # OpenCV's lens model: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tau_x tau_y]]]]
@@ -84,10 +85,11 @@ class RefineParams:
     tolerance_px: stop when a step moves the marker by less than this.
     max_shift_cells: refined corners this far (in cells) or further from the
         initial ones are a divergence: the initial corners are kept.
-    min_contrast: white - black gray levels the fitted marker must keep.
-    max_residual: the largest misfit (``MarkerFit.residual``) of a fit that
-        is kept; above it the model does not match the image (a wrong lock;
-        correct fits measure 0.1-0.45, wrong locks 0.9 and more).
+    min_contrast_gray: white - black gray levels the fitted marker must keep.
+    max_residual_fraction: the largest misfit (``MarkerFit.residual``, a share
+        of the fitted contrast) of a fit that is kept; above it the model does
+        not match the image (a wrong lock; correct fits measure 0.1-0.45,
+        wrong locks 0.9 and more).
     min_visible_fraction: of the template points that must lie in the image.
     cache_size: templates (marker id x scale) kept.
     """
@@ -97,29 +99,19 @@ class RefineParams:
     max_iterations: int = 6
     tolerance_px: float = 0.005
     max_shift_cells: float = 2.0
-    min_contrast: float = 5.0
-    max_residual: float = 0.6
+    min_contrast_gray: float = 5.0
+    max_residual_fraction: float = 0.6
     min_visible_fraction: float = 0.3
     cache_size: int = 64
 
     def __post_init__(self):
-        if not 2 <= self.min_px_per_cell <= self.max_px_per_cell <= 32:
-            raise MarkerRefineError(f"need 2 <= min_px_per_cell <= max_px_per_cell <= 32, got "
-                                    f"{self.min_px_per_cell!r}, {self.max_px_per_cell!r}")
-        if self.max_iterations < 1:
-            raise MarkerRefineError(f"max_iterations must be >= 1, got {self.max_iterations!r}")
-        if not self.tolerance_px > 0:
-            raise MarkerRefineError(f"tolerance_px must be > 0, got {self.tolerance_px!r}")
-        if not self.max_shift_cells > 0:
-            raise MarkerRefineError(f"max_shift_cells must be > 0, got {self.max_shift_cells!r}")
-        if not self.min_contrast > 0:
-            raise MarkerRefineError(f"min_contrast must be > 0, got {self.min_contrast!r}")
-        if not self.max_residual > 0:
-            raise MarkerRefineError(f"max_residual must be > 0, got {self.max_residual!r}")
-        if not 0 < self.min_visible_fraction <= 1:
-            raise MarkerRefineError(f"min_visible_fraction must be in (0, 1], got {self.min_visible_fraction!r}")
-        if self.cache_size < 1:
-            raise MarkerRefineError(f"cache_size must be >= 1, got {self.cache_size!r}")
+        require(2 <= self.min_px_per_cell <= self.max_px_per_cell <= 32, "min_px_per_cell",
+                "in [2, max_px_per_cell], with max_px_per_cell <= 32", (self.min_px_per_cell, self.max_px_per_cell))
+        require(self.max_iterations >= 1, "max_iterations", ">= 1", self.max_iterations)
+        for key in ("tolerance_px", "max_shift_cells", "min_contrast_gray", "max_residual_fraction"):
+            require(getattr(self, key) > 0, key, "> 0", getattr(self, key))
+        require(0 < self.min_visible_fraction <= 1, "min_visible_fraction", "in (0, 1]", self.min_visible_fraction)
+        require(self.cache_size >= 1, "cache_size", ">= 1", self.cache_size)
 
 
 @dataclass(frozen=True, eq=False)  # holds arrays: compare by identity
@@ -136,7 +128,7 @@ class MarkerFit:
     circles_in_image: (12,) bool, that centre lies inside the frame.
     refined: the alignment held (else the geometry is the initial corners').
     status: "refined", or why the initial corners were kept: "worse" (the
-        misfit grew), "mismatch" (the misfit stayed above ``max_residual``),
+        misfit grew), "mismatch" (the misfit stayed above ``max_residual_fraction``),
         "diverged" (moved two cells or more, or a step failed),
         "low_contrast", "not_visible", "degenerate" (corners not a quad).
     residual: RMS misfit between the marker model and the image over the
@@ -331,7 +323,7 @@ class MarkerRefiner:
         if denominator <= 0:
             return None
         contrast = (n * sum_ti - sum_t * sum_i) / denominator
-        if not contrast >= self.params.min_contrast:
+        if not contrast >= self.params.min_contrast_gray:
             return _Sample(None, used, np.nan, contrast)
         black = (sum_i - contrast * sum_t) / n
         residual = (I - np.float32(black)) * np.float32(1.0 / contrast) - T
@@ -339,14 +331,14 @@ class MarkerRefiner:
 
     def _verdict(self, first: _Sample, last: _Sample, corners: np.ndarray, initial: np.ndarray,
                  cell_px: float) -> RefineStatus:
-        if not last.contrast >= self.params.min_contrast:
+        if not last.contrast >= self.params.min_contrast_gray:
             return "low_contrast"
         shift_px = np.linalg.norm(corners - initial, axis=1).max()
         if not shift_px < self.params.max_shift_cells * cell_px:
             return "diverged"
         if not last.rms <= first.rms:
             return "worse"
-        if not last.rms <= self.params.max_residual:
+        if not last.rms <= self.params.max_residual_fraction:
             return "mismatch"
         return "refined"
 

@@ -17,11 +17,36 @@ import numpy as np
 
 from companion.detect import homography
 from companion.markers.layout import UNKNOWN, MarkerLayout
+from companion.params import require
 
 # Sub-cell sample offsets (fractions of a cell from its centre): a 3 x 3
 # pattern inside the middle 60 % of the cell, away from the blurred edges.
 SUB_CELL_OFFSETS = np.array([-0.2, 0.0, 0.2])
 REMAP_ROW = 16384
+
+
+@dataclass(frozen=True)
+class SamplingParams:
+    """How a candidate's grid is read (both paths).
+
+    min_contrast_gray: gray levels between a candidate's black (border) and
+        white (gap ring) below which it is dropped; every stage's floor on a
+        marker's contrast (quad screen, edge profiles, circle candidates).
+    ambiguity_fraction: cells whose mean is within this share of the
+        candidate's contrast from its black/white midpoint are unknown (erasures).
+    occlusion_reach_cells: circles path: codeword cells this close
+        (Chebyshev) to a border cell read white or a gap cell read black are
+        erased (something stands in front of the marker there).
+    """
+
+    min_contrast_gray: float = 20.0
+    ambiguity_fraction: float = 0.15
+    occlusion_reach_cells: int = 1
+
+    def __post_init__(self):
+        require(self.min_contrast_gray > 0, "min_contrast_gray", "> 0", self.min_contrast_gray)
+        require(0.0 <= self.ambiguity_fraction < 0.5, "ambiguity_fraction", "in [0, 0.5)", self.ambiguity_fraction)
+        require(self.occlusion_reach_cells >= 0, "occlusion_reach_cells", ">= 0", self.occlusion_reach_cells)
 
 
 def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,15 +159,15 @@ def grid_levels(cells: CellSamples, border: np.ndarray, gap: np.ndarray) -> Grid
     return GridLevels(nan_median_rows(cells.mean[:, border]), nan_median_rows(cells.mean[:, gap]))
 
 
-def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity: float) -> np.ndarray:
+def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity_fraction: float) -> np.ndarray:
     """(M, N, N) int8 grids: 1 black, 0 white, -1 unknown.
 
     A cell is unknown when it is (partly) outside the image, or its mean lies
-    within ``ambiguity`` x contrast of the midpoint between the candidate's
-    black and white levels.
+    within ``ambiguity_fraction`` x contrast of the midpoint between the
+    candidate's black and white levels.
     """
     mid = ((levels.black + levels.white) / 2)[:, None, None]
-    margin = (ambiguity * levels.contrast)[:, None, None]
+    margin = (ambiguity_fraction * levels.contrast)[:, None, None]
     with np.errstate(invalid="ignore"):
         grid = np.where(cells.mean < mid, 1, 0).astype(np.int8)
         unsure = ~cells.inside | ~np.isfinite(cells.mean) | (np.abs(cells.mean - mid) < margin)
@@ -216,7 +241,7 @@ def _fraction(condition: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def erase_near_bad_fixed_cells(grids: np.ndarray, border: np.ndarray, gap: np.ndarray,
-                               codeword: np.ndarray, reach_cells: int = 1) -> np.ndarray:
+                               codeword: np.ndarray, reach_cells: int) -> np.ndarray:
     """Occlusion probes: codeword cells next to a fixed cell that reads wrong become unknown.
 
     grids: (M, N, N) int8 classified grids. A border cell that reads white or
