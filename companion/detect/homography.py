@@ -7,11 +7,16 @@ integers):  (x, y) = (H (u, v, 1)^T)[:2] / (H (u, v, 1)^T)[2].  Stages hold
 them batched, (M, 3, 3) for M candidates; a homography that could not be
 built is all NaN and projects to NaN.
 
-The batched paths are written for speed (they run on every candidate of every
-frame): the 4-point solve is one ``np.linalg.solve`` over all quads, a shared
-set of points goes through M homographies in one ``np.tensordot``.
+Written for speed (they run on every candidate of every frame): the batched
+4-point solve is one ``np.linalg.solve`` over all quads, a shared set of
+points goes through M homographies in one ``np.tensordot``; one homography
+(a few points, or the refiner's thousands of template points every step) is
+OpenCV's ``perspectiveTransform`` / ``getPerspectiveTransform``, 5-15x faster
+than numpy on small arrays.
 """
 from __future__ import annotations
+
+import math
 
 import cv2
 import numpy as np
@@ -52,6 +57,21 @@ def from_quads(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarra
     return h.reshape(m, 3, 3)
 
 
+def from_quad(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray:
+    """(3, 3) homography grid -> image of one quad, H[2, 2] = 1, NaN if degenerate.
+
+    grid_corners, image_corners: (4, 2), same order. OpenCV solves it from
+    float32 corners (about 1e-5 px at 1000 px): a start for an iterative fit.
+    """
+    try:
+        H = cv2.getPerspectiveTransform(grid_corners.astype(np.float32), image_corners.astype(np.float32))
+    except cv2.error:
+        return np.full((3, 3), np.nan)
+    if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < MIN_DETERMINANT or abs(H[2, 2]) < MIN_DETERMINANT:
+        return np.full((3, 3), np.nan)
+    return H / H[2, 2]
+
+
 def fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
     """(3, 3) least-squares homography grid -> image from K >= 4 point pairs (K, 2); NaN if none fits."""
     H, _ = cv2.findHomography(grid_points, image_points, 0)
@@ -69,14 +89,22 @@ def fit_affine(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
 def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Points through homographies.
 
-    H (3, 3), uv (K, 2) -> (K, 2);  H (M, 3, 3), uv (K, 2) shared -> (M, K, 2);
-    H (M, 3, 3), uv (M, K, 2) one set each -> (M, K, 2). Points at infinity are NaN or inf.
+    H (3, 3), uv (..., 2) -> (..., 2) of uv's float type (OpenCV; a point at
+        the horizon, |w| <= FLT_EPSILON, comes out at (0, 0));
+    H (M, 3, 3), uv (K, 2) shared -> (M, K, 2);  H (M, 3, 3), uv (M, K, 2) one
+        set each -> (M, K, 2) (numpy; points at the horizon are inf or NaN).
+    A NaN homography projects to NaN.
     """
+    if H.ndim == 2:
+        if uv.dtype != np.float32:
+            uv = np.asarray(uv, dtype=np.float64)
+        if not math.isfinite(H.sum()):  # (cheaper than np.isfinite(H).all() on this path)
+            return np.full(uv.shape, np.nan, uv.dtype)
+        if uv.size == 0:
+            return uv.copy()
+        return cv2.perspectiveTransform(uv.reshape(1, -1, 2), H).reshape(uv.shape)
     uv = np.asarray(uv, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        if H.ndim == 2:
-            w = uv @ H[2, :2] + H[2, 2]
-            return (uv @ H[:2, :2].T + H[:2, 2]) / w[:, None]
         if uv.ndim == 3:
             p = np.concatenate([uv, np.ones(uv.shape[:2] + (1,))], axis=2) @ np.transpose(H, (0, 2, 1))
             return p[..., :2] / p[..., 2:3]
@@ -103,13 +131,3 @@ def fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarra
     with np.errstate(divide="ignore", invalid="ignore"):
         error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
     return float(error) if np.isfinite(error) else np.inf
-
-
-def project_float32(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(1, K, 2) float32 points through one H (3, 3) -> (1, K, 2) float32, inside OpenCV.
-
-    5-10x faster than ``project`` on thousands of points (the refiner reads the
-    image at its template points on every step); a point at infinity comes out
-    as (0, 0), not NaN, so use it only for points a valid H keeps finite.
-    """
-    return cv2.perspectiveTransform(points, H)

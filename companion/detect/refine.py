@@ -41,9 +41,10 @@ Points outside the image read as NaN and are left out, so a marker partly
 outside the frame is aligned on what is visible (its corners on the cut
 side come out to about 0.15 px). A marker is a homography of
 its grid only in an undistorted image: give the refiner the camera
-(``CameraModel``) and it aligns in the ideal pinhole image, drawn once per
-marker from the frame through OpenCV's lens model (all 14 coefficients;
-``cv2.initUndistortRectifyMap`` over the marker's box). Without it, lens
+(``CameraModel``) and it aligns in the ideal pinhole image, reading the frame
+where OpenCV's lens model (all 14 coefficients) puts each ideal point: its
+undistortion map (``cv2.initUndistortRectifyMap``, once per camera and frame
+size) is looked up at the template points with one ``cv2.remap`` per step. Without it, lens
 distortion bends large markers (k1 = -0.05: refined corners 0.04 px instead
 of 0.01 px; k1 = -0.3: worse than ArUco's on large markers near the image
 edge; ``benchmarks/bench_refine.py``).
@@ -69,6 +70,7 @@ from companion.params import require
 RefineStatus = Literal["refined", "worse", "mismatch", "diverged", "low_contrast", "not_visible", "degenerate"]
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # OpenCV's lens model: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tau_x tau_y]]]]
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
+OUTSIDE_PX = -1e6  # a frame position that reads as outside any frame
 
 
 class MarkerRefineError(ValueError):
@@ -187,23 +189,66 @@ class _Sample:
 
 
 @dataclass(frozen=True, eq=False)
-class _View:
-    """The image around one marker as float32, to be read at template points.
+class _IdealFrame:
+    """Where each ideal (undistorted) pixel lies in the frame: OpenCV's undistortion map of one camera.
 
-    crop: (h, w) float32, NaN where the frame has no pixel; the frame itself,
-        or with a camera the ideal (undistorted) image drawn from it.
-    S_crop_image: (3, 3) frame (or ideal) pixels -> crop pixels (a shift).
+    map_xy: (hi_y - lo_y + 1, hi_x - lo_x + 1, 2) float32, the frame position
+    (x, y) of ideal pixel (lo_x + i, lo_y + j) at [j, i], over the ideal
+    pixels [lo, hi] (integers) that the frame's pixels map to. Built once per
+    camera and frame size (8 bytes per ideal pixel: 3 MB at 640x480).
+    """
+
+    lo_px: tuple[float, float]
+    map_xy: np.ndarray
+
+    @classmethod
+    def of(cls, camera, shape: tuple[int, int], to_ideal) -> _IdealFrame:
+        """For frames of ``shape`` (H, W); ``to_ideal``: (K, 2) frame pixels -> ideal pixels."""
+        height, width = shape
+        side = np.linspace(0.0, 1.0, 65)[:, None]
+        outline = np.concatenate([side * [width - 1, 0], [width - 1, 0] + side * [0, height - 1],
+                                  side * [width - 1, 0] + [0, height - 1], side * [0, height - 1]])
+        ideal = to_ideal(outline)
+        lo, hi = np.floor(ideal.min(axis=0)) - 1, np.ceil(ideal.max(axis=0)) + 1
+        # ideal pixel lo + (i, j) -> frame pixel: OpenCV's map for the pinhole K with its principal point moved by -lo
+        P = np.asarray(camera.K, dtype=np.float64).copy()
+        P[:2, 2] -= lo
+        size = (int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1)
+        map_x, map_y = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, P, size, cv2.CV_32FC1)
+        return cls((float(lo[0]), float(lo[1])), np.dstack([map_x, map_y]))
+
+    def to_frame(self, ideal_xy: np.ndarray, shift_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        """(1, P, 2) float32 ideal pixels -> frame pixels + ``shift_px``, read off the map (bilinear, at
+        OpenCV's 1/32-pixel steps like every ``cv2.remap``); far outside any frame where the map has no value.
+
+        (The shifts are ``cv2.add`` with a per-channel scalar: 5x faster than numpy's broadcast on (1, P, 2).)
+        """
+        map_xy = cv2.add(ideal_xy, (-self.lo_px[0], -self.lo_px[1], 0.0, 0.0))
+        frame_xy = cv2.remap(self.map_xy, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=(OUTSIDE_PX, OUTSIDE_PX))
+        return cv2.add(frame_xy, (shift_px[0], shift_px[1], 0.0, 0.0))
+
+
+@dataclass(frozen=True, eq=False)
+class _View:
+    """The frame around one marker as float32, read at template points.
+
+    crop: (h, w) float32. S_crop_image: (3, 3) frame pixels -> crop pixels (a shift).
+    ideal: with a camera, where the ideal pixels the template is placed in lie in the frame.
     """
 
     crop: np.ndarray
     S_crop_image: np.ndarray
+    ideal: _IdealFrame | None
 
     def read(self, template: _Template, M: np.ndarray) -> np.ndarray:
-        """(P,) float32 intensities at the template points through M (NaN outside the frame)."""
-        xy = homography.project_float32(self.S_crop_image @ M, template.points)
+        """(P,) float32 frame intensities at the template points through M (NaN outside the frame)."""
+        if self.ideal is None:
+            xy = homography.project(self.S_crop_image @ M, template.points)
+        else:
+            xy = self.ideal.to_frame(homography.project(M, template.points), self.S_crop_image[:2, 2])
         return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=np.nan)[0]
-
 
 class MarkerRefiner:
     """Refines decoded markers of one layout. Not thread-safe (it caches templates): one per thread.
@@ -218,13 +263,14 @@ class MarkerRefiner:
         self.layout = layout
         self.params = params or RefineParams()
         self.camera = None if camera is None else _checked_camera(camera)
-        self._ideal_bounds: dict[tuple[int, int], np.ndarray] = {}
+        self._ideal_frames: dict[tuple[int, int], _IdealFrame] = {}
         n = layout.n_cells
         # grid (u, v) -> normalised (grid centre at 0, grid edges at -1 and +1)
         self.N_norm_grid = np.array([[2.0 / n, 0.0, -1.0], [0.0, 2.0 / n, -1.0], [0.0, 0.0, 1.0]])
         self._N_grid_norm = np.linalg.inv(self.N_norm_grid)
         self._corners_grid = layout.inner_corners_cells
         self._circles_grid = np.asarray(layout.circles, dtype=float)[:, :2]
+        self._corners_and_circles_grid = np.concatenate([self._corners_grid, self._circles_grid])
         # the grid's outline one cell out (the template reaches half a cell into the quiet zone)
         side = np.linspace(-1.0, n + 1.0, 5)
         ends = np.full(5, -1.0), np.full(5, n + 1.0)
@@ -240,8 +286,8 @@ class MarkerRefiner:
         """
         gray, initial = self._check(gray, marker_id, corners_px)
         initial_ideal = self._to_ideal(initial)
-        H0 = homography.from_quads(self._corners_grid, initial_ideal)[0]
-        if not np.all(np.isfinite(H0)):
+        H0 = homography.from_quad(self._corners_grid, initial_ideal)
+        if np.isnan(H0[2, 2]):
             return self._fit(gray, initial, None, "degenerate")
         cell_px = _cell_px(initial_ideal, self.layout.inner_cells)
         px_per_cell = int(np.clip(round(cell_px), self.params.min_px_per_cell, self.params.max_px_per_cell))
@@ -261,12 +307,13 @@ class MarkerRefiner:
             return self._fit(gray, initial, H0, "diverged", **kept)
         H = M @ self.N_norm_grid
         H = H / H[2, 2]
-        corners = self._to_frame(homography.project(H, self._corners_grid))
+        points = self._to_frame(homography.project(H, self._corners_and_circles_grid))
+        corners, circles = points[:4], points[4:]
         status = self._verdict(first, last, corners, initial, cell_px)
         if status != "refined":
             return self._fit(gray, initial, H0, status, **kept)
         return self._fit(gray, corners, H, "refined", residual=last.rms, initial_residual=first.rms,
-                         contrast=last.contrast, steps=steps)
+                         contrast=last.contrast, steps=steps, circles=circles)
 
     # ------------------------------------------------------------------ steps
 
@@ -374,52 +421,28 @@ class MarkerRefiner:
                                    P=self.camera.K, criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
 
     def _view(self, gray: np.ndarray, H: np.ndarray) -> _View | None:
-        """The image around the marker (H: grid -> ideal pixels), None if it is all outside the frame.
-
-        Without a camera that is a crop of the frame. With one, the ideal image
-        of the marker's box is drawn once from the frame (OpenCV's undistortion
-        map of that box, one ``cv2.remap``), so every alignment step reads it
-        like an undistorted frame.
-        """
+        """The frame around the marker (grid H: grid -> ideal pixels), None if it is all outside."""
+        ideal = None if self.camera is None else self._ideal_frame(gray.shape)
         outline = homography.project(H, self._outline_grid)
         if not np.all(np.isfinite(outline)):
             return None
+        if ideal is not None:  # a box with a margin: the map's 1/32-pixel steps will do
+            outline = ideal.to_frame(outline.astype(np.float32)[None])[0]
         height, width = gray.shape
-        lo, hi = (np.zeros(2), np.array([width - 1, height - 1])) if self.camera is None else self._ideal_box(gray)
         margin = 2
-        x0, y0 = np.maximum(np.floor(outline.min(axis=0)) - margin, lo).astype(int)
-        x1, y1 = np.minimum(np.ceil(outline.max(axis=0)) + margin, hi).astype(int)
+        x0 = int(max(np.floor(outline[:, 0].min()) - margin, 0))
+        y0 = int(max(np.floor(outline[:, 1].min()) - margin, 0))
+        x1 = int(min(np.ceil(outline[:, 0].max()) + margin, width - 1))
+        y1 = int(min(np.ceil(outline[:, 1].max()) + margin, height - 1))
         if x1 - x0 < 2 or y1 - y0 < 2:
             return None
         S = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
-        if self.camera is None:
-            return _View(gray[y0:y1 + 1, x0:x1 + 1].astype(np.float32), S)
-        # ideal pixel (x0 + i, y0 + j) of the box -> frame pixel (map_x, map_y)[j, i]
-        P = self.camera.K.copy()
-        P[:2, 2] -= [x0, y0]
-        map_x, map_y = cv2.initUndistortRectifyMap(self.camera.K, self.camera.dist, None, P,
-                                                   (x1 - x0 + 1, y1 - y0 + 1), cv2.CV_32FC1)
-        fx0, fy0 = max(int(np.floor(map_x.min())) - 1, 0), max(int(np.floor(map_y.min())) - 1, 0)
-        fx1, fy1 = min(int(np.ceil(map_x.max())) + 1, width - 1), min(int(np.ceil(map_y.max())) + 1, height - 1)
-        if fx1 - fx0 < 2 or fy1 - fy0 < 2:
-            return None
-        frame = gray[fy0:fy1 + 1, fx0:fx1 + 1].astype(np.float32)
-        ideal = cv2.remap(frame, map_x - np.float32(fx0), map_y - np.float32(fy0), cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        return _View(ideal, S)
+        return _View(gray[y0:y1 + 1, x0:x1 + 1].astype(np.float32), S, ideal)
 
-    def _ideal_box(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(lowest, highest) ideal pixel (x, y) of any frame pixel: the frame's outline, undistorted."""
-        shape = gray.shape
-        if shape not in self._ideal_bounds:
-            height, width = shape
-            side = np.linspace(0.0, 1.0, 33)[:, None]
-            outline = np.concatenate([side * [width - 1, 0], [width - 1, 0] + side * [0, height - 1],
-                                      side * [width - 1, 0] + [0, height - 1], side * [0, height - 1]])
-            ideal = self._to_ideal(outline)
-            self._ideal_bounds[shape] = np.stack([ideal.min(axis=0), ideal.max(axis=0)])
-        lo, hi = self._ideal_bounds[shape]
-        return lo, hi
+    def _ideal_frame(self, shape: tuple[int, int]) -> _IdealFrame:
+        if shape not in self._ideal_frames:
+            self._ideal_frames[shape] = _IdealFrame.of(self.camera, shape, self._to_ideal)
+        return self._ideal_frames[shape]
 
     def _template(self, marker_id: int, px_per_cell: int) -> _Template:
         key = (marker_id, px_per_cell)
@@ -435,11 +458,12 @@ class MarkerRefiner:
 
     def _fit(self, gray: np.ndarray, corners: np.ndarray, H: np.ndarray | None, status: RefineStatus,
              residual: float = np.nan, initial_residual: float = np.nan, contrast: float = np.nan,
-             steps: int = 0) -> MarkerFit:
+             steps: int = 0, circles: np.ndarray | None = None) -> MarkerFit:
+        """circles: (12, 2) frame pixels of the circle centres if known, else projected through H."""
         if H is None:
             H = np.full((3, 3), np.nan)
             circles = np.full((len(self._circles_grid), 2), np.nan)
-        else:
+        elif circles is None:
             circles = self._to_frame(homography.project(H, self._circles_grid))
         height, width = gray.shape
         with np.errstate(invalid="ignore"):
