@@ -336,6 +336,17 @@ def test_detector_layout_comes_from_the_map_and_a_mismatch_is_named():
         detector_params_for(wrong)
 
 
+def test_the_daemons_detector_aligns_corners_through_the_camera():
+    from companion.daemon.config import load_config
+    from companion.daemon.service import make_detector
+
+    config = load_config()
+    assert np.any(config.camera.dist != 0)  # the bundled sequence's lens distorts
+    detector = make_detector(config)
+    assert detector.refiner.camera is config.camera
+    assert detector.layout.parity == config.facility_map.parity
+
+
 def test_detector_section_takes_stage_parameters_and_names_a_wrong_key():
     import dataclasses
 

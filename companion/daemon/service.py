@@ -66,17 +66,22 @@ def detector_params_for(config: Config) -> DetectorParams:
         raise where.error(error.reason, error.key) from None
 
 
+def make_detector(config: Config) -> Detector:
+    """The daemon's detector: the config's parameters, the map's layout, the camera's lens for the corners."""
+    return Detector(detector_params_for(config), camera=config.camera)
+
+
 class Daemon:
     """Builds the stages from a Config and runs the threads until stopped."""
 
     def __init__(self, config: Config, status_stream=None, record_frames: int = 2000):
         self.config = config
         self.status_stream = status_stream
-        detector_params = detector_params_for(config)
+        detector = make_detector(config)
         self.source = make_source(config)
         self.link = MavlinkLink(config.mavlink)
         self.pipeline = Pipeline(
-            Detector(detector_params),
+            detector,
             PoseSolver(config.facility_map, config.camera, config.pose),
             PoseFilter(config.fusion),
             self.link,
