@@ -202,6 +202,37 @@ def assert_circles_consistent(d, layout):
 
 # ------------------------------------------------------------- circles path
 
+DICTIONARIES = ("5x5", "6x6", "8x8")
+# one bound for every dictionary (measured max, 6x6: square 0.07 px, circles 0.32 px; 5x5 and 8x8: 0.05, 0.47)
+SQUARE_TOLERANCE_PX, CIRCLES_TOLERANCE_PX = 0.2, 0.6
+
+
+@pytest.mark.parametrize("dictionary", DICTIONARIES)
+@pytest.mark.parametrize("parity", [2, 4])
+def test_every_dictionary_reads_as_accurately_on_both_paths(dictionary, parity):
+    """5x5 and 8x8 markers (13-20 cell grids) meet the 6x6 markers' corner accuracy against the renderer's
+    ground truth: square path at five rotations, circles path with a strip over each side band (quiet zone,
+    parity band and gap: 1/4 of a 6x6 p = 2 texture, the benchmark's strip_1_4)."""
+    layout = MarkerLayout(parity, dictionary)
+    detector = Detector(DetectorParams(parity=parity, dictionary=dictionary))
+    for spin_deg in (0, 90, 180, 270, 33):
+        image, (truth,) = render_scene([(raster.rs_marker_texture(layout, 17), facing_pose(1.2, spin_deg, 25))])
+        (d,) = detector.detect(image)
+        assert (d.id, d.path, d.corrected) == (17, "square", 0), (dictionary, spin_deg)
+        assert np.abs(d.corners_px - truth.corners_px).max() < SQUARE_TOLERANCE_PX, (dictionary, spin_deg)
+    band_fraction = (1 + layout.inner_origin) / (layout.n_cells + 2)  # of the texture (grid and quiet zone)
+    for seed, (spin_deg, side) in enumerate(((30, "left"), (-20, "top"), (110, "right"), (200, "bottom"))):
+        texture = raster.rs_marker_texture(layout, 40)
+        T = facing_pose(1.0, spin_deg, 15, offset_px=(60, 20))
+        strip = occluders.strip_occluder(texture, SIZE_M, T, band_fraction, side, np.random.default_rng(seed),
+                                         level=60)
+        image, (truth,) = render_scene([(texture, T)], occluders=[strip], seed=seed)
+        (d,) = detector.detect(image)
+        assert (d.id, d.path) == (40, "circles") and d.corrected >= 1, (dictionary, side)
+        assert np.abs(d.corners_px - truth.corners_px).max() < CIRCLES_TOLERANCE_PX, (dictionary, side)
+        assert_circles_consistent(d, layout)
+
+
 def test_circles_path_reads_a_marker_cut_by_the_image_edge(layout, detector):
     # a quarter of the grid lies left of the frame: its cells are erasures, not errors
     texture = raster.rs_marker_texture(layout, 21)

@@ -202,7 +202,9 @@ class Detector:
             if homography.fit_error_cells(H, grid_points, candidate.circles_px) <= params.max_fit_error_cells:
                 fitted.append((candidate, H, (grid_points, candidate.circles_px)))
         if fitted:  # a first look at one sample per cell: a wrong pairing of corners reads as no marker
-            reading = self.probe.read(gray, np.stack([h for _, h, _ in fitted]))
+            # (the cells of corners whose circles are missing are likely hidden: left out)
+            hidden = np.stack([missing_corner_cells(self.layout, c.corners) for c, _, _ in fitted])
+            reading = self.probe.read(gray, np.stack([h for _, h, _ in fitted]), hidden)
             agreement = params.min_fixed_agreement_fraction
             plausible = ((reading.contrast >= min_contrast_gray) & (reading.border_black >= agreement)
                          & (reading.gap_white >= agreement) & self.decoder.plausible(reading.grid))

@@ -198,7 +198,8 @@ class CellProbe:
     (gap-ring median - border median), the fractions of readable border
     cells below and gap-ring cells above the midpoint, and the fraction of
     codeword cells below it; a candidate that is no marker fails here before
-    any expensive step.
+    any expensive step. Cells marked ``hidden`` (e.g. where an occluder is
+    known to stand) are left out, as if outside the image.
     """
 
     def __init__(self, layout: MarkerLayout):
@@ -208,8 +209,11 @@ class CellProbe:
         self._is_codeword = codeword[self._probed]
         self._points = np.argwhere(self._probed)[:, ::-1] + 0.5  # (u, v) cell centres
 
-    def read(self, gray: np.ndarray, H: np.ndarray) -> "ProbeReading":
+    def read(self, gray: np.ndarray, H: np.ndarray, hidden: np.ndarray | None = None) -> "ProbeReading":
+        """M candidates: H (M, 3, 3) grid -> image; hidden: optional (M, N, N) bool cells to leave out."""
         values, _ = sample_image(gray, homography.project(H, self._points))
+        if hidden is not None:
+            values[hidden[:, self._probed]] = np.nan
         border, gap, codeword = values[:, self._is_border], values[:, self._is_gap], values[:, self._is_codeword]
         black, white = nan_median_rows(border), nan_median_rows(gap)
         with np.errstate(invalid="ignore"):
