@@ -30,6 +30,7 @@ section).
 """
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field, replace
 
@@ -115,6 +116,9 @@ class Detector:
         self._border = self.layout.border_mask
         self._gap = sampling.gap_ring_mask(self.layout)
         self._codeword = self.layout.codeword_mask
+        # (N, N) cells likely hidden for each set of corners whose circles were found
+        self._hidden_by_corners = {corners: missing_corner_cells(self.layout, np.array(corners, int))
+                                   for k in range(5) for corners in itertools.combinations(range(4), k)}
         self.last_stage_ms: dict[str, float] = {}
 
     def detect(self, gray: np.ndarray) -> list[Detection]:
@@ -203,7 +207,7 @@ class Detector:
                 fitted.append((candidate, H, (grid_points, candidate.circles_px)))
         if fitted:  # a first look at one sample per cell: a wrong pairing of corners reads as no marker
             # (the cells of corners whose circles are missing are likely hidden: left out)
-            hidden = np.stack([missing_corner_cells(self.layout, c.corners) for c, _, _ in fitted])
+            hidden = np.stack([self._hidden_by_corners[tuple(c.corners.tolist())] for c, _, _ in fitted])
             reading = self.probe.read(gray, np.stack([h for _, h, _ in fitted]), hidden)
             agreement = params.min_fixed_agreement_fraction
             plausible = ((reading.contrast >= min_contrast_gray) & (reading.border_black >= agreement)
@@ -227,7 +231,7 @@ class Detector:
                 continue
             readings.append(probed[i])
             owners.append(i)
-            region = missing_corner_cells(self.layout, candidate.corners) & self._codeword
+            region = self._hidden_by_corners[tuple(candidate.corners.tolist())] & self._codeword
             if region.any():
                 readings.append(np.where(region, UNKNOWN, probed[i]).astype(np.int8))
                 owners.append(i)
