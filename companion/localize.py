@@ -3,9 +3,13 @@
 Runs the detector and the pose solver on every frame of a sequence folder
 (or a video / image folder with ``--fps``) and prints one line per frame: a
 table, or JSON lines with ``--json``. The map and camera default to the ones
-named in the sequence's ``sequence.yaml``. When the folder has a
-``groundtruth.csv`` the error against it is printed too, so the pose stage
-can be checked on its own.
+named in the sequence's ``sequence.yaml``; the detector reads the map's
+markers (its parity and dictionary) and aligns corners through the camera's
+lens. When the folder has a ``groundtruth.csv`` the error against it is
+printed too, so the pose stage can be checked on its own. Exit status: 0, or
+1 when the replay failed or skipped unreadable frames (the frames read are
+still printed, then a one-line error), 2 when the sequence, map or camera
+cannot be used.
 """
 from __future__ import annotations
 
