@@ -339,6 +339,7 @@ def test_the_homography_helper_agrees_with_opencv():
     each = np.stack([points + k for k in range(5)])
     np.testing.assert_allclose(homography.project(H, each)[3], homography.project(H[3], points + 3), atol=1e-9)
     assert np.isnan(homography.from_quads(grid, np.zeros((1, 4, 2)))).all()  # degenerate quad
+    assert np.isnan(homography.project(np.full((3, 3), np.nan), points)).all()  # and it projects to NaN
     # a least-squares fit through exact points, and its error in cells: a 2-cell shift of one of 8 points
     fitted = homography.fit(points[:8], homography.project(H[0], points[:8]))
     np.testing.assert_allclose(homography.project(fitted, points), homography.project(H[0], points), atol=1e-6)

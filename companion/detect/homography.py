@@ -98,7 +98,7 @@ def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
     if H.ndim == 2:
         if uv.dtype != np.float32:
             uv = np.asarray(uv, dtype=np.float64)
-        if not math.isfinite(H.sum()):  # (cheaper than np.isfinite(H).all() on this path)
+        if math.isnan(H[2, 2]):  # a homography that could not be built (all NaN)
             return np.full(uv.shape, np.nan, uv.dtype)
         if uv.size == 0:
             return uv.copy()
