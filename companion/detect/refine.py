@@ -267,7 +267,9 @@ class MarkerRefiner:
     def __init__(self, layout: MarkerLayout, params: RefineParams | None = None, camera=None):
         self.layout = layout
         self.params = params or RefineParams()
-        self.camera = None if camera is None else _checked_camera(camera)
+        camera = None if camera is None else _checked_camera(camera)
+        # a lens without distortion maps ideal pixels to themselves: nothing to look up
+        self.camera = camera if camera is not None and np.any(np.asarray(camera.dist) != 0) else None
         self._ideal_frames: dict[tuple[int, int], _IdealFrame] = {}
         n = layout.n_cells
         # grid (u, v) -> normalised (grid centre at 0, grid edges at -1 and +1)
