@@ -18,7 +18,7 @@ corners, so at least six circles, which fix the grid homography.
    resolves the true rotation), the other corners' circles are predicted and
    matched blob by blob, so a corner that lost a small circle still counts.
 4. The detector then fits the homography to the circle centres, refines it
-   on the inner square's visible edges (``edge_refine``), and samples and
+   on the inner square's visible edges (``edges``), and samples and
    decodes the grid with erasures where the image shows no marker
    (``missing_corner_cells``, ``sampling.erase_near_bad_fixed_cells``).
 """
