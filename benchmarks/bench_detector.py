@@ -231,12 +231,13 @@ class ConditionResult:
     aruco_same_frames: list  # per RS frame: (ArUco wall ms, our CPU ms, ArUco CPU ms)
     circles_frames: list  # (ours ms, ArUco ms, ours CPU ms, ArUco CPU ms) where the circles path ran
     ours_on_other_families: int
+    stage_ms: list  # per RS frame: our Detector.last_stage_ms (of the last timed run)
 
 
 def run_condition(condition: str, parity: int, args, textures: Textures, detectors) -> ConditionResult:
     ours = detectors["ours"][parity]
     scores = {name: Score() for name in ("ours", "aruco", "aruco_ec1", "apriltag")}
-    aruco_same, circles_frames, other_family_hits = [], [], 0
+    aruco_same, circles_frames, other_family_hits, stage_ms = [], [], 0, []
     for index in range(args.scenes):
         ids = scene_ids(args.seed, condition, index)
         rs = render_family(textures, "rs", ids, condition, args.seed, index, parity)
@@ -244,6 +245,7 @@ def run_condition(condition: str, parity: int, args, textures: Textures, detecto
             [lambda im: [(d.id, d.corners_px) for d in ours.detect(im)], lambda im: aruco_found(detectors["aruco"], im)],
             rs.image, args.repeats)
         circles_ran = "circles_blobs" in ours.last_stage_ms
+        stage_ms.append(dict(ours.last_stage_ms))
         scores["ours"].add(rs.truths, found, ms)
         aruco_same.append((aruco_ms, cpu_ms, aruco_cpu_ms))
         if circles_ran:
@@ -260,7 +262,7 @@ def run_condition(condition: str, parity: int, args, textures: Textures, detecto
         if detectors["apriltag"].available:
             found, ms = timed(detectors["apriltag"], april_scene.image, args.repeats)
             scores["apriltag"].add(april_scene.truths, found, ms, upright_corners=False)
-    return ConditionResult(condition, parity, scores, aruco_same, circles_frames, other_family_hits)
+    return ConditionResult(condition, parity, scores, aruco_same, circles_frames, other_family_hits, stage_ms)
 
 
 # ---------------------------------------------------------- false positives
@@ -401,6 +403,13 @@ def format_report(results: list[ConditionResult], free_rows, args) -> str:
         f"{'yes' if corner_error <= CORNER_ERROR_TARGET_PX else 'NO'}, ArUco {median(base_clean['aruco'].corner_errors_px):.3f}, "
         f"AprilTag {median(base_clean['apriltag'].corner_errors_px):.3f}",
     ]
+    stages = {}
+    for r in results:
+        for frame in r.stage_ms:
+            for stage, ms in frame.items():
+                stages.setdefault(stage, []).append(ms)
+    lines.append("stages, median ms over the RS frames each ran in (all conditions): "
+                 + ", ".join(f"{stage} {median(ms):.2f} ({len(ms)})" for stage, ms in stages.items()))
     all_ok &= clean_ratio <= CLEAN_SPEED_TARGET and circles_ratio <= CIRCLES_SPEED_TARGET
     all_ok &= corner_error <= CORNER_ERROR_TARGET_PX
 

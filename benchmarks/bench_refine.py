@@ -26,8 +26,9 @@ Errors are Euclidean distances of each corner from the truth, in pixels;
 times are the median per marker of the second call (template caches warm),
 and ``x_subpix`` is that time over ``cornersubpix``'s in the same row.
 Smaller tables follow: ``lk`` started from the corners ``Detector`` gives
-today (square path), lens distortion (``lk`` without and with the camera
-model), and the detector's occluded (circles-path) detections.
+today (square path), lens distortion (``lk`` and the whole ``Detector``,
+each without and with the camera model; an undistorted row for reference),
+and the detector's occluded (circles-path) detections.
 
     PYTHONPATH=. python benchmarks/bench_refine.py [--quick] [--scenes 10] [--seed 1]
 """
@@ -39,7 +40,6 @@ import sys
 import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -48,7 +48,7 @@ from companion.geometry import frames
 from companion.sim import degrade
 from companion.sim import raster
 from companion.sim.scenes import random_marker_scene
-from companion.geometry.camera import intrinsics_from_hfov
+from companion.geometry.camera import CameraModel, intrinsics_from_hfov
 from companion.markers.dictionary import load_dictionary
 from companion.markers.layout import MarkerLayout, marker_image
 from companion.detect.refine import MarkerRefiner
@@ -289,19 +289,23 @@ def main_table(layout: MarkerLayout, scenes: int, seed: int) -> dict:
 
 
 def lens_table(layout: MarkerLayout, markers: int, seed: int) -> None:
-    """Markers of 40-150 px anywhere in a distorted image: lk without and with the camera model."""
+    """Markers of 40-150 px anywhere in a distorted image: lk, and the whole detector, without and with the camera."""
+    from companion.detect.detector import Detector
+
     width, height = IMAGE_SIZE
     K = intrinsics_from_hfov(width, height, 70.0)
     detector = aruco_detector(cv2.aruco.CORNER_REFINE_SUBPIX)
     print("\nlens distortion (40-150 px, tilt <= 40 deg, anywhere in the frame; mean corner error px, median / p90; "
-          "'edge' = markers > 90 px centred > 200 px off the image centre):")
+          "'edge' = markers > 90 px centred > 200 px off the image centre; det = companion.detect.detector.Detector):")
     print(f"{'k1, k2':<13} {'n':>3} {'aruco_subpix':>15} {'lk':>15} {'lk + camera':>15} {'lk edge':>9} "
-          f"{'lk+cam edge':>12} {'ms lk':>6} {'ms lk+cam':>10}")
-    for dist in ((-0.05, 0.02), (-0.3, 0.1)):
+          f"{'lk+cam edge':>12} {'ms lk':>6} {'ms lk+cam':>10} {'det':>15} {'det + camera':>15}")
+    for dist in ((0.0, 0.0), (-0.05, 0.02), (-0.3, 0.0), (-0.3, 0.1)):
         coefficients = np.array([dist[0], dist[1], 0.0, 0.0, 0.0])
+        camera = CameraModel(K, coefficients, width, height, np.eye(4))
         renderer = raster.Renderer(K, coefficients, width, height)
         plain = MarkerRefiner(layout)
-        with_camera = MarkerRefiner(layout, camera=SimpleNamespace(K=K, dist=coefficients))
+        with_camera = MarkerRefiner(layout, camera=camera)
+        detectors = Detector(), Detector(camera=camera)
         rng = np.random.default_rng(seed)
         rows = []
         for _ in range(markers):
@@ -323,19 +327,23 @@ def lens_table(layout: MarkerLayout, markers: int, seed: int) -> None:
             a, ms_a = timed(plain.refine, image, marker_id, initial)
             b, ms_b = timed(with_camera.refine, image, marker_id, initial)
             edge = truth.inner_px > 90 and np.linalg.norm(truth.corners_px.mean(axis=0) - [width / 2, height / 2]) > 200
+            by_detector = [{d.id: d.corners_px for d in d_.detect(image)}.get(marker_id) for d_ in detectors]
             rows.append([np.linalg.norm(c - truth.corners_px, axis=1).mean() for c in (initial, a.corners_px,
                                                                                        b.corners_px)]
-                        + [edge, ms_a, ms_b])
+                        + [edge, ms_a, ms_b]
+                        + [np.nan if c is None else np.linalg.norm(c - truth.corners_px, axis=1).mean()
+                           for c in by_detector])
         r = np.array(rows, dtype=float)
         edge = r[:, 3] > 0
 
         def stat(column, mask=None):
             v = r[:, column] if mask is None else r[mask, column]
+            v = v[np.isfinite(v)]
             return f"{np.median(v):6.3f} / {np.percentile(v, 90):5.3f}" if len(v) else "-"
         print(f"{f'{dist[0]}, {dist[1]}':<13} {len(r):>3} {stat(0):>15} {stat(1):>15} {stat(2):>15} "
               f"{np.median(r[edge, 1]) if edge.any() else math.nan:>9.3f} "
               f"{np.median(r[edge, 2]) if edge.any() else math.nan:>12.3f} {np.median(r[:, 4]):>6.3f} "
-              f"{np.median(r[:, 5]):>10.3f}")
+              f"{np.median(r[:, 5]):>10.3f} {stat(6):>15} {stat(7):>15}")
 
 
 def detector_table(layout: MarkerLayout, scenes: int, seed: int) -> None:

@@ -3,9 +3,13 @@
 Runs the detector and the pose solver on every frame of a sequence folder
 (or a video / image folder with ``--fps``) and prints one line per frame: a
 table, or JSON lines with ``--json``. The map and camera default to the ones
-named in the sequence's ``sequence.yaml``. When the folder has a
-``groundtruth.csv`` the error against it is printed too, so the pose stage
-can be checked on its own.
+named in the sequence's ``sequence.yaml``; the detector reads the map's
+markers (its parity and dictionary) and aligns corners through the camera's
+lens. When the folder has a ``groundtruth.csv`` the error against it is
+printed too, so the pose stage can be checked on its own. Exit status: 0, or
+1 when the replay failed or skipped unreadable frames (the frames read are
+still printed, then a one-line error), 2 when the sequence, map or camera
+cannot be used.
 """
 from __future__ import annotations
 
@@ -27,6 +31,10 @@ GET_TIMEOUT_S = 1.0
 
 class LocalizeError(ValueError):
     """The sequence, map or camera cannot be used; the message says which."""
+
+
+class ReplayFailed(LocalizeError):
+    """The replay ended with an error or skipped unreadable frames: the results are incomplete."""
 
 
 @dataclass(frozen=True)
@@ -80,17 +88,25 @@ def groundtruth(sequence: Path) -> dict[int, np.ndarray] | None:
 
 # ---------------------------------------------------------------- the loop
 
+def map_detector(facility_map: FacilityMap, camera: CameraModel):
+    """The detector for a map's markers (its parity and dictionary), aligning corners through the camera's lens."""
+    from companion.detect.detector import Detector, DetectorParams
+
+    return Detector(DetectorParams(parity=facility_map.parity, dictionary=facility_map.dictionary), camera=camera)
+
+
 def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | None = None,
              fps: float | None = None, detector=None):
     """Yield a FrameResult per frame of the recording, in order.
 
     Frames come from ``companion.capture`` (as fast as they are consumed);
-    the recorded capture time, not the replay time, stamps each result.
+    the recorded capture time, not the replay time, stamps each result. The
+    detector defaults to ``map_detector`` of the solver's map and camera.
+    Raises ``ReplayFailed`` at the end when the replay failed or skipped
+    frames it could not read.
     """
     if detector is None:
-        from companion.detect.detector import Detector
-
-        detector = Detector()
+        detector = map_detector(solver.facility_map, solver.camera)
     recording = open_recording(sequence, fps)
     recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
     source = ReplaySource(recording, realtime=False)
@@ -100,7 +116,7 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
             frame = source.get(GET_TIMEOUT_S)
             if frame is None:
                 if source.finished:
-                    return
+                    break
                 continue
             t_ns = int(recorded_t_ns[frame.index])
             detections = detector.detect(frame.image)
@@ -108,6 +124,11 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
             yield frame_result(frame.index, t_ns, detections, solution, solver.facility_map, truth)
     finally:
         source.close()
+    if source.error is not None:
+        raise ReplayFailed(f"{sequence}: the replay failed: {source.error}")
+    if source.counters.corrupt:
+        raise ReplayFailed(f"{sequence}: {source.counters.corrupt} of {len(recording.frames)} frames could not "
+                           "be read (skipped)")
 
 
 def frame_result(index: int, t_ns: int, detections, solution: PoseSolution, facility_map: FacilityMap,

@@ -6,7 +6,6 @@ import csv
 import math
 import os
 import re
-import shutil
 import signal
 import socket
 import subprocess
@@ -337,3 +336,46 @@ def test_detector_layout_comes_from_the_map_and_a_mismatch_is_named():
     wrong = dataclasses.replace(config, detector={"parity": 6 - config.facility_map.parity})
     with pytest.raises(ConfigError, match=r"detector\.parity: .* differs from the map's"):
         detector_params_for(wrong)
+
+
+def test_the_daemons_detector_aligns_corners_through_the_camera():
+    from companion.daemon.config import load_config
+    from companion.daemon.service import make_detector
+
+    config = load_config()
+    assert np.any(config.camera.dist != 0)  # the bundled sequence's lens distorts
+    detector = make_detector(config)
+    assert detector.refiner.camera is config.camera
+    assert detector.layout.parity == config.facility_map.parity
+
+
+def test_detector_section_takes_stage_parameters_and_names_a_wrong_key():
+    import dataclasses
+
+    from companion.daemon.config import ConfigError, load_config
+    from companion.daemon.service import detector_params_for
+
+    config = load_config()
+    section = {"circles": {"run": "always", "min_area_px": 7}, "decoder": {"min_gap_cells": 8},
+               "square": {"aruco_threshold_windows_px": [5, 25, 10]}, "sampling": {"ambiguity_fraction": 0.2}}
+    params = detector_params_for(dataclasses.replace(config, detector=section))
+    assert (params.circles.run, params.circles.min_area_px, params.decoder.min_gap_cells) == ("always", 7, 8)
+    assert params.square.aruco_threshold_windows_px == (5, 25, 10) and params.sampling.ambiguity_fraction == 0.2
+    assert params.edges.square_samples == 11  # untouched stages keep their defaults
+    for section, key, words in [({"circle": {}}, "detector.circle", "unknown key"),
+                                ({"circles": {"min_aera_px": 3}}, "detector.circles.min_aera_px", "unknown key"),
+                                ({"circles": {"run": "sometimes"}}, "detector.circles.run", "when_square_empty"),
+                                ({"decoder": {"min_gap_cells": 0}}, "detector.decoder.min_gap_cells", ">= 1"),
+                                ({"refine": {"tolerance_px": "small"}}, "detector.refine.tolerance_px", "number"),
+                                ({"edges": 3}, "detector.edges", "mapping")]:
+        with pytest.raises(ConfigError) as error:
+            detector_params_for(dataclasses.replace(config, detector=section))
+        assert str(error.value).startswith(f"{config.path}: {key}: "), error.value
+        assert words in str(error.value)
+
+
+def test_a_wrong_detector_key_stops_the_daemon_naming_file_and_key(tmp_path):
+    config = write_config(tmp_path, HOVER, 14550, detector={"circles": {"min_aera_px": 3}})
+    code, _, stderr = finish(start_daemon(config), timeout_s=30)
+    assert code == 2
+    assert f"{config}: detector.circles.min_aera_px: unknown key" in stderr and "Traceback" not in stderr

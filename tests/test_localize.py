@@ -1,13 +1,23 @@
-"""Pose accuracy on the committed recorded sequences, through `companion localize`."""
+"""Pose accuracy on the committed recorded sequences and a rendered parity-4 one, through `companion localize`."""
+import csv
 import json
+import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+import yaml
 
 from companion import cli
-from companion.localize import groundtruth, localize, resources
+from companion.capture.replay import read_sequence_info
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import load_map
 from companion.geometry.pose import PoseSolver
+from companion.localize import ReplayFailed, groundtruth, localize, resources
+from companion.markers.layout import MarkerLayout
+from companion.sim import degrade, raster
 
 REPO = Path(__file__).resolve().parents[1]
 # the hover flight is test data; the aisle flight ships with the package (the embedded default replays it)
@@ -83,3 +93,92 @@ def test_localize_command_errors_name_the_file(tmp_path, capsys):
     assert "camera.yaml: key 'camera.hfov_deg'" in capsys.readouterr().err
     assert cli.main(["localize", str(tmp_path)]) == 2
     assert "no --map given" in capsys.readouterr().err
+
+
+# --------------------------------------------------------- a parity-4 site
+
+PARITY4_FRAMES = 6
+
+
+@pytest.fixture(scope="module")
+def parity4_sequence(tmp_path_factory) -> Path:
+    """The first frames of the hover flight, rendered with the warehouse's markers printed at parity 4.
+
+    A sequence folder as `companion simulate` writes it: PNG frames, timestamps.csv, groundtruth.csv
+    (the hover's), sequence.yaml naming the parity-4 map and the hover's camera.
+    """
+    folder = tmp_path_factory.mktemp("parity4")
+    map_text = (REPO / "maps" / "warehouse.yaml").read_text()
+    assert "\nparity: 2\n" in map_text
+    (folder / "warehouse_p4.yaml").write_text(map_text.replace("\nparity: 2\n", "\nparity: 4\n"))
+    facility_map = load_map(folder / "warehouse_p4.yaml")
+    hover = SEQUENCES / "warehouse_hover"
+    info = read_sequence_info(hover)
+    camera = CameraModel.from_config(info["camera"], str(hover / "sequence.yaml"))
+    truth = groundtruth(hover)
+    layout = MarkerLayout(parity=4)
+    renderer = raster.Renderer.from_camera(camera)
+    quads = [raster.marker_quad(raster.rs_marker_texture(layout, m.id), m.size_m, m.T_map_marker, gain=0.85,
+                                offset=15.0) for m in facility_map.markers.values()]
+    rng = np.random.default_rng(4)
+    rows = []
+    with open(hover / "timestamps.csv", newline="") as handle:
+        for row in list(csv.DictReader(handle))[:PARITY4_FRAMES]:
+            frame = int(row["frame"])
+            T_camera_map = camera.T_camera_body @ frames.invert_transform(truth[frame])
+            image = renderer.render(quads, T_camera_map, 120.0).image
+            image = degrade.sensor_noise(degrade.gaussian_blur(image, 0.6), rng, 1.0, 0.02)
+            cv2.imwrite(str(folder / f"{frame:06d}.png"), image)
+            rows.append(f"{frame},{row['t_ns']},{frame:06d}.png")
+    (folder / "timestamps.csv").write_text("frame,t_ns,file\n" + "\n".join(rows) + "\n")
+    truth_lines = (hover / "groundtruth.csv").read_text().splitlines()[:PARITY4_FRAMES + 1]
+    (folder / "groundtruth.csv").write_text("\n".join(truth_lines) + "\n")
+    (folder / "sequence.yaml").write_text(yaml.safe_dump({"map": "warehouse_p4.yaml", "camera": info["camera"]}))
+    return folder
+
+
+def test_a_parity_4_site_is_localized_with_its_own_marker_layout(parity4_sequence):
+    facility_map, camera = resources(parity4_sequence, None, None)
+    assert facility_map.parity == 4
+    results = list(localize(parity4_sequence, PoseSolver(facility_map, camera), groundtruth(parity4_sequence)))
+    assert len(results) == PARITY4_FRAMES
+    posed, position_m, yaw_deg = errors(results)
+    assert all(len(r.detected_ids) == 2 for r in results)  # the hover sees two markers
+    assert len(posed) >= PARITY4_FRAMES - 1
+    assert np.median(position_m) < 0.06 and np.median(yaw_deg) < 1.0
+
+
+def test_localize_command_on_a_parity_4_site(parity4_sequence, capsys):
+    assert cli.main(["localize", str(parity4_sequence), "--json"]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(lines) == PARITY4_FRAMES
+    assert sum(line["status"] == "ok" for line in lines) >= PARITY4_FRAMES - 1
+
+
+def test_a_replay_with_unreadable_frames_exits_non_zero(parity4_sequence, tmp_path, capsys):
+    broken = tmp_path / "broken"
+    shutil.copytree(parity4_sequence, broken)
+    (broken / "000002.png").write_bytes(b"not a PNG")
+    code = cli.main(["localize", str(broken)])
+    captured = capsys.readouterr()
+    assert code == 1
+    assert f"{PARITY4_FRAMES - 1}/{PARITY4_FRAMES - 1} frames with a pose" in captured.out  # the frames read
+    errors_printed = [line for line in captured.err.splitlines() if line.startswith("companion localize:")]
+    assert errors_printed == [f"companion localize: {broken}: 1 of {PARITY4_FRAMES} frames could not be read "
+                              "(skipped)"]
+    facility_map, camera = resources(broken, None, None)
+    with pytest.raises(ReplayFailed):
+        list(localize(broken, PoseSolver(facility_map, camera)))
+
+
+def test_a_replay_that_reads_nothing_exits_non_zero(tmp_path, capsys):
+    hover = tmp_path / "hover"
+    shutil.copytree(SEQUENCES / "warehouse_hover", hover)
+    (hover / "video.avi").write_bytes(b"garbage")
+    map_path = REPO / "maps" / "warehouse.yaml"
+    code = cli.main(["localize", str(hover), "--map", str(map_path)])
+    captured = capsys.readouterr()
+    assert code == 1
+    assert captured.out.splitlines()[-1] == "0/0 frames with a pose"
+    assert [line for line in captured.err.splitlines() if line.startswith("companion localize:")] == [
+        f"companion localize: {hover}: 31 of 31 frames could not be read (skipped)"]

@@ -5,9 +5,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
+from companion.markers.codec import DecoderParams, GridDecoder
 from companion.markers.layout import UNKNOWN, MarkerLayout, MarkerLayoutError, marker_image
+from companion.params import ParamsError
 
 LAYOUTS = {p: MarkerLayout(p) for p in (2, 4)}
+DECODERS = {p: GridDecoder(layout) for p, layout in LAYOUTS.items()}
 IDS = range(50)
 
 
@@ -17,7 +20,7 @@ def grid_of(layout, marker_id, rotation=0):
 
 
 def data_rows(layout):
-    return [layout.inner_origin + 1 + i for i in range(layout.data_size)]
+    return [layout.data_origin + i for i in range(layout.data_size)]
 
 
 @pytest.mark.parametrize("parity, cells", [(2, 14), (4, 18)])
@@ -48,7 +51,7 @@ def test_circles_sit_in_white_corners_clear_of_every_cell(parity):
 def test_every_symbol_round_trips_in_every_rotation(parity, rotation):
     layout = LAYOUTS[parity]
     for marker_id in IDS:
-        result = layout.decode(grid_of(layout, marker_id, rotation))
+        result = DECODERS[layout.parity].decode_algebraic(grid_of(layout, marker_id, rotation))
         assert result is not None and result.id == marker_id
         assert result.rotation == rotation and result.corrected == 0 and result.quality == 1.0
 
@@ -72,7 +75,7 @@ def test_any_occluded_data_rows_or_columns_are_recovered(parity, count, along_ro
         grid = grid_of(layout, marker_id)
         for lines in itertools.combinations(data_rows(layout), count):
             for value in (UNKNOWN, 0, 1):
-                result = layout.decode(occlude_lines(grid, lines, along_rows, value))
+                result = DECODERS[layout.parity].decode_algebraic(occlude_lines(grid, lines, along_rows, value))
                 assert result is not None and result.id == marker_id, (lines, value)
 
 
@@ -99,7 +102,7 @@ def test_lost_side_bands_are_recovered(parity, count):
                 lost = grid.copy()
                 for side in sides:
                     lost[side_band(layout, side)] = value
-                result = layout.decode(lost)
+                result = DECODERS[layout.parity].decode_algebraic(lost)
                 assert result is not None and result.id == marker_id, (sides, value)
 
 
@@ -107,7 +110,7 @@ def test_three_erased_rows_exceed_p2_and_are_reported_undecodable():
     layout = LAYOUTS[2]
     for marker_id in IDS:
         grid = occlude_lines(grid_of(layout, marker_id), data_rows(layout)[:3], True, UNKNOWN)
-        assert layout.decode(grid) is None
+        assert DECODERS[layout.parity].decode_algebraic(grid) is None
 
 
 @settings(max_examples=300, deadline=None)
@@ -120,7 +123,7 @@ def test_corruption_never_yields_a_wrong_marker(marker_id, parity, rotation, cor
     grid = grid_of(layout, marker_id, rotation)
     cells = rng.choice(grid.size, size=min(corrupted, grid.size), replace=False)
     grid.flat[cells] = rng.choice([UNKNOWN, 0, 1], size=len(cells))
-    result = layout.decode(grid)
+    result = DECODERS[layout.parity].decode_algebraic(grid)
     assert result is None or (result.id == marker_id and result.rotation == rotation)
 
 
@@ -131,7 +134,7 @@ def test_random_grids_never_decode(seed, parity, unknown):
     rng = np.random.default_rng(seed)
     grid = rng.integers(0, 2, size=(layout.n_cells,) * 2).astype(np.int8)
     grid[rng.random(grid.shape) < unknown] = UNKNOWN
-    assert layout.decode(grid) is None
+    assert DECODERS[layout.parity].decode_algebraic(grid) is None
 
 
 def test_marker_image_cells_and_circles():
@@ -147,3 +150,39 @@ def test_marker_image_cells_and_circles():
     assert cells[under_circle].any()
     u, v, _ = layout.circles[0]
     assert image[int((v + 1) * 10), int((u + 1) * 10)] == 0  # a large circle's centre is black
+
+
+@pytest.mark.parametrize("parity", [2, 4])
+def test_parity_copies_sit_where_the_spec_puts_them(parity):
+    """docs/marker-spec.md: symbol k is k cells from the gap, in the band before and after the data;
+    the data starts one cell inside the inner marker, which starts at p + 1."""
+    layout = LAYOUTS[parity]
+    n, last = layout.data_size, layout.n_cells - 1
+    assert layout.data_origin == parity + 2
+    data = slice(parity + 2, parity + 2 + n)
+    for marker_id in (0, 31):
+        cells = layout.cells(marker_id)
+        rows, columns = layout.parity_symbols(layout.dictionary.bits[marker_id])
+        for k in range(parity):
+            row_bits = ((rows[k] >> np.arange(n - 1, -1, -1)) & 1).tolist()
+            column_bits = ((columns[k] >> np.arange(n - 1, -1, -1)) & 1).tolist()
+            near, far = parity - 1 - k, last - parity + 1 + k
+            assert cells[near, data].tolist() == row_bits == cells[far, data].tolist()
+            assert cells[data, near].tolist() == column_bits == cells[data, far].tolist()
+
+
+def test_both_decoding_steps_report_the_same_result():
+    """A strip over one data column: the whole-codeword and the algebraic step agree on every field."""
+    layout, decoder = LAYOUTS[2], DECODERS[2]
+    grid = grid_of(layout, 9, rotation=1)
+    grid[:, layout.data_origin + 2] = UNKNOWN
+    (whole,) = decoder.decode(grid)
+    assert whole == decoder.decode_algebraic(grid)
+    assert (whole.id, whole.rotation, whole.corrected) == (9, 1, 1)
+
+
+def test_decoder_params_are_checked_by_name():
+    with pytest.raises(ParamsError, match="min_gap_cells"):
+        DecoderParams(min_gap_cells=0)
+    with pytest.raises(ParamsError, match="max_mismatch_fraction"):
+        DecoderParams(max_mismatch_fraction=0.7)

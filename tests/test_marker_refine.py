@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -12,10 +11,11 @@ from companion.geometry import frames
 from companion.sim import degrade
 from companion.sim import raster
 from companion.sim import scenes
-from companion.geometry.camera import intrinsics_from_hfov
+from companion.geometry.camera import CameraModel, intrinsics_from_hfov
 from companion.markers.dictionary import load_dictionary
 from companion.markers.layout import MarkerLayout
-from companion.detect.refine import MarkerRefiner, MarkerRefineError, RefineParams, _Lens
+from companion.params import ParamsError
+from companion.detect.refine import MarkerRefiner, MarkerRefineError, RefineParams
 
 W, H = 640, 480
 SIZE_M = 0.15
@@ -107,7 +107,7 @@ def test_a_kept_fit_fits_better_than_the_initial_corners(refined_scenes):
     for (image, _, initial, _), fit in refined_scenes:
         if fit.refined:
             assert fit.residual <= fit.initial_residual
-            assert fit.residual <= RefineParams().max_residual
+            assert fit.residual <= RefineParams().max_residual_fraction
             assert fit.iterations >= 1
         else:
             np.testing.assert_array_equal(fit.corners_px, initial)
@@ -195,20 +195,29 @@ def test_a_marker_partly_outside_the_frame(layout, textures):
     np.testing.assert_array_equal(fit.circles_in_image, circles_inside)
 
 
-def test_the_lens_model_matches_opencv():
-    K = intrinsics_from_hfov(W, H, 70.0)
-    dist = np.array([-0.28, 0.09, 0.0012, -0.0008, -0.01, 0.02, -0.005, 0.001])
-    lens = _Lens(K, dist)
-    ideal = np.random.default_rng(4).uniform([0, 0], [W, H], (200, 2))
-    normalised = np.column_stack([(ideal - K[:2, 2]) / np.diag(K)[:2], np.ones(len(ideal))])
-    expected, _ = cv2.projectPoints(normalised, np.zeros(3), np.zeros(3), K, dist)
-    np.testing.assert_allclose(lens.distort_points(ideal), expected.reshape(-1, 2), atol=1e-6)
-    np.testing.assert_allclose(lens.undistort_points(expected.reshape(-1, 2)), ideal, atol=1e-3)
+def camera_with(dist) -> CameraModel:
+    return CameraModel(intrinsics_from_hfov(W, H, 70.0), np.asarray(dist, float), W, H, np.eye(4))
+
+
+def test_all_fourteen_lens_coefficients_are_modelled(layout, textures):
+    """Rational, thin-prism and tilted-sensor terms too: the renderer draws them with OpenCV, the refiner
+    (with the camera) must align on them as well as on a plain radial lens."""
+    dist = np.array([-0.25, 0.08, 0.001, -0.001, 0.0, 0.02, -0.01, 0.005, 0.003, -0.002, 0.002, 0.001, 0.01, -0.008])
+    image, truth = render_one(textures[8], facing_pose(0.6, (450.0, 330.0), spin_deg=-20, tilt_deg=25), dist)
+    assert truth.fully_visible and truth.inner_px > 80
+    initial, _, _ = aruco_detector().detectMarkers(image)
+    initial = np.asarray(initial[0], float).reshape(4, 2)
+    fit = MarkerRefiner(layout, camera=camera_with(dist)).refine(image, 8, initial)
+    assert fit.refined, fit.status
+    error = mean_corner_error(fit.corners_px, truth.corners_px)
+    assert error < 0.05
+    assert error < 0.5 * mean_corner_error(MarkerRefiner(layout).refine(image, 8, initial).corners_px,
+                                           truth.corners_px)
 
 
 def test_with_the_camera_a_strongly_distorted_large_marker_is_refined(layout, textures):
     dist = np.array([-0.3, 0.1, 0.001, -0.001, 0.0])
-    camera = SimpleNamespace(K=intrinsics_from_hfov(W, H, 70.0), dist=dist)
+    camera = camera_with(dist)
     image, truth = render_one(textures[5], facing_pose(0.55, (470.0, 340.0), spin_deg=30, tilt_deg=20), dist)
     assert truth.fully_visible and truth.inner_px > 100
     initial, _, _ = aruco_detector().detectMarkers(image)
@@ -233,10 +242,10 @@ def test_bad_inputs_are_named(layout):
         refiner.refine(np.zeros((H, W), np.uint8), 0, corners[:3])
     with pytest.raises(MarkerRefineError, match="marker_id"):
         refiner.refine(np.zeros((H, W), np.uint8), 50, corners)
-    with pytest.raises(MarkerRefineError, match="max_iterations"):
+    with pytest.raises(ParamsError, match="max_iterations"):
         RefineParams(max_iterations=0)
     with pytest.raises(MarkerRefineError, match="dist"):
-        MarkerRefiner(layout, camera=SimpleNamespace(K=np.eye(3), dist=np.zeros(14)))
+        MarkerRefiner(layout, camera=camera_with(np.zeros(7)))
 
 
 def test_degenerate_corners_are_returned_as_given(layout):

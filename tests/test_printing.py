@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 
 from companion import cli
 from companion.markers import printing
+from companion.markers.codec import GridDecoder
 from companion.markers.dictionary import load_dictionary
 from companion.markers.layout import MarkerLayout
 
@@ -85,7 +86,7 @@ def test_png_markers_are_detected_by_aruco_at_the_sidecar_corners_and_decode(tmp
 
         layout = MarkerLayout(sidecar["parity"], sidecar["dictionary"])
         assert sidecar["cells"] == layout.n_cells
-        result = layout.decode(sample_grid(image, layout, corners))
+        result = GridDecoder(layout).decode_algebraic(sample_grid(image, layout, corners))
         assert result is not None, png.name
         assert (result.id, result.symbol, result.rotation) == (sidecar["id"], sidecar["symbol"], 0)
         assert result.mismatched_cells == 0 and result.erased_cells == 0

@@ -25,7 +25,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.detect.detector import CIRCLES_MODES, Detector, DetectorParams
+from companion.detect.circles import CIRCLES_RUN_MODES, CircleParams
+from companion.detect.detector import DICTIONARIES, Detector, DetectorParams
+from companion.params import ParamsError
 from companion.types import Detection
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm", ".webp"}
@@ -37,9 +39,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="image files, or directories of them")
     parser.add_argument("--json", action="store_true", help="one JSON object per image and line")
     parser.add_argument("--draw", type=Path, metavar="DIR", help="write annotated copies of the images here")
-    parser.add_argument("--parity", type=int, choices=(2, 4), default=2, help="RS parity symbols of the markers")
-    parser.add_argument("--dictionary", default="6x6", help="marker dictionary (default 6x6)")
-    parser.add_argument("--circles", choices=CIRCLES_MODES, default=DetectorParams.circles,
+    parser.add_argument("--parity", type=int, choices=(2, 4), default=DetectorParams.parity,
+                        help="RS parity symbols of the markers")
+    parser.add_argument("--dictionary", default=DetectorParams.dictionary,
+                        help=f"marker dictionary: {', '.join(DICTIONARIES)} (default %(default)s)")
+    parser.add_argument("--circles", choices=CIRCLES_RUN_MODES, default=CircleParams.run,
                         help="when the occluded (corner circles) path runs")
 
 
@@ -50,7 +54,12 @@ def main(args: argparse.Namespace) -> int:
     if not paths and not missing:
         print("companion detect: no images found in " + ", ".join(map(str, args.images)), file=sys.stderr)
         return 2
-    detector = Detector(DetectorParams(parity=args.parity, dictionary=args.dictionary, circles=args.circles))
+    try:
+        params = DetectorParams(parity=args.parity, dictionary=args.dictionary, circles=CircleParams(run=args.circles))
+    except ParamsError as error:
+        print(f"companion detect: {error}", file=sys.stderr)
+        return 2
+    detector = Detector(params)
     if args.draw:
         args.draw.mkdir(parents=True, exist_ok=True)
     failed = len(missing)

@@ -14,7 +14,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import FacilityMap, MapError
 from companion.geometry.pose import PoseParams, PoseSolver
-from companion.localize import FrameResult, LocalizeError, groundtruth, localize, resources
+from companion.localize import FrameResult, LocalizeError, ReplayFailed, groundtruth, localize, resources
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -30,14 +30,20 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args) -> int:
+    """0: every frame localized (or tried); 1: the replay failed or skipped frames (the results so far are
+    printed, then the error); 2: the sequence, map or camera cannot be used."""
+    results = []
     try:
         facility_map, camera = resources(Path(args.sequence), args.map_path, args.camera_path)
         truth = groundtruth(Path(args.sequence))
         solver = PoseSolver(facility_map, camera, PoseParams(max_markers=args.max_markers))
-        results = []
         for result in localize(Path(args.sequence), solver, truth, fps=args.fps):
             results.append(result)
             print(json.dumps(result_json(result, facility_map)) if args.json else table_row(result, len(results) == 1))
+    except ReplayFailed as error:
+        print(summary(results), file=sys.stderr if args.json else sys.stdout)
+        print(f"companion localize: {error}", file=sys.stderr)
+        return 1
     except (LocalizeError, MapError, CameraError, SourceError) as error:
         print(f"companion localize: {error}", file=sys.stderr)
         return 2

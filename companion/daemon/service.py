@@ -40,6 +40,8 @@ from companion.geometry.pose import PoseSolver
 from companion.capture.replay import replay_source
 from companion.capture.source import FrameSource
 from companion.capture.v4l2 import v4l2_source
+from companion.params import ParamsError
+from companion.yaml_input import Where
 
 log = logging.getLogger("companion")
 
@@ -49,17 +51,23 @@ SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, loggin
 
 
 def detector_params_for(config: Config) -> DetectorParams:
-    """The config's detector section, with the marker layout (parity, dictionary) taken from the map."""
+    """The config's detector section (stages as nested mappings, ``DetectorParams.from_mapping``),
+    with the marker layout (parity, dictionary) taken from the map; errors name the file and the key."""
     facility_map = config.facility_map
     layout = {"parity": facility_map.parity, "dictionary": facility_map.dictionary}
+    where = Where(str(config.path), ConfigError, "detector")
     for key, value in layout.items():
         if key in config.detector and config.detector[key] != value:
-            raise ConfigError(f"{config.path}: detector.{key}: {config.detector[key]!r} differs from the map's "
-                              f"{value!r} ({facility_map.path})")
+            raise where.error(f"{config.detector[key]!r} differs from the map's {value!r} ({facility_map.path})", key)
     try:
-        return DetectorParams(**{**config.detector, **layout})
-    except (TypeError, ValueError) as error:
-        raise ConfigError(f"{config.path}: detector: {error}") from None
+        return DetectorParams.from_mapping({**config.detector, **layout})
+    except ParamsError as error:
+        raise where.error(error.reason, error.key) from None
+
+
+def make_detector(config: Config) -> Detector:
+    """The daemon's detector: the config's parameters, the map's layout, the camera's lens for the corners."""
+    return Detector(detector_params_for(config), camera=config.camera)
 
 
 class Daemon:
@@ -68,11 +76,11 @@ class Daemon:
     def __init__(self, config: Config, status_stream=None, record_frames: int = 2000):
         self.config = config
         self.status_stream = status_stream
-        detector_params = detector_params_for(config)
+        detector = make_detector(config)
         self.source = make_source(config)
         self.link = MavlinkLink(config.mavlink)
         self.pipeline = Pipeline(
-            Detector(detector_params),
+            detector,
             PoseSolver(config.facility_map, config.camera, config.pose),
             PoseFilter(config.fusion),
             self.link,

@@ -18,7 +18,7 @@ corners, so at least six circles, which fix the grid homography.
    resolves the true rotation), the other corners' circles are predicted and
    matched blob by blob, so a corner that lost a small circle still counts.
 4. The detector then fits the homography to the circle centres, refines it
-   on the inner square's visible edges (``edge_refine``), and samples and
+   on the inner square's visible edges (``edges``), and samples and
    decodes the grid with erasures where the image shows no marker
    (``missing_corner_cells``, ``sampling.erase_near_bad_fixed_cells``).
 """
@@ -31,19 +31,28 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from companion.detect import sampling
+from companion.detect import homography, sampling
 from companion.markers.layout import MarkerLayout
+from companion.params import require
 
 RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
 RING_DIRECTIONS = np.stack([np.cos(RING_ANGLES), np.sin(RING_ANGLES)], axis=1)
 
 
+CIRCLES_RUN_MODES = ("when_square_empty", "always", "never")
+BLOB_METHODS = ("auto", "contours", "components")
+
+
 @dataclass(frozen=True)
 class CircleParams:
-    """Blob finding and grouping settings.
+    """The occluded (corner circles) path: when it runs, blob finding, grouping and fit checks.
 
-    threshold_block_px, threshold_offset, threshold_ratio: a pixel is dark
-        when below both mean - offset and mean x ratio over the window.
+    run: "when_square_empty" (only in frames where the square path found
+        nothing), "always", or "never".
+
+    Blobs:
+    threshold_block_px, threshold_offset_gray, threshold_ratio: a pixel is
+        dark when below both mean - offset and mean x ratio over the window.
     pre_blur: 3 x 3 box blur before thresholding (fewer noise specks, but
         merges circles with their neighbours on oblique markers; off: the
         ring test removes the specks).
@@ -57,18 +66,52 @@ class CircleParams:
     max_blobs: keep at most this many blobs (the darkest), a bound on the
         work a speckled texture causes (a marker has 12 circles).
     min_area_px: smallest blob (a small circle of a 40 px marker is ~12 px).
+    max_area_fraction: largest blob, as a share of the image.
     max_aspect: bounding-box elongation allowed (tilted circles are ellipses).
     min_fill: blob area over bounding-box area.
-    ring_scale: the test ring's radius over the blob's half extent.
+    ring_scale, ring_margin_px: the test ring's radius: ring_scale x the
+        blob's half extent + ring_margin_px.
     ring_dark_allowed: ring samples (of 8) allowed to be dark (a neighbour,
         the paper's edge).
+    ring_dark_contrast_fraction: a ring sample is dark when less than this
+        share of the blob's contrast (ring median - centre) above the centre.
     max_darkness_ratio: blob centre over the ring's median intensity (black
         ink on white paper is far below 1; sensor-noise specks are not).
-    min_ring_contrast: ring median - centre, gray levels.
+    min_ring_contrast_gray: ring median - centre, gray levels.
+
+    Corner triples (a large circle and its two small ones):
+    max_triples: at most this many per frame (the most corner-like): eight
+        markers' worth, and a bound on the work a dotted texture can cause.
+    area_ratio_tolerance: a (large, small) pair's area ratio within this
+        factor of the layout's.
+    min_arm_fraction, max_arm_fraction: their distance within these
+        multiples of the layout's (large radius x spacing).
+    max_arm_cos: |cos| of the angle between the two arms (90 deg: 0).
+    max_arm_ratio, max_small_area_ratio: the two arms' lengths, and the two
+        small circles' areas, within these factors of each other.
+
+    Candidates (corners grown from a triple; see ``assemble_candidates``):
+    min_circles: circles a candidate needs (on at least ``min_corners`` corners).
+    min_corners: corners with at least one circle a candidate needs.
+    first_triple_window_cells, triple_window_cells: a whole triple joins if its
+        circles lie on average within this of their predictions (the first
+        while only the anchor corner is known, then the second).
+    large_window_cells, small_window_cells: else circle by circle, within these.
+    min_radius_ratio, max_radius_ratio: a blob's radius over the predicted circle's.
+    min_circles_for_homography: below this many circles the grid map is
+        affine (a homography's perspective terms are poorly pinned by 4-5
+        circles, three of them in one corner).
+    max_fit_error_cells: RMS misfit of the circles to one homography.
+
+    Fit checks (the detector):
+    min_fixed_agreement_fraction: a candidate's border cells read black and
+        its gap-ring cells white, at one sample per cell, in this share.
+    max_edge_fit_rms_cells: RMS misfit of the edge-refined homography.
     """
 
+    run: str = "when_square_empty"
     threshold_block_px: int = 31
-    threshold_offset: float = 7.0
+    threshold_offset_gray: float = 7.0
     threshold_ratio: float = 0.75
     pre_blur: bool = False
     blob_method: str = "auto"
@@ -79,9 +122,55 @@ class CircleParams:
     max_aspect: float = 3.0
     min_fill: float = 0.45
     ring_scale: float = 1.4
+    ring_margin_px: float = 0.5
     ring_dark_allowed: int = 2
+    ring_dark_contrast_fraction: float = 0.5
     max_darkness_ratio: float = 0.7
-    min_ring_contrast: float = 10.0
+    min_ring_contrast_gray: float = 10.0
+    max_triples: int = 32
+    area_ratio_tolerance: float = 2.2
+    min_arm_fraction: float = 0.45
+    max_arm_fraction: float = 1.5
+    max_arm_cos: float = 0.8
+    max_arm_ratio: float = 2.5
+    max_small_area_ratio: float = 2.5
+    min_circles: int = 5
+    min_corners: int = 2
+    first_triple_window_cells: float = 4.0
+    triple_window_cells: float = 1.0
+    large_window_cells: float = 1.1
+    small_window_cells: float = 0.7
+    min_radius_ratio: float = 0.4
+    max_radius_ratio: float = 2.5
+    min_circles_for_homography: int = 6
+    max_fit_error_cells: float = 0.3
+    min_fixed_agreement_fraction: float = 0.6
+    max_edge_fit_rms_cells: float = 0.15
+
+    def __post_init__(self):
+        require(self.run in CIRCLES_RUN_MODES, "run", f"one of {', '.join(CIRCLES_RUN_MODES)}", self.run)
+        require(self.blob_method in BLOB_METHODS, "blob_method", f"one of {', '.join(BLOB_METHODS)}",
+                self.blob_method)
+        require(self.threshold_block_px >= 3 and self.threshold_block_px % 2 == 1, "threshold_block_px",
+                "an odd integer >= 3", self.threshold_block_px)
+        require(0 <= self.ring_dark_allowed <= 7, "ring_dark_allowed", "in [0, 7]", self.ring_dark_allowed)
+        require(self.min_corners in (2, 3, 4), "min_corners", "2, 3 or 4", self.min_corners)
+        require(4 <= self.min_circles_for_homography <= 12, "min_circles_for_homography", "in [4, 12]",
+                self.min_circles_for_homography)
+        for key in ("threshold_offset_gray", "min_area_px", "ring_margin_px", "min_ring_contrast_gray"):
+            require(getattr(self, key) >= 0, key, ">= 0", getattr(self, key))
+        for key in ("threshold_ratio", "max_speck_fraction", "max_area_fraction", "min_fill",
+                    "ring_dark_contrast_fraction", "max_darkness_ratio", "min_arm_fraction",
+                    "max_arm_cos", "min_radius_ratio", "min_fixed_agreement_fraction"):
+            require(0.0 <= getattr(self, key) <= 1.0, key, "in [0, 1]", getattr(self, key))
+        for key in ("max_aspect", "ring_scale", "area_ratio_tolerance", "max_arm_fraction", "max_arm_ratio",
+                    "max_small_area_ratio", "max_radius_ratio"):
+            require(getattr(self, key) >= 1.0, key, ">= 1", getattr(self, key))
+        for key in ("max_blobs", "max_triples", "min_circles"):
+            require(getattr(self, key) >= 1, key, ">= 1", getattr(self, key))
+        for key in ("first_triple_window_cells", "triple_window_cells", "large_window_cells", "small_window_cells",
+                    "max_fit_error_cells", "max_edge_fit_rms_cells"):
+            require(getattr(self, key) > 0, key, "> 0", getattr(self, key))
 
 
 @dataclass(frozen=True)
@@ -128,7 +217,7 @@ def dark_pixels(gray: np.ndarray, params: CircleParams) -> np.ndarray:
     bright paper to their dark cores, so circles close to cells stay apart.
     """
     mean = cv2.blur(gray, (params.threshold_block_px, params.threshold_block_px))
-    limit = cv2.min(cv2.subtract(mean, params.threshold_offset),
+    limit = cv2.min(cv2.subtract(mean, params.threshold_offset_gray),
                     cv2.convertScaleAbs(mean, alpha=params.threshold_ratio))
     return cv2.compare(gray, limit, cv2.CMP_LT)
 
@@ -194,7 +283,7 @@ def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> tuple[
     """(M,) bool: the blob centre is much darker than a bright ring around it; (M,) centre / ring median."""
     if len(blobs) == 0:
         return np.zeros(0, bool), np.zeros(0)
-    radius = params.ring_scale * blobs.extents_px + 0.5
+    radius = params.ring_scale * blobs.extents_px + params.ring_margin_px
     ring = blobs.centres_px[:, None, :] + radius[:, None, None] * RING_DIRECTIONS[None]
     # a ring point past the image edge reads the edge pixel (circles near the border stay testable)
     h, w = smooth.shape
@@ -204,9 +293,9 @@ def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> tuple[
     centre, ring_values = values[:, 0], np.sort(values[:, 1:], axis=1)
     ring_median = (ring_values[:, 3] + ring_values[:, 4]) / 2  # of 8 sorted samples (np.median is 10x slower)
     contrast = ring_median - centre
-    passed = ((contrast >= params.min_ring_contrast)
+    passed = ((contrast >= params.min_ring_contrast_gray)
               & (centre <= params.max_darkness_ratio * ring_median)
-              & (ring_values[:, params.ring_dark_allowed] - centre >= 0.5 * contrast))
+              & (ring_values[:, params.ring_dark_allowed] - centre >= params.ring_dark_contrast_fraction * contrast))
     with np.errstate(divide="ignore", invalid="ignore"):
         darkness = centre / ring_median
     return passed, darkness
@@ -227,16 +316,16 @@ class Triples:
         return len(self.index)
 
 
-def corner_triples(blobs: Blobs, layout: MarkerLayout, max_triples: int = 32) -> Triples:
+def corner_triples(blobs: Blobs, layout: MarkerLayout, params: CircleParams) -> Triples:
     """Find (large, small, small) blob triples shaped like one corner of the layout.
 
     Face-on, the small circles are 2 cells from the large one (``spacing``
     over the large radius: 2.5 for p = 2) at half its radius, at right angles.
     Under perspective and tilt up to ~60 deg the tests below stay loose; the
     homography fit and the decode are the strict checks. At most
-    ``max_triples`` (the most corner-like) are kept: eight markers' worth, and a
-    bound on the work a dotted texture can cause.
+    ``max_triples`` (the most corner-like) are kept.
     """
+    p = params
     large_r, small_r = layout.circles[0, 2], layout.circles[1, 2]
     spacing = np.linalg.norm(layout.circles[1, :2] - layout.circles[0, :2]) / large_r
     area_ratio = (large_r / small_r) ** 2
@@ -245,7 +334,7 @@ def corner_triples(blobs: Blobs, layout: MarkerLayout, max_triples: int = 32) ->
         return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
     radius = np.sqrt(a / np.pi)
     # candidate (large i, small j) pairs, in a window sorted by x so the work stays near-linear
-    reach = spacing * 1.5 * radius
+    reach = spacing * p.max_arm_fraction * radius
     order = np.argsort(c[:, 0], kind="stable")
     xs = c[order, 0]
     lo = np.searchsorted(xs, c[:, 0] - reach, "left")
@@ -255,8 +344,8 @@ def corner_triples(blobs: Blobs, layout: MarkerLayout, max_triples: int = 32) ->
     j = order[np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())]
     d = np.linalg.norm(c[j] - c[i], axis=1)
     ratio = a[i] / a[j]
-    keep = ((ratio >= area_ratio / 2.2) & (ratio <= area_ratio * 2.2)
-            & (d >= 0.45 * spacing * radius[i]) & (d <= 1.5 * spacing * radius[i]))
+    keep = ((ratio >= area_ratio / p.area_ratio_tolerance) & (ratio <= area_ratio * p.area_ratio_tolerance)
+            & (d >= p.min_arm_fraction * spacing * radius[i]) & (d <= p.max_arm_fraction * spacing * radius[i]))
     i, j = i[keep], j[keep]
     if len(i) < 2:
         return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
@@ -276,13 +365,13 @@ def corner_triples(blobs: Blobs, layout: MarkerLayout, max_triples: int = 32) ->
     n1, n2 = np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1)
     cos = (e1 * e2).sum(axis=1) / (n1 * n2)
     small_ratio = a[t[:, 1]] / a[t[:, 2]]
-    ok = ((np.abs(cos) < 0.8) & (n1 / n2 < 2.5) & (n2 / n1 < 2.5)
-          & (small_ratio < 2.5) & (small_ratio > 1 / 2.5))
+    ok = ((np.abs(cos) < p.max_arm_cos) & (n1 / n2 < p.max_arm_ratio) & (n2 / n1 < p.max_arm_ratio)
+          & (small_ratio < p.max_small_area_ratio) & (small_ratio > 1 / p.max_small_area_ratio))
     t, cross = t[ok], cross[ok]
-    if len(t) > max_triples:
+    if len(t) > p.max_triples:
         # a dotted texture makes thousands; keep the most corner-like (right angle, equal arms and smalls)
         score = np.abs(cos[ok]) + np.abs(np.log(n1[ok] / n2[ok])) + np.abs(np.log(small_ratio[ok]))
-        best = np.argsort(score, kind="stable")[:max_triples]
+        best = np.argsort(score, kind="stable")[:p.max_triples]
         t, cross = t[best], cross[best]
     # handedness: seen from the front, (first edge) x (second edge) > 0 in image coordinates
     t[cross < 0] = t[cross < 0][:, [0, 2, 1]]
@@ -316,9 +405,8 @@ class CircleCandidate:
         return np.unique(self.circle_ids // 3)
 
 
-def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, min_circles: int = 5,
-                        triple_window_cells: float = 4.0, large_window_cells: float = 1.1,
-                        small_window_cells: float = 0.7) -> list[CircleCandidate]:
+def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
+                        params: CircleParams) -> list[CircleCandidate]:
     """Grow marker candidates from corner triples by predicting the other corners.
 
     Each triple, taken as corner 0, fixes an affine grid -> image map. The
@@ -326,20 +414,23 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, mi
     diagonal) and each is taken from, in order of preference:
 
     1. a whole triple whose three circles lie, on average, within
-       ``triple_window_cells`` of their predictions (wide while only the
-       anchor is known: one corner extrapolates poorly under perspective;
-       1 cell after that);
+       ``first_triple_window_cells`` of their predictions while only the
+       anchor is known (one corner extrapolates poorly under perspective),
+       ``triple_window_cells`` after that;
     2. the blob nearest the predicted large circle within
        ``large_window_cells``, then each small circle's nearest blob within
        ``small_window_cells`` (a corner that lost a small circle still counts).
 
-    Sizes must fit the map (a blob's radius within 0.4-2.5 x the circle's).
-    Every match refines the map (a homography from six circles on). A
-    candidate needs ``min_circles`` circles on at least two corners. The
-    blobs of a candidate with three or four corners take part in no other; a
-    two-corner candidate may be a wrong pairing, so its blobs stay free (the
-    decoder settles it; identical candidates are listed once).
+    Sizes must fit the map (a blob's radius within ``min_radius_ratio`` to
+    ``max_radius_ratio`` x the circle's). Every match refines the map (a
+    homography from ``min_circles_for_homography`` circles on, which must fit
+    within ``max_fit_error_cells``). A candidate needs ``min_circles`` circles
+    on at least ``min_corners`` corners. The blobs of a candidate with three or
+    four corners take part in no other; a two-corner candidate may be a wrong
+    pairing, so its blobs stay free (the decoder settles it; identical
+    candidates are listed once).
     """
+    p = params
     grid = layout.circles[:, :2]
     radius_cells = layout.circles[:, 2]
     taken = np.zeros(len(blobs), bool)
@@ -353,36 +444,37 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, mi
         ids, index = [0, 1, 2], list(triples.index[t])
         in_candidate = np.zeros(len(blobs), bool)
         in_candidate[index] = True
-        H = _fit(grid[ids], centres[index])
+        H = _fit(grid[ids], centres[index], p)
         for corner in (1, 3, 2):
             circles = np.arange(3 * corner, 3 * corner + 3)
-            predicted, cell_px = _predict(H, grid[circles])
+            predicted, cell_px = homography.project_with_cell_px(H, grid[circles])
             if not np.isfinite(cell_px):
                 break
             # 1. a whole triple
-            window = triple_window_cells if len(ids) == 3 else 1.0
+            window = p.first_triple_window_cells if len(ids) == 3 else p.triple_window_cells
             error = np.linalg.norm(triples.points_px - predicted[None], axis=2).mean(axis=1) / cell_px
             r_ratio = blob_r[triples.index[:, 0]] / (radius_cells[circles[0]] * cell_px)
-            fits = ((error < window) & (r_ratio > 0.4) & (r_ratio < 2.5)
+            fits = ((error < window) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
                     & ~(taken | in_candidate)[triples.index].any(axis=1))
             tries = [triples.index[k].tolist() for k in np.flatnonzero(fits)[np.argsort(error[fits])][:2]]
             # 2. else circle by circle: the large one, then the small ones shifted by the large one's offset
             if not tries:
-                found = _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
-                                      large_window_cells, small_window_cells)
+                found = _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index, p)
                 tries = [] if found is None else [found]
             for found in tries:
                 added = [c for c, b in zip(circles, found) if b >= 0]
                 blobs_added = [b for b in found if b >= 0]
-                H_new = _fit(grid[ids + added], centres[index + blobs_added])
-                checkable = len(ids) + len(added) >= 6  # below six points the fit is affine and always "fits"
-                if not checkable or fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]) <= 0.3:
+                H_new = _fit(grid[ids + added], centres[index + blobs_added], p)
+                # below min_circles_for_homography points the fit is affine and always "fits"
+                checkable = len(ids) + len(added) >= p.min_circles_for_homography
+                if not checkable or homography.fit_error_cells(H_new, grid[ids + added],
+                                                               centres[index + blobs_added]) <= p.max_fit_error_cells:
                     ids, index, H = ids + added, index + blobs_added, H_new
                     in_candidate[blobs_added] = True
                     break
         ids_a = np.array(ids)
         corners = len(np.unique(ids_a // 3))
-        if len(ids_a) >= min_circles and corners >= 2 and frozenset(index) not in seen:
+        if len(ids_a) >= p.min_circles and corners >= p.min_corners and frozenset(index) not in seen:
             seen.add(frozenset(index))
             candidates.append(CircleCandidate(ids_a, centres[index].copy(), np.array(index)))
             in_any[index] = True
@@ -391,19 +483,20 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout, mi
     return candidates
 
 
-def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used, large_window, small_window):
+def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used, params: CircleParams):
     """Blob indices (3,) for one corner's circles (-1: none), or None if its large circle is missing.
 
     The large circle is the nearest blob of fitting size within
-    ``large_window`` cells of its prediction; the small ones are searched
-    within ``small_window`` of their predictions moved by the large circle's
-    offset (most of an extrapolation's error is that shift).
+    ``large_window_cells`` of its prediction; the small ones are searched
+    within ``small_window_cells`` of their predictions moved by the large
+    circle's offset (most of an extrapolation's error is that shift).
     """
+    p = params
     free = ~taken
     free[used] = False
     d = np.linalg.norm(centres - predicted[0], axis=1)
     r_ratio = blob_r / (radii_cells[0] * cell_px)
-    ok = free & (d < large_window * cell_px) & (r_ratio > 0.4) & (r_ratio < 2.5)
+    ok = free & (d < p.large_window_cells * cell_px) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
     if not ok.any():
         return None
     large = int(np.flatnonzero(ok)[np.argmin(d[ok])])
@@ -413,59 +506,36 @@ def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used,
     for k in (1, 2):
         d = np.linalg.norm(centres - (predicted[k] + shift), axis=1)
         r_ratio = blob_r / (radii_cells[k] * cell_px)
-        ok = free & (d < small_window * cell_px) & (r_ratio > 0.4) & (r_ratio < 2.5)
+        ok = (free & (d < p.small_window_cells * cell_px) & (r_ratio > p.min_radius_ratio)
+              & (r_ratio < p.max_radius_ratio))
         found.append(int(np.flatnonzero(ok)[np.argmin(d[ok])]) if ok.any() else -1)
         if found[-1] >= 0:
             free[found[-1]] = False
     return found
 
 
-def fit_error_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarray) -> float:
-    """RMS distance between image points and their grid points mapped by H, in cells (at the first point)."""
-    projected, cell_px = _predict(H, grid_points)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        error = np.sqrt(np.mean(np.sum((projected - points_px) ** 2, axis=1))) / cell_px
-    return float(error) if np.isfinite(error) else np.inf
-
-
-def _fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
-    """(3, 3) grid -> image: least-squares affine below 6 points, homography from 6.
+def _fit(grid_points: np.ndarray, image_points: np.ndarray, params: CircleParams) -> np.ndarray:
+    """(3, 3) grid -> image: least-squares affine below ``min_circles_for_homography`` points, a homography from there.
 
     Four or five points, three of them bunched in one corner, pin a
     homography's perspective terms badly; an affine map extrapolates better
     until a second corner is complete.
     """
-    if len(grid_points) < 6:
-        design = np.column_stack([grid_points, np.ones(len(grid_points))])
-        # normal equations of [x y] = [u v 1] A (3 x 2); tiny, so solve directly
-        A = np.linalg.solve(design.T @ design, design.T @ image_points)
-        return np.vstack([A.T, [0.0, 0.0, 1.0]])
-    H, _ = cv2.findHomography(grid_points, image_points, 0)
-    return H if H is not None else np.full((3, 3), np.nan)
-
-
-def _predict(H: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, float]:
-    """Image positions (K, 2) of grid points uv (K, 2) through H, and the size of one cell (px) at the first."""
-    pts = np.concatenate([uv, uv[:1] + [[1.0, 0.0], [0.0, 1.0]]])
-    w = pts @ H[2, :2] + H[2, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p = (pts @ H[:2, :2].T + H[:2, 2]) / w[:, None]
-    if not np.all(np.isfinite(p)):
-        return p[:-2], np.nan
-    a, b = p[-2] - p[0], p[-1] - p[0]
-    cell_px = float(np.sqrt(abs(a[0] * b[1] - a[1] * b[0])))
-    return p[:-2], cell_px if cell_px > 0 else np.nan
+    if len(grid_points) < params.min_circles_for_homography:
+        return homography.fit_affine(grid_points, image_points)
+    return homography.fit(grid_points, image_points)
 
 
 def missing_corner_cells(layout: MarkerLayout, present_corners: np.ndarray) -> np.ndarray:
     """(N, N) bool: cells likely hidden, given which corners' circles were not found.
 
     An occluder that hides a corner's circles reaches in from outside: each
-    missing corner erases its (o + 2)-cell square (parity bands, gap, border
-    and the first data row and column), and two missing corners of one side
-    erase that whole side band. Corners are in the candidate's own labels.
+    missing corner erases its square up to and including the first data row
+    and column (parity bands, gap, border and first data cells), and two
+    missing corners of one side erase that whole side band. Corners are in
+    the candidate's own labels.
     """
-    n, depth = layout.n_cells, layout.inner_origin + 2
+    n, depth = layout.n_cells, layout.data_origin + 1
     corner_square = np.zeros((n, n), bool)
     corner_square[:depth, :depth] = True
     top_band = np.zeros((n, n), bool)

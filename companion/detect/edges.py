@@ -22,13 +22,60 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.detect import sampling
+from companion.detect import homography, sampling
 from companion.markers.layout import MarkerLayout
+from companion.params import require
 
-EDGE_STEP_CELLS = 0.5
-OUTLIER_CELLS = 0.12
-SQUARE_HALF_WIDTH_CELLS = 0.35  # square path: ArUco's corners are within a few tenths of a cell
 EDGES = 4
+
+
+@dataclass(frozen=True)
+class EdgeParams:
+    """Edge profiles and the fits on them.
+
+    profile_step_cells: profiles every this many cells along each edge.
+    square_half_width_cells, square_samples, square_stride: square path,
+        how far across each edge a profile looks (ArUco's corners are within
+        a few tenths of a cell), its samples, every stride-th profile used.
+    rough_half_width_cells, rough_samples: the wider first pass for quads
+        ArUco rejected (their corners are whole pixels, a few off on small markers).
+    min_points_per_edge: a square-path corner moves only if both of its edges
+        have this many good points.
+    max_corner_move_half_widths, min_corner_move_limit_px: a corner that moves
+        further than this many profile half widths (and at least the limit in
+        pixels) is a bad fit and keeps its input value.
+    circles_half_width_cells, circles_samples, circles_stride: the same for
+        the circles path's homography refinement (one profile per cell).
+    outlier_cells: circles path: edge points further than this from their
+        grid line after the first fit are dropped before the second.
+    circles_iterations: profile-and-refit rounds of the circles path.
+    """
+
+    profile_step_cells: float = 0.5
+    square_half_width_cells: float = 0.35
+    square_samples: int = 11
+    square_stride: int = 1
+    rough_half_width_cells: float = 0.7
+    rough_samples: int = 21
+    min_points_per_edge: int = 5
+    max_corner_move_half_widths: float = 1.5
+    min_corner_move_limit_px: float = 1.0
+    circles_half_width_cells: float = 0.6
+    circles_samples: int = 15
+    circles_stride: int = 2
+    outlier_cells: float = 0.12
+    circles_iterations: int = 1
+
+    def __post_init__(self):
+        require(0.0 < self.profile_step_cells <= 1.0, "profile_step_cells", "in (0, 1]", self.profile_step_cells)
+        for key in ("square_half_width_cells", "rough_half_width_cells", "circles_half_width_cells",
+                    "max_corner_move_half_widths", "min_corner_move_limit_px", "outlier_cells"):
+            require(getattr(self, key) > 0, key, "> 0", getattr(self, key))
+        for key in ("square_samples", "rough_samples", "circles_samples"):
+            require(getattr(self, key) >= 6, key, ">= 6", getattr(self, key))
+        for key in ("square_stride", "circles_stride", "min_points_per_edge", "circles_iterations"):
+            require(getattr(self, key) >= 1, key, ">= 1", getattr(self, key))
+        require(self.min_points_per_edge >= 2, "min_points_per_edge", ">= 2", self.min_points_per_edge)
 
 
 @dataclass(frozen=True)
@@ -61,14 +108,13 @@ class EdgeFit:
 class EdgeRefiner:
     """Edge profiles of one layout's inner square, and the fits built on them."""
 
-    def __init__(self, layout: MarkerLayout, min_contrast: float = 20.0, square_stride: int = 1,
-                 square_samples: int = 11, circles_stride: int = 2, circles_samples: int = 15):
-        self.min_contrast = min_contrast
-        self.square_stride, self.square_samples = square_stride, square_samples
-        self.circles_stride, self.circles_samples = circles_stride, circles_samples
+    def __init__(self, layout: MarkerLayout, params: EdgeParams, min_contrast_gray: float):
+        """min_contrast_gray: white - black gray levels of a good profile."""
+        self.params = params
+        self.min_contrast_gray = min_contrast_gray
         lo, hi = layout.inner_origin, layout.inner_origin + layout.inner_cells
         self.inner_cells = layout.inner_cells
-        along = np.arange(lo + EDGE_STEP_CELLS, hi, EDGE_STEP_CELLS)
+        along = np.arange(lo + params.profile_step_cells, hi, params.profile_step_cells)
         k = len(along)
         top = np.column_stack([along, np.full(k, lo)])
         right = np.column_stack([np.full(k, hi), along])
@@ -82,18 +128,19 @@ class EdgeRefiner:
 
     # ------------------------------------------------------------ edge points
 
-    def edge_points(self, gray: np.ndarray, H: np.ndarray, half_width_cells: float = 0.6,
-                    samples: int = 21, stride: int = 1) -> EdgePoints:
+    def edge_points(self, gray: np.ndarray, H: np.ndarray, half_width_cells: float, samples: int,
+                    stride: int) -> EdgePoints:
         """Mid-level crossings across the four edges of M grids (H: (M, 3, 3) grid -> image).
 
-        stride: use every stride-th profile along each edge (2: one per cell).
+        half_width_cells: how far across each edge to look (both ways);
+        samples: per profile; stride: use every stride-th profile along each edge.
         """
         keep = (np.arange(len(self._points)).reshape(EDGES, -1)[:, ::stride]).ravel()
         points, normals, edge = self._points[keep], self._normals[keep], self._edge[keep]
         m, e = len(H), len(points)
         offsets = np.linspace(-half_width_cells, half_width_cells, samples)  # inside (black) -> outside (white)
         grid = (points[:, None, :] + offsets[None, :, None] * normals[:, None, :]).reshape(-1, 2)
-        values, inside = sampling.sample_image(gray, sampling.project(H, grid))
+        values, inside = sampling.sample_image(gray, homography.project(H, grid))
         values = values.reshape(m, e, samples)
         inside = inside.reshape(m, e, samples).all(axis=2)
         end = max(samples // 6, 1)
@@ -103,7 +150,7 @@ class EdgeRefiner:
         with np.errstate(invalid="ignore"):
             above = values >= mid[..., None]
             crossings = np.count_nonzero(above[..., 1:] != above[..., :-1], axis=2)
-            good = (inside & (white - black >= self.min_contrast) & (crossings == 1)
+            good = (inside & (white - black >= self.min_contrast_gray) & (crossings == 1)
                     & above[..., -1] & ~above[..., 0])
         k = np.clip(np.argmax(above, axis=2), 1, samples - 1)  # first sample at or above the mid level
         before = np.take_along_axis(values, (k - 1)[..., None], axis=2)[..., 0]
@@ -113,24 +160,24 @@ class EdgeRefiner:
             frac = np.clip((mid - before) / (after - before), 0.0, 1.0)
         offset = offsets[k - 1] + frac * (offsets[1] - offsets[0])
         on_edge = points[None] + offset[..., None] * normals[None]  # (M, E, 2) grid
-        px = (np.concatenate([on_edge, np.ones((m, e, 1))], axis=2) @ np.transpose(H, (0, 2, 1)))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            px = px[..., :2] / px[..., 2:3]
+        px = homography.project(H, on_edge)
         px[~good] = np.nan
         return EdgePoints(px, edge, keep)
 
     # ---------------------------------------------------------- square path
 
     def refine_square_corners(self, gray: np.ndarray, H: np.ndarray, corners_px: np.ndarray,
-                              min_points_per_edge: int = 5, half_width_cells: float = SQUARE_HALF_WIDTH_CELLS,
-                              samples: int | None = None) -> np.ndarray:
+                              rough: bool = False) -> np.ndarray:
         """(M, 4, 2) inner corners from line fits to the edges; a corner keeps its input value
         unless both of its edges have ``min_points_per_edge`` good points.
 
-        half_width_cells: how far across each edge to look (corners off by up to about that much).
+        rough: the wider first pass (corners off by up to ``rough_half_width_cells``).
         """
-        points = self.edge_points(gray, H, half_width_cells, samples or self.square_samples, self.square_stride)
-        lines, enough = _fit_lines(points, min_points_per_edge)  # (M, 4, 3), (M, 4)
+        p = self.params
+        half_width_cells = p.rough_half_width_cells if rough else p.square_half_width_cells
+        samples = p.rough_samples if rough else p.square_samples
+        points = self.edge_points(gray, H, half_width_cells, samples, p.square_stride)
+        lines, enough = _fit_lines(points, p.min_points_per_edge)  # (M, 4, 3), (M, 4)
         # corner i is where edge i - 1 (the one ending there) meets edge i (the one starting there)
         previous = np.roll(lines, 1, axis=1)
         meet = np.cross(previous, lines)
@@ -140,22 +187,24 @@ class EdgeRefiner:
         moved = np.linalg.norm(refined - corners_px, axis=2)
         cell_px = np.linalg.norm(corners_px - np.roll(corners_px, -1, axis=1), axis=2).mean(axis=1) / self.inner_cells
         # a corner moved further than the profiles reach is a bad fit, not a better corner
-        ok &= np.isfinite(moved) & (moved < np.maximum(1.5 * half_width_cells * cell_px, 1.0)[:, None])
+        limit_px = np.maximum(p.max_corner_move_half_widths * half_width_cells * cell_px, p.min_corner_move_limit_px)
+        ok &= np.isfinite(moved) & (moved < limit_px[:, None])
         return np.where(ok[..., None], refined, corners_px)
 
     # --------------------------------------------------------- circles path
 
-    def refine_homographies(self, gray: np.ndarray, H: np.ndarray, anchors: list[tuple[np.ndarray, np.ndarray]],
-                            iterations: int = 1) -> list[EdgeFit]:
+    def refine_homographies(self, gray: np.ndarray, H: np.ndarray,
+                            anchors: list[tuple[np.ndarray, np.ndarray]]) -> list[EdgeFit]:
         """Refine M homographies H (M, 3, 3) (grid -> image) on their edges, batched.
 
         anchors: per candidate, (grid (K, 2), image (K, 2)) correspondences
         (circle centres) kept in the fit.
         """
+        p = self.params
         fits = [EdgeFit(h, 0, np.nan) for h in H]
-        for _ in range(iterations):
-            points = self.edge_points(gray, np.stack([f.H for f in fits]), samples=self.circles_samples,
-                                      stride=self.circles_stride)
+        for _ in range(p.circles_iterations):
+            points = self.edge_points(gray, np.stack([f.H for f in fits]), p.circles_half_width_cells,
+                                      p.circles_samples, p.circles_stride)
             axis, value = self._axis[points.profile], self._value[points.profile]
             fits = [self._refit(fit, points.px[i], axis[points.valid[i]], value[points.valid[i]],
                                 points.valid[i], *anchors[i]) for i, fit in enumerate(fits)]
@@ -170,7 +219,7 @@ class EdgeRefiner:
         G = _solve(anchors_grid, anchors_px, on_edge_px, axis, value)
         if G is None:
             return fit
-        keep = _line_residuals(G, on_edge_px, axis, value) < OUTLIER_CELLS
+        keep = _line_residuals(G, on_edge_px, axis, value) < self.params.outlier_cells
         if 4 <= keep.sum() < len(keep):
             refit = _solve(anchors_grid, anchors_px, on_edge_px[keep], axis[keep], value[keep])
             G = G if refit is None else refit
@@ -239,7 +288,7 @@ def _solve(anchors_grid, anchors_px, on_edge_px, axis, value) -> np.ndarray | No
 
 def _line_residuals(G, on_edge_px, axis, value) -> np.ndarray:
     """(E,) distance in cells of each edge point, mapped by G, from its grid line."""
-    grid = sampling.project(G[None], on_edge_px)[0]
+    grid = homography.project(G, on_edge_px)
     return np.abs(grid[np.arange(len(grid)), axis] - value)
 
 
@@ -247,4 +296,4 @@ def _grid_distances(G: np.ndarray, points_px: np.ndarray, points_grid: np.ndarra
     """(K,) distances in cells between image points mapped by G and their grid positions."""
     if len(points_px) == 0:
         return np.zeros(0)
-    return np.linalg.norm(sampling.project(G[None], points_px)[0] - points_grid, axis=1)
+    return np.linalg.norm(homography.project(G, points_px) - points_grid, axis=1)

@@ -41,11 +41,13 @@ Points outside the image read as NaN and are left out, so a marker partly
 outside the frame is aligned on what is visible (its corners on the cut
 side come out to about 0.15 px). A marker is a homography of
 its grid only in an undistorted image: give the refiner the camera
-(``CameraModel`` or anything with ``K`` and ``dist``) and it aligns in the
-ideal pinhole image, reading the frame through the lens model. Without it,
-lens distortion bends large markers (k1 = -0.05: refined corners 0.04 px
-instead of 0.01 px; k1 = -0.3: worse than ArUco's on large markers near the
-image edge; ``benchmarks/bench_refine.py``).
+(``CameraModel``) and it aligns in the ideal pinhole image, reading the frame
+where OpenCV's lens model (all 14 coefficients) puts each ideal point: its
+undistortion map (``cv2.initUndistortRectifyMap``, once per camera and frame
+size) is looked up at the template points with one ``cv2.remap`` per step. Without it, lens
+distortion bends large markers (k1 = -0.05: refined corners 0.04 px instead
+of 0.01 px; k1 = -0.3: worse than ArUco's on large markers near the image
+edge; ``benchmarks/bench_refine.py``).
 
 Occluders are not modelled: on a marker partly hidden by something in front
 of it (the detector's circles path) the least-squares fit is pulled by the
@@ -61,10 +63,15 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from companion.detect import homography
 from companion.markers.layout import MarkerLayout, marker_image
+from companion.params import require
 
 RefineStatus = Literal["refined", "worse", "mismatch", "diverged", "low_contrast", "not_visible", "degenerate"]
-MAX_DISTORTION_COEFFICIENTS = 8  # k1 k2 p1 p2 k3 k4 k5 k6 (OpenCV's rational model)
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # OpenCV's lens model: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tau_x tau_y]]]]
+UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
+OUTSIDE_PX = -1e6  # a frame position that reads as outside any frame
+IDEAL_MARGIN = 0.25  # the ideal image is looked up at most this share of the frame's size beyond it
 
 
 class MarkerRefineError(ValueError):
@@ -81,10 +88,11 @@ class RefineParams:
     tolerance_px: stop when a step moves the marker by less than this.
     max_shift_cells: refined corners this far (in cells) or further from the
         initial ones are a divergence: the initial corners are kept.
-    min_contrast: white - black gray levels the fitted marker must keep.
-    max_residual: the largest misfit (``MarkerFit.residual``) of a fit that
-        is kept; above it the model does not match the image (a wrong lock;
-        correct fits measure 0.1-0.45, wrong locks 0.9 and more).
+    min_contrast_gray: white - black gray levels the fitted marker must keep.
+    max_residual_fraction: the largest misfit (``MarkerFit.residual``, a share
+        of the fitted contrast) of a fit that is kept; above it the model does
+        not match the image (a wrong lock; correct fits measure 0.1-0.45,
+        wrong locks 0.9 and more).
     min_visible_fraction: of the template points that must lie in the image.
     cache_size: templates (marker id x scale) kept.
     """
@@ -94,29 +102,19 @@ class RefineParams:
     max_iterations: int = 6
     tolerance_px: float = 0.005
     max_shift_cells: float = 2.0
-    min_contrast: float = 5.0
-    max_residual: float = 0.6
+    min_contrast_gray: float = 5.0
+    max_residual_fraction: float = 0.6
     min_visible_fraction: float = 0.3
     cache_size: int = 64
 
     def __post_init__(self):
-        if not 2 <= self.min_px_per_cell <= self.max_px_per_cell <= 32:
-            raise MarkerRefineError(f"need 2 <= min_px_per_cell <= max_px_per_cell <= 32, got "
-                                    f"{self.min_px_per_cell!r}, {self.max_px_per_cell!r}")
-        if self.max_iterations < 1:
-            raise MarkerRefineError(f"max_iterations must be >= 1, got {self.max_iterations!r}")
-        if not self.tolerance_px > 0:
-            raise MarkerRefineError(f"tolerance_px must be > 0, got {self.tolerance_px!r}")
-        if not self.max_shift_cells > 0:
-            raise MarkerRefineError(f"max_shift_cells must be > 0, got {self.max_shift_cells!r}")
-        if not self.min_contrast > 0:
-            raise MarkerRefineError(f"min_contrast must be > 0, got {self.min_contrast!r}")
-        if not self.max_residual > 0:
-            raise MarkerRefineError(f"max_residual must be > 0, got {self.max_residual!r}")
-        if not 0 < self.min_visible_fraction <= 1:
-            raise MarkerRefineError(f"min_visible_fraction must be in (0, 1], got {self.min_visible_fraction!r}")
-        if self.cache_size < 1:
-            raise MarkerRefineError(f"cache_size must be >= 1, got {self.cache_size!r}")
+        require(2 <= self.min_px_per_cell <= self.max_px_per_cell <= 32, "min_px_per_cell",
+                "in [2, max_px_per_cell], with max_px_per_cell <= 32", (self.min_px_per_cell, self.max_px_per_cell))
+        require(self.max_iterations >= 1, "max_iterations", ">= 1", self.max_iterations)
+        for key in ("tolerance_px", "max_shift_cells", "min_contrast_gray", "max_residual_fraction"):
+            require(getattr(self, key) > 0, key, "> 0", getattr(self, key))
+        require(0 < self.min_visible_fraction <= 1, "min_visible_fraction", "in (0, 1]", self.min_visible_fraction)
+        require(self.cache_size >= 1, "cache_size", ">= 1", self.cache_size)
 
 
 @dataclass(frozen=True, eq=False)  # holds arrays: compare by identity
@@ -133,7 +131,7 @@ class MarkerFit:
     circles_in_image: (12,) bool, that centre lies inside the frame.
     refined: the alignment held (else the geometry is the initial corners').
     status: "refined", or why the initial corners were kept: "worse" (the
-        misfit grew), "mismatch" (the misfit stayed above ``max_residual``),
+        misfit grew), "mismatch" (the misfit stayed above ``max_residual_fraction``),
         "diverged" (moved two cells or more, or a step failed),
         "low_contrast", "not_visible", "degenerate" (corners not a quad).
     residual: RMS misfit between the marker model and the image over the
@@ -161,7 +159,7 @@ class MarkerFit:
 class _Template:
     """The edge points of one marker drawn at one scale, ready for inverse-compositional steps.
 
-    points: (1, P, 2) float32 normalised grid coordinates; x, y: (P,) the same, contiguous.
+    points: (1, P, 2) float32 normalised grid coordinates.
     values: (P,) float32 template intensity, 0 black .. 1 white.
     steepest: (P, 8) float32 grad T . dW/dp (the steepest-descent images).
     hessian_inverse: (8, 8) float64 (steepest^T steepest)^-1.
@@ -169,8 +167,6 @@ class _Template:
     """
 
     points: np.ndarray
-    x: np.ndarray
-    y: np.ndarray
     values: np.ndarray
     steepest: np.ndarray
     hessian_inverse: np.ndarray
@@ -193,101 +189,95 @@ class _Sample:
     contrast: float
 
 
-class _Lens:
-    """OpenCV's distortion model (up to 8 coefficients) between ideal and frame pixels."""
+@dataclass(frozen=True, eq=False)
+class _IdealFrame:
+    """Where each ideal (undistorted) pixel lies in the frame: OpenCV's undistortion map of one camera.
 
-    def __init__(self, K: np.ndarray, dist: np.ndarray):
-        K = np.asarray(K, dtype=np.float64)
-        dist = np.asarray(dist, dtype=np.float64).ravel()
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise MarkerRefineError(f"camera.K must be a finite (3, 3) intrinsic matrix, got {K.tolist()}")
-        if len(dist) > MAX_DISTORTION_COEFFICIENTS or not np.all(np.isfinite(dist)):
-            raise MarkerRefineError(f"camera.dist must be at most {MAX_DISTORTION_COEFFICIENTS} finite coefficients "
-                                    f"(k1 k2 p1 p2 k3 k4 k5 k6), got {dist.tolist()}")
-        self.K = K
-        self.dist = np.zeros(MAX_DISTORTION_COEFFICIENTS)
-        self.dist[:len(dist)] = dist
-        self._tangential = bool(np.any(self.dist[2:4]))
-        self._rational = bool(np.any(self.dist[5:8]))
+    map_xy: (h, w, 2) float32, the frame position (x, y) of ideal pixel
+    (lo_x + i, lo_y + j) at [j, i], (lo_x, lo_y) = ``lo_px``, over the ideal
+    pixels the frame's pixels map to, at most ``IDEAL_MARGIN`` of the frame's
+    size beyond it on each side (a lens can send its corners far out). Built
+    once per camera and frame size: 8 bytes per ideal pixel, 2.5-9 MB at
+    640x480, at most 4.5 times the frame's pixels.
+    """
 
-    def distort(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Ideal pixel coordinates -> frame pixels; x, y: float arrays of one shape (float32 stays float32)."""
-        t = x.dtype.type
-        fx, fy, cx, cy = (t(v) for v in (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]))
-        k1, k2, p1, p2, k3, k4, k5, k6 = (t(v) for v in self.dist)
-        u = (x - cx) * (1 / fx)
-        v = (y - cy) * (1 / fy)
-        r2 = u * u + v * v
-        # radial = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)
-        radial = ((k3 * r2 + k2) * r2 + k1) * r2 + 1
-        if self._rational:
-            radial /= ((k6 * r2 + k5) * r2 + k4) * r2 + 1
-        ud, vd = u * radial, v * radial
-        if self._tangential:
-            # u_d += 2 p1 u v + p2 (r^2 + 2 u^2),  v_d += p1 (r^2 + 2 v^2) + 2 p2 u v
-            uv2 = 2 * u * v
-            ud += p1 * uv2 + p2 * (r2 + 2 * u * u)
-            vd += p1 * (r2 + 2 * v * v) + p2 * uv2
-        return ud * fx + cx, vd * fy + cy
+    lo_px: tuple[float, float]
+    map_xy: np.ndarray
 
-    def distort_points(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) float64 ideal pixels -> frame pixels."""
-        x, y = self.distort(np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]))
-        return np.column_stack([x, y])
+    @classmethod
+    def of(cls, camera, shape: tuple[int, int], to_ideal) -> _IdealFrame:
+        """For frames of ``shape`` (H, W); ``to_ideal``: (K, 2) frame pixels -> ideal pixels."""
+        height, width = shape
+        side = np.linspace(0.0, 1.0, 65)[:, None]
+        outline = np.concatenate([side * [width - 1, 0], [width - 1, 0] + side * [0, height - 1],
+                                  side * [width - 1, 0] + [0, height - 1], side * [0, height - 1]])
+        ideal = to_ideal(outline)
+        size_px = np.array([width, height])
+        lo = np.maximum(np.floor(ideal.min(axis=0)) - 1, -IDEAL_MARGIN * size_px)
+        hi = np.minimum(np.ceil(ideal.max(axis=0)) + 1, (1 + IDEAL_MARGIN) * size_px)
+        # ideal pixel lo + (i, j) -> frame pixel: OpenCV's map for the pinhole K with its principal point moved by -lo
+        P = np.asarray(camera.K, dtype=np.float64).copy()
+        P[:2, 2] -= lo
+        size = (int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1)
+        map_x, map_y = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, P, size, cv2.CV_32FC1)
+        return cls((float(lo[0]), float(lo[1])), np.dstack([map_x, map_y]))
 
-    def undistort_points(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) float64 frame pixels -> ideal pixels."""
-        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
-        return cv2.undistortPoints(np.asarray(xy, dtype=np.float64).reshape(-1, 1, 2), self.K, self.dist, R=None,
-                                   P=self.K, criteria=criteria).reshape(-1, 2)
+    def to_frame(self, ideal_xy: np.ndarray, shift_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        """(1, P, 2) float32 ideal pixels -> frame pixels + ``shift_px``, read off the map (bilinear, at
+        OpenCV's 1/32-pixel steps like every ``cv2.remap``); far outside any frame where the map has no value.
+
+        (The shifts are ``cv2.add`` with a per-channel scalar: 5x faster than numpy's broadcast on (1, P, 2).)
+        """
+        map_xy = cv2.add(ideal_xy, (-self.lo_px[0], -self.lo_px[1], 0.0, 0.0))
+        frame_xy = cv2.remap(self.map_xy, map_xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                             borderValue=(OUTSIDE_PX, OUTSIDE_PX))
+        return cv2.add(frame_xy, (shift_px[0], shift_px[1], 0.0, 0.0))
 
 
 @dataclass(frozen=True, eq=False)
 class _View:
-    """The frame around one marker as float32, read at ideal-pixel positions.
+    """The frame around one marker as float32, read at template points.
 
     crop: (h, w) float32. S_crop_image: (3, 3) frame pixels -> crop pixels (a shift).
+    ideal: with a camera, where the ideal pixels the template is placed in lie in the frame.
     """
 
     crop: np.ndarray
     S_crop_image: np.ndarray
-    lens: _Lens | None
+    ideal: _IdealFrame | None
 
     def read(self, template: _Template, M: np.ndarray) -> np.ndarray:
         """(P,) float32 frame intensities at the template points through M (NaN outside the frame)."""
-        if self.lens is None:
-            xy = cv2.perspectiveTransform(template.points, self.S_crop_image @ M)
-            return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                             borderValue=np.nan)[0]
-        m = M.astype(np.float32).ravel()
-        x, y = template.x, template.y
-        # ideal pixel = M (x, y, 1) / w, w = m6 x + m7 y + m8
-        w = 1 / (m[6] * x + m[7] * y + m[8])
-        x_frame, y_frame = self.lens.distort((m[0] * x + m[1] * y + m[2]) * w, (m[3] * x + m[4] * y + m[5]) * w)
-        x_frame += np.float32(self.S_crop_image[0, 2])
-        y_frame += np.float32(self.S_crop_image[1, 2])
-        return cv2.remap(self.crop, x_frame[None], y_frame[None], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+        if self.ideal is None:
+            xy = homography.project(self.S_crop_image @ M, template.points)
+        else:
+            xy = self.ideal.to_frame(homography.project(M, template.points), self.S_crop_image[:2, 2])
+        return cv2.remap(self.crop, xy, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=np.nan)[0]
-
 
 class MarkerRefiner:
     """Refines decoded markers of one layout. Not thread-safe (it caches templates): one per thread.
 
-    camera: optional, anything with ``K`` (3, 3) and ``dist`` (k,) (a
-    ``companion.geometry.camera.CameraModel``); with it the alignment runs in the
-    undistorted image.
+    camera: optional ``companion.geometry.camera.CameraModel`` (anything with
+    ``K`` (3, 3) and OpenCV's ``dist`` (4, 5, 8, 12 or 14 coefficients)); with
+    it the alignment runs in the ideal (undistorted) image, through OpenCV's
+    lens model.
     """
 
     def __init__(self, layout: MarkerLayout, params: RefineParams | None = None, camera=None):
         self.layout = layout
         self.params = params or RefineParams()
-        self.lens = None if camera is None else _Lens(camera.K, camera.dist)
+        camera = None if camera is None else _checked_camera(camera)
+        # a lens without distortion maps ideal pixels to themselves: nothing to look up
+        self.camera = camera if camera is not None and np.any(np.asarray(camera.dist) != 0) else None
+        self._ideal_frames: dict[tuple[int, int], _IdealFrame] = {}
         n = layout.n_cells
         # grid (u, v) -> normalised (grid centre at 0, grid edges at -1 and +1)
         self.N_norm_grid = np.array([[2.0 / n, 0.0, -1.0], [0.0, 2.0 / n, -1.0], [0.0, 0.0, 1.0]])
         self._N_grid_norm = np.linalg.inv(self.N_norm_grid)
         self._corners_grid = layout.inner_corners_cells
         self._circles_grid = np.asarray(layout.circles, dtype=float)[:, :2]
+        self._corners_and_circles_grid = np.concatenate([self._corners_grid, self._circles_grid])
         # the grid's outline one cell out (the template reaches half a cell into the quiet zone)
         side = np.linspace(-1.0, n + 1.0, 5)
         ends = np.full(5, -1.0), np.full(5, n + 1.0)
@@ -302,9 +292,9 @@ class MarkerRefiner:
         marker's upright orientation (rotation already corrected by the decode).
         """
         gray, initial = self._check(gray, marker_id, corners_px)
-        initial_ideal = initial if self.lens is None else self.lens.undistort_points(initial)
-        H0 = _homography(self._corners_grid, initial_ideal)
-        if H0 is None:
+        initial_ideal = self._to_ideal(initial)
+        H0 = homography.from_quad(self._corners_grid, initial_ideal)
+        if np.isnan(H0[2, 2]):
             return self._fit(gray, initial, None, "degenerate")
         cell_px = _cell_px(initial_ideal, self.layout.inner_cells)
         px_per_cell = int(np.clip(round(cell_px), self.params.min_px_per_cell, self.params.max_px_per_cell))
@@ -324,12 +314,13 @@ class MarkerRefiner:
             return self._fit(gray, initial, H0, "diverged", **kept)
         H = M @ self.N_norm_grid
         H = H / H[2, 2]
-        corners = self._to_frame(_project(H, self._corners_grid))
+        points = self._to_frame(homography.project(H, self._corners_and_circles_grid))
+        corners, circles = points[:4], points[4:]
         status = self._verdict(first, last, corners, initial, cell_px)
         if status != "refined":
             return self._fit(gray, initial, H0, status, **kept)
         return self._fit(gray, corners, H, "refined", residual=last.rms, initial_residual=first.rms,
-                         contrast=last.contrast, steps=steps)
+                         contrast=last.contrast, steps=steps, circles=circles)
 
     # ------------------------------------------------------------------ steps
 
@@ -386,7 +377,7 @@ class MarkerRefiner:
         if denominator <= 0:
             return None
         contrast = (n * sum_ti - sum_t * sum_i) / denominator
-        if not contrast >= self.params.min_contrast:
+        if not contrast >= self.params.min_contrast_gray:
             return _Sample(None, used, np.nan, contrast)
         black = (sum_i - contrast * sum_t) / n
         residual = (I - np.float32(black)) * np.float32(1.0 / contrast) - T
@@ -394,14 +385,14 @@ class MarkerRefiner:
 
     def _verdict(self, first: _Sample, last: _Sample, corners: np.ndarray, initial: np.ndarray,
                  cell_px: float) -> RefineStatus:
-        if not last.contrast >= self.params.min_contrast:
+        if not last.contrast >= self.params.min_contrast_gray:
             return "low_contrast"
         shift_px = np.linalg.norm(corners - initial, axis=1).max()
         if not shift_px < self.params.max_shift_cells * cell_px:
             return "diverged"
         if not last.rms <= first.rms:
             return "worse"
-        if not last.rms <= self.params.max_residual:
+        if not last.rms <= self.params.max_residual_fraction:
             return "mismatch"
         return "refined"
 
@@ -420,14 +411,30 @@ class MarkerRefiner:
         return gray, corners
 
     def _to_frame(self, ideal_px: np.ndarray) -> np.ndarray:
-        """(K, 2) ideal pixels -> frame pixels (float64)."""
-        return ideal_px if self.lens is None else self.lens.distort_points(ideal_px)
+        """(K, 2) ideal pixels -> frame pixels (float64), through the camera's lens model."""
+        if self.camera is None:
+            return ideal_px
+        K = self.camera.K
+        # the ray of ideal pixel (x, y) is K^-1 (x, y, 1); OpenCV distorts and projects it
+        rays = np.column_stack([(ideal_px - K[:2, 2]) / np.diag(K)[:2], np.ones(len(ideal_px))])
+        frame_px, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, self.camera.dist)
+        return frame_px.reshape(-1, 2)
+
+    def _to_ideal(self, frame_px: np.ndarray) -> np.ndarray:
+        """(K, 2) frame pixels -> ideal pixels (float64), OpenCV's iterative undistortion to 1e-9."""
+        if self.camera is None:
+            return frame_px
+        return cv2.undistortPoints(frame_px.reshape(-1, 1, 2), self.camera.K, self.camera.dist, R=None,
+                                   P=self.camera.K, criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
 
     def _view(self, gray: np.ndarray, H: np.ndarray) -> _View | None:
         """The frame around the marker (grid H: grid -> ideal pixels), None if it is all outside."""
-        outline = self._to_frame(_project(H, self._outline_grid))
+        ideal = None if self.camera is None else self._ideal_frame(gray.shape)
+        outline = homography.project(H, self._outline_grid)
         if not np.all(np.isfinite(outline)):
             return None
+        if ideal is not None:  # a box with a margin: the map's 1/32-pixel steps will do
+            outline = ideal.to_frame(outline.astype(np.float32)[None])[0]
         height, width = gray.shape
         margin = 2
         x0 = int(max(np.floor(outline[:, 0].min()) - margin, 0))
@@ -437,7 +444,12 @@ class MarkerRefiner:
         if x1 - x0 < 2 or y1 - y0 < 2:
             return None
         S = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
-        return _View(gray[y0:y1 + 1, x0:x1 + 1].astype(np.float32), S, self.lens)
+        return _View(gray[y0:y1 + 1, x0:x1 + 1].astype(np.float32), S, ideal)
+
+    def _ideal_frame(self, shape: tuple[int, int]) -> _IdealFrame:
+        if shape not in self._ideal_frames:
+            self._ideal_frames[shape] = _IdealFrame.of(self.camera, shape, self._to_ideal)
+        return self._ideal_frames[shape]
 
     def _template(self, marker_id: int, px_per_cell: int) -> _Template:
         key = (marker_id, px_per_cell)
@@ -453,12 +465,13 @@ class MarkerRefiner:
 
     def _fit(self, gray: np.ndarray, corners: np.ndarray, H: np.ndarray | None, status: RefineStatus,
              residual: float = np.nan, initial_residual: float = np.nan, contrast: float = np.nan,
-             steps: int = 0) -> MarkerFit:
+             steps: int = 0, circles: np.ndarray | None = None) -> MarkerFit:
+        """circles: (12, 2) frame pixels of the circle centres if known, else projected through H."""
         if H is None:
             H = np.full((3, 3), np.nan)
             circles = np.full((len(self._circles_grid), 2), np.nan)
-        else:
-            circles = self._to_frame(_project(H, self._circles_grid))
+        elif circles is None:
+            circles = self._to_frame(homography.project(H, self._circles_grid))
         height, width = gray.shape
         with np.errstate(invalid="ignore"):
             inside = ((circles[:, 0] >= -0.5) & (circles[:, 0] <= width - 0.5)
@@ -467,6 +480,18 @@ class MarkerRefiner:
                          circles_in_image=inside, refined=status == "refined", status=status,
                          residual=float(residual), initial_residual=float(initial_residual),
                          contrast=float(contrast), iterations=int(steps))
+
+
+def _checked_camera(camera):
+    """The camera, if its ``K`` and ``dist`` are usable by OpenCV's lens model."""
+    K = np.asarray(camera.K, dtype=np.float64)
+    dist = np.asarray(camera.dist, dtype=np.float64).ravel()
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise MarkerRefineError(f"camera.K must be a finite (3, 3) intrinsic matrix, got {K.tolist()}")
+    if len(dist) not in DISTORTION_LENGTHS or not np.all(np.isfinite(dist)):
+        raise MarkerRefineError(f"camera.dist must be {', '.join(map(str, DISTORTION_LENGTHS[1:]))} finite "
+                                f"coefficients (OpenCV's lens model), got {dist.tolist()}")
+    return camera
 
 
 def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm_grid: np.ndarray) -> _Template:
@@ -488,7 +513,7 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
     n = layout.n_cells
     keep = ((uv >= -0.5) & (uv <= n + 0.5)).all(axis=1)
     rows, columns, uv = rows[keep], columns[keep], uv[keep]
-    xy = _project(N_norm_grid, uv)
+    xy = homography.project(N_norm_grid, uv)
     # dT/d(normalised) = dT/d(template pixel) * template pixels per normalised unit
     scale = px_per_cell / N_norm_grid[0, 0]
     grad = np.column_stack([gx[rows, columns], gy[rows, columns]]).astype(np.float64) * scale
@@ -500,26 +525,10 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
     steepest = grad[:, :1] * dW_dp_x + grad[:, 1:] * dW_dp_y
     values = image[rows, columns].astype(np.float32)
     points = xy.astype(np.float32)
-    return _Template(points=points[None], x=points[:, 0].copy(), y=points[:, 1].copy(), values=values,
+    return _Template(points=points[None], values=values,
                      steepest=steepest.astype(np.float32),
                      hessian_inverse=np.linalg.inv(steepest.T @ steepest), sum=float(values.sum()),
                      sum_squares=float(values @ values))
-
-
-def _homography(grid: np.ndarray, image: np.ndarray) -> np.ndarray | None:
-    """(3, 3) grid -> image from four point pairs; None if the quad is degenerate."""
-    try:
-        H = cv2.getPerspectiveTransform(grid.astype(np.float32), image.astype(np.float32))
-    except cv2.error:
-        return None
-    if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12 or abs(H[2, 2]) < 1e-12:
-        return None
-    return H / H[2, 2]
-
-
-def _project(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(K, 2) float64 points through a (3, 3) homography."""
-    return cv2.perspectiveTransform(np.asarray(points, dtype=np.float64)[None], H)[0]
 
 
 def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:

@@ -5,9 +5,7 @@ samples every point of every candidate, and the cell statistics are numpy
 reductions, so the cost grows with the number of pixels read, not with a
 Python loop.
 
-Homographies map grid coordinates (u, v) in cells (``companion.markers.layout``:
-origin at the grid's outer top-left corner, u right, v down) to image pixels
-(x right, y down, pixel centres at integers).
+Homographies map grid cells to image pixels (``companion.detect.homography``).
 """
 from __future__ import annotations
 
@@ -17,7 +15,9 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from companion.detect import homography
 from companion.markers.layout import UNKNOWN, MarkerLayout
+from companion.params import require
 
 # Sub-cell sample offsets (fractions of a cell from its centre): a 3 x 3
 # pattern inside the middle 60 % of the cell, away from the blurred edges.
@@ -25,45 +25,28 @@ SUB_CELL_OFFSETS = np.array([-0.2, 0.0, 0.2])
 REMAP_ROW = 16384
 
 
-def homographies_from_quads(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray:
-    """Batched 4-point homographies grid -> image.
+@dataclass(frozen=True)
+class SamplingParams:
+    """How a candidate's grid is read (both paths).
 
-    grid_corners: (4, 2) grid (u, v) of the quad corners (shared by all).
-    image_corners: (M, 4, 2) pixel corners of M quads, same order.
-    Returns (M, 3, 3) float64 with H[2, 2] = 1 (NaN rows for degenerate quads).
+    min_contrast_gray: gray levels between a candidate's black (border) and
+        white (gap ring) below which it is dropped; every stage's floor on a
+        marker's contrast (quad screen, edge profiles, circle candidates).
+    ambiguity_fraction: cells whose mean is within this share of the
+        candidate's contrast from its black/white midpoint are unknown (erasures).
+    occlusion_reach_cells: circles path: codeword cells this close
+        (Chebyshev) to a border cell read white or a gap cell read black are
+        erased (something stands in front of the marker there).
     """
-    q = np.asarray(image_corners, dtype=np.float64).reshape(-1, 4, 2)
-    m = len(q)
-    u, v = grid_corners[:, 0], grid_corners[:, 1]
-    x, y = q[..., 0], q[..., 1]
-    # x = (h0 u + h1 v + h2) / (h6 u + h7 v + 1), y likewise with h3..h5:
-    # h0 u + h1 v + h2 - x h6 u - x h7 v = x  and  h3 u + h4 v + h5 - y h6 u - y h7 v = y
-    a = np.zeros((m, 8, 8))
-    a[:, 0:4, 0] = u
-    a[:, 0:4, 1] = v
-    a[:, 0:4, 2] = 1.0
-    a[:, 0:4, 6] = -x * u
-    a[:, 0:4, 7] = -x * v
-    a[:, 4:8, 3] = u
-    a[:, 4:8, 4] = v
-    a[:, 4:8, 5] = 1.0
-    a[:, 4:8, 6] = -y * u
-    a[:, 4:8, 7] = -y * v
-    b = np.concatenate([x, y], axis=1)
-    h = np.full((m, 9), np.nan)
-    ok = np.abs(np.linalg.det(a)) > 1e-12
-    if ok.any():
-        h[ok, :8] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
-        h[ok, 8] = 1.0
-    return h.reshape(m, 3, 3)
 
+    min_contrast_gray: float = 20.0
+    ambiguity_fraction: float = 0.15
+    occlusion_reach_cells: int = 1
 
-def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Grid points through M homographies: H (M, 3, 3), uv (K, 2) -> (M, K, 2) pixels."""
-    uv1 = np.concatenate([uv, np.ones((len(uv), 1))], axis=1)
-    p = np.tensordot(H, uv1, axes=([2], [1]))  # (M, 3, K): one BLAS call (einsum/matmul broadcasting are 3-10x slower)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (p[:, :2] / p[:, 2:3]).transpose(0, 2, 1)
+    def __post_init__(self):
+        require(self.min_contrast_gray > 0, "min_contrast_gray", "> 0", self.min_contrast_gray)
+        require(0.0 <= self.ambiguity_fraction < 0.5, "ambiguity_fraction", "in [0, 0.5)", self.ambiguity_fraction)
+        require(self.occlusion_reach_cells >= 0, "occlusion_reach_cells", ">= 0", self.occlusion_reach_cells)
 
 
 def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -129,7 +112,7 @@ def sample_cells(gray: np.ndarray, H: np.ndarray, n_cells: int,
     """Sample every cell of M grids: H (M, 3, 3) grid -> image."""
     m = len(H)
     s = len(offsets) ** 2
-    values, inside = sample_image(gray, project(H, cell_sample_points(n_cells, offsets)))
+    values, inside = sample_image(gray, homography.project(H, cell_sample_points(n_cells, offsets)))
     values = values.reshape(m, n_cells, n_cells, s)
     inside_cells = inside.reshape(m, n_cells, n_cells, s).all(axis=-1)
     return CellSamples(values.mean(axis=-1), inside_cells)
@@ -151,7 +134,7 @@ def inside_grids(points_px: np.ndarray, H: np.ndarray, n_cells: int) -> np.ndarr
     """(K,) bool: image points inside the whole N x N grid outline of any of M grids (H: (M, 3, 3))."""
     if len(points_px) == 0 or len(H) == 0:
         return np.zeros(len(points_px), bool)
-    outline = project(H, np.array([[0, 0], [n_cells, 0], [n_cells, n_cells], [0, n_cells]], float))  # (M, 4, 2)
+    outline = homography.project(H, np.array([[0, 0], [n_cells, 0], [n_cells, n_cells], [0, n_cells]], float))  # (M, 4, 2)
     # inside a convex clockwise polygon: on the right of (or on) every edge
     edge = np.roll(outline, -1, axis=1) - outline
     to_point = points_px[:, None, None, :] - outline[None]  # (K, M, 4, 2)
@@ -176,15 +159,15 @@ def grid_levels(cells: CellSamples, border: np.ndarray, gap: np.ndarray) -> Grid
     return GridLevels(nan_median_rows(cells.mean[:, border]), nan_median_rows(cells.mean[:, gap]))
 
 
-def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity: float) -> np.ndarray:
+def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity_fraction: float) -> np.ndarray:
     """(M, N, N) int8 grids: 1 black, 0 white, -1 unknown.
 
     A cell is unknown when it is (partly) outside the image, or its mean lies
-    within ``ambiguity`` x contrast of the midpoint between the candidate's
-    black and white levels.
+    within ``ambiguity_fraction`` x contrast of the midpoint between the
+    candidate's black and white levels.
     """
     mid = ((levels.black + levels.white) / 2)[:, None, None]
-    margin = (ambiguity * levels.contrast)[:, None, None]
+    margin = (ambiguity_fraction * levels.contrast)[:, None, None]
     with np.errstate(invalid="ignore"):
         grid = np.where(cells.mean < mid, 1, 0).astype(np.int8)
         unsure = ~cells.inside | ~np.isfinite(cells.mean) | (np.abs(cells.mean - mid) < margin)
@@ -215,7 +198,8 @@ class CellProbe:
     (gap-ring median - border median), the fractions of readable border
     cells below and gap-ring cells above the midpoint, and the fraction of
     codeword cells below it; a candidate that is no marker fails here before
-    any expensive step.
+    any expensive step. Cells marked ``hidden`` (e.g. where an occluder is
+    known to stand) are left out, as if outside the image.
     """
 
     def __init__(self, layout: MarkerLayout):
@@ -225,8 +209,11 @@ class CellProbe:
         self._is_codeword = codeword[self._probed]
         self._points = np.argwhere(self._probed)[:, ::-1] + 0.5  # (u, v) cell centres
 
-    def read(self, gray: np.ndarray, H: np.ndarray) -> "ProbeReading":
-        values, _ = sample_image(gray, project(H, self._points))
+    def read(self, gray: np.ndarray, H: np.ndarray, hidden: np.ndarray | None = None) -> "ProbeReading":
+        """M candidates: H (M, 3, 3) grid -> image; hidden: optional (M, N, N) bool cells to leave out."""
+        values, _ = sample_image(gray, homography.project(H, self._points))
+        if hidden is not None:
+            values[hidden[:, self._probed]] = np.nan
         border, gap, codeword = values[:, self._is_border], values[:, self._is_gap], values[:, self._is_codeword]
         black, white = nan_median_rows(border), nan_median_rows(gap)
         with np.errstate(invalid="ignore"):
@@ -258,7 +245,7 @@ def _fraction(condition: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def erase_near_bad_fixed_cells(grids: np.ndarray, border: np.ndarray, gap: np.ndarray,
-                               codeword: np.ndarray, reach_cells: int = 1) -> np.ndarray:
+                               codeword: np.ndarray, reach_cells: int) -> np.ndarray:
     """Occlusion probes: codeword cells next to a fixed cell that reads wrong become unknown.
 
     grids: (M, N, N) int8 classified grids. A border cell that reads white or

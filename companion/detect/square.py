@@ -22,45 +22,65 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from companion.detect import sampling
+from companion.detect import homography, sampling
 from companion.markers.layout import MarkerLayout
+from companion.params import require
 
 
 @dataclass(frozen=True)
 class SquareParams:
     """ArUco and pre-filter settings of the square path.
 
-    error_correction_rate: ArUco's own bit correction (0..1 of the
-        dictionary's 6 correctable bits); everything it cannot identify is
+    aruco_error_correction_rate: ArUco's own bit correction (0..1 of the
+        dictionary's correctable bits); everything it cannot identify is
         still RS-decoded from the rejected quads.
-    decode_rejected: RS-decode marker-like rejected quads too.
-    min_contrast: white - black levels (gray levels) for a marker-like quad.
-    min_fixed_agreement: fraction of border cells that must read black and of
-        gap-ring cells that must read white.
+    decode_rejected: RS-decode marker-like quads ArUco rejected (blobs on data).
+    aruco_threshold_windows_px: ArUco's adaptive-threshold windows (min, max,
+        step), odd sizes. OpenCV's default (3, 23, 10) thresholds three times;
+        (7, 27, 20) twice, about 25 % faster with the same or better recall
+        here (docs/detector.md has the measurement).
+    aruco_min_perimeter_fraction: ArUco's smallest quad perimeter over the
+        image's larger side (OpenCV's minMarkerPerimeterRate, 0.03). 0.08 is a
+        13 px inner side at 640 px, 26 px at 1280 px (under 3 px per cell: too
+        small to read the grid anyway); skipping the many small contours saves 5-15 %.
+    aruco_threshold_constant_gray: ArUco's adaptive-threshold offset (OpenCV's
+        7). 5 finds more small markers in dim frames (low light 97.8 -> 99.3 %
+        in the benchmark) but costs 25 % more ArUco time on every frame
+        (0.55 ms at 640x480 and 1280x720): not the default.
     min_side_px: mean side of a rejected quad worth decoding (2.5 px per
         cell; smaller quads are mostly single cells of markers already found).
-    threshold_windows_px: ArUco's adaptive-threshold windows (min, max, step).
-        OpenCV's default (3, 23, 10) thresholds three times; (7, 27, 20)
-        twice, about 25 % faster with the same or better recall here
-        (docs/detector.md has the measurement).
-    min_perimeter_rate: ArUco's smallest quad perimeter over the image's
-        larger side (OpenCV: 0.03). 0.08 is a 13 px inner side at 640 px,
-        26 px at 1280 px (under 3 px per cell: too small to read the grid
-        anyway); skipping the many small contours saves 5-15 %.
-    threshold_constant: ArUco's adaptive-threshold offset (OpenCV's 7). 5
-        finds more small markers in dim frames (low light 97.8 -> 99.3 % in
-        the benchmark) but costs 25 % more ArUco time on every frame (0.55 ms
-        at 640x480 and 1280x720): not the default.
+    min_fixed_agreement_fraction: of the border cells that must read black
+        and of the gap-ring cells that must read white (rejected quads).
+    min_dark_codeword_fraction, max_dark_codeword_fraction: the share of a
+        rejected quad's codeword cells that read black (every marker has
+        35-65 %; a blob over the data moves that by ~10 %; a plain dark or
+        light square is no marker).
     """
 
-    error_correction_rate: float = 0.6
+    aruco_error_correction_rate: float = 0.6
     decode_rejected: bool = True
-    min_contrast: float = 20.0
-    min_fixed_agreement: float = 0.75
+    aruco_threshold_windows_px: tuple[int, int, int] = (7, 27, 20)
+    aruco_min_perimeter_fraction: float = 0.08
+    aruco_threshold_constant_gray: float = 7.0
     min_side_px: float = 20.0
-    threshold_windows_px: tuple[int, int, int] = (7, 27, 20)
-    min_perimeter_rate: float = 0.08
-    threshold_constant: float = 7.0
+    min_fixed_agreement_fraction: float = 0.75
+    min_dark_codeword_fraction: float = 0.15
+    max_dark_codeword_fraction: float = 0.85
+
+    def __post_init__(self):
+        require(0.0 <= self.aruco_error_correction_rate <= 1.0, "aruco_error_correction_rate", "in [0, 1]",
+                self.aruco_error_correction_rate)
+        windows = tuple(self.aruco_threshold_windows_px)
+        require(len(windows) == 3 and all(isinstance(w, int) for w in windows) and windows[0] >= 3
+                and windows[0] % 2 == 1 and windows[1] >= windows[0] and windows[2] >= 1,
+                "aruco_threshold_windows_px", "[min, max, step] integers with an odd min >= 3, max >= min and "
+                "step >= 1", self.aruco_threshold_windows_px)
+        object.__setattr__(self, "aruco_threshold_windows_px", windows)
+        require(0.0 < self.aruco_min_perimeter_fraction < 4.0, "aruco_min_perimeter_fraction", "in (0, 4)",
+                self.aruco_min_perimeter_fraction)
+        require(self.min_side_px >= 0, "min_side_px", ">= 0", self.min_side_px)
+        for key in ("min_fixed_agreement_fraction", "min_dark_codeword_fraction", "max_dark_codeword_fraction"):
+            require(0.0 <= getattr(self, key) <= 1.0, key, "in [0, 1]", getattr(self, key))
 
 
 @dataclass(frozen=True)
@@ -81,22 +101,24 @@ def make_aruco_detector(layout: MarkerLayout, params: SquareParams) -> cv2.aruco
     aruco_params = cv2.aruco.DetectorParameters()
     aruco_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     aruco_params.minDistanceToBorder = 0
-    aruco_params.errorCorrectionRate = params.error_correction_rate
+    aruco_params.errorCorrectionRate = params.aruco_error_correction_rate
     aruco_params.adaptiveThreshWinSizeMin, aruco_params.adaptiveThreshWinSizeMax, \
-        aruco_params.adaptiveThreshWinSizeStep = params.threshold_windows_px
-    aruco_params.minMarkerPerimeterRate = params.min_perimeter_rate
-    aruco_params.adaptiveThreshConstant = params.threshold_constant
+        aruco_params.adaptiveThreshWinSizeStep = params.aruco_threshold_windows_px
+    aruco_params.minMarkerPerimeterRate = params.aruco_min_perimeter_fraction
+    aruco_params.adaptiveThreshConstant = params.aruco_threshold_constant_gray
     return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), aruco_params)
 
 
 class SquareFinder:
     """Finds candidate inner squares in a grayscale frame."""
 
-    def __init__(self, layout: MarkerLayout, params: SquareParams, screen=None):
-        """screen: optional (M, N, N) int8 grids -> (M,) bool, a quick test of a rejected quad's
+    def __init__(self, layout: MarkerLayout, params: SquareParams, min_contrast_gray: float, screen=None):
+        """min_contrast_gray: white - black gray levels of a marker-like rejected quad.
+        screen: optional (M, N, N) int8 grids -> (M,) bool, a quick test of a rejected quad's
         codeword read at one sample per cell (the detector passes its decoder's ``plausible``)."""
         self.layout = layout
         self.params = params
+        self.min_contrast_gray = min_contrast_gray
         self._screen = screen
         self._aruco = make_aruco_detector(layout, params)
         self._inner_corners = layout.inner_corners_cells
@@ -118,23 +140,24 @@ class SquareFinder:
         """(M,) bool: quad centres inside the whole grid of an identified marker (its own cells)."""
         if len(markers) == 0:
             return np.zeros(len(quads), bool)
-        H = sampling.homographies_from_quads(self._inner_corners, markers)
+        H = homography.from_quads(self._inner_corners, markers)
         return sampling.inside_grids(quads.mean(axis=1), H, self.layout.n_cells)
 
     def marker_like(self, gray: np.ndarray, quads: np.ndarray) -> np.ndarray:
         """(M,) bool: quads that read like an RS marker at one sample per cell.
 
-        The border must read black and the gap ring white (``min_fixed_agreement``
-        of their cells), with ``min_contrast``; and the codeword cells must be
-        mixed (every marker has 35-65 % black codeword cells; a blob over the
-        data moves that by ~10 %): a plain dark or light square is no marker;
-        and, with a screen, the codeword read this roughly must be near a marker's.
+        The border must read black and the gap ring white (``min_fixed_agreement_fraction``
+        of their cells), with ``min_contrast_gray``; the codeword cells must be
+        mixed (``min_dark_codeword_fraction`` to ``max_dark_codeword_fraction``
+        of them black); and, with a screen, the codeword read this roughly must
+        be near a marker's.
         """
-        H = sampling.homographies_from_quads(self._inner_corners, quads)
+        H = homography.from_quads(self._inner_corners, quads)
         r = self._probe.read(gray, H)
         p = self.params
-        ok = ((r.contrast >= p.min_contrast) & (r.border_black >= p.min_fixed_agreement)
-              & (r.gap_white >= p.min_fixed_agreement) & (r.dark_codeword >= 0.15) & (r.dark_codeword <= 0.85))
+        ok = ((r.contrast >= self.min_contrast_gray) & (r.border_black >= p.min_fixed_agreement_fraction)
+              & (r.gap_white >= p.min_fixed_agreement_fraction) & (r.dark_codeword >= p.min_dark_codeword_fraction)
+              & (r.dark_codeword <= p.max_dark_codeword_fraction))
         if self._screen is not None and ok.any():
             ok[ok] = self._screen(r.grid[ok])
         return ok

@@ -1,6 +1,7 @@
-"""Detector stage: decode sampled grids into dictionary markers, never guessing.
+"""Decode sampled grids into dictionary markers, never guessing: the RS marker's one decoder.
 
-Two decoders, tried in order, over a batch of M sampled (N, N) grids:
+Two steps, tried in order, over a batch of M sampled (N, N) grids
+(1 black, 0 white, -1 unknown):
 
 1. **Bounded-distance decoding of the whole codeword** (vectorised). The 84
    codeword cells (data and both RS parity copies; 132 for p = 4) of the 50
@@ -10,17 +11,22 @@ Two decoders, tried in order, over a batch of M sampled (N, N) grids:
    grid is accepted as the nearest word when (a) its distance d1 over the
    known cells is at most t(k), the largest radius at which a grid of k
    random known cells would land within t of any of the 200 words with
-   probability below ``false_accept_bound``, and (b) the runner-up is at
-   least ``min_gap`` further away. Scattered damage (a blob over the data,
+   probability below ``false_accept_probability``, and (b) the runner-up is at
+   least ``min_gap_cells`` further away. Scattered damage (a blob over the data,
    noise) is corrected here; this is where the per-code algebraic decoder is
    weak: each of the two RS(8, 6) codes corrects a single symbol, so a blob
    over two rows *and* two columns defeats both.
-2. **Algebraic RS decoding** (``MarkerLayout.decode``, the lead's decoder)
-   for damage concentrated in whole symbols (a strip over one data column
-   and one parity copy), accepted only when the marker it returns is also the
-   unique nearest word of step 1.
+2. **Algebraic RS decoding** (``GridDecoder.decode_algebraic``) for damage
+   concentrated in whole symbols (a strip over one data column and one
+   parity copy): the row code and the column code are RS-decoded with unknown
+   cells as erasures, each with the two parity copies merged and with each
+   copy alone; a result counts only if its data is exactly a dictionary
+   marker whose full codeword the known cells agree with (at most
+   ``max_mismatch_fraction`` of them disagree). In the batch decoder it is
+   accepted only when that marker is also the unique nearest word of step 1.
 
 An undecodable grid is rejected: that is the detector's false-positive guard.
+``reedsolo`` keeps module state while decoding: one decoder per thread.
 """
 from __future__ import annotations
 
@@ -29,10 +35,62 @@ from functools import cached_property
 from math import comb
 
 import numpy as np
+import reedsolo
 
-from companion.markers.layout import UNKNOWN, DecodeResult, MarkerLayout
+from companion.markers.layout import UNKNOWN, MarkerLayout, bits_to_symbols, symbols_to_bits
+from companion.params import require
 
-DEFAULT_FALSE_ACCEPT_BOUND = 1e-12
+
+@dataclass(frozen=True)
+class DecoderParams:
+    """Acceptance rules of the decoder.
+
+    false_accept_probability: per grid, the chance that random cells are
+        accepted by the bounded-distance step (it sets the radius t(k)).
+    min_gap_cells: the runner-up word must be at least this many cells further.
+    max_mismatch_fraction: the algebraic step's marker is refused when more
+        than this share of the known codeword cells disagree with it.
+    screen_max_mismatch_fraction: ``plausible``: a rough reading (one sample
+        per cell) within this share of its known cells of some word.
+    algebraic: also try the algebraic RS step on grids the first step rejects.
+    """
+
+    false_accept_probability: float = 1e-12
+    min_gap_cells: int = 6
+    max_mismatch_fraction: float = 0.25
+    screen_max_mismatch_fraction: float = 0.3
+    algebraic: bool = True
+
+    def __post_init__(self):
+        require(0.0 < self.false_accept_probability < 1e-3, "false_accept_probability", "in (0, 1e-3)",
+                self.false_accept_probability)
+        require(self.min_gap_cells >= 1, "min_gap_cells", ">= 1", self.min_gap_cells)
+        require(0.0 <= self.max_mismatch_fraction < 0.5, "max_mismatch_fraction", "in [0, 0.5)",
+                self.max_mismatch_fraction)
+        require(0.0 <= self.screen_max_mismatch_fraction < 0.5, "screen_max_mismatch_fraction", "in [0, 0.5)",
+                self.screen_max_mismatch_fraction)
+
+
+@dataclass(frozen=True)
+class DecodeResult:
+    """A grid that decoded to a dictionary marker.
+
+    rotation: k such that ``np.rot90(grid, k)`` is the upright marker
+        (the marker appears rotated k x 90 deg clockwise in the grid).
+    corrected: RS symbols that needed correction or erasure recovery (the
+        fewer of the row and the column code's; see ``symbols_touched``).
+    erased_cells: codeword cells (data and parity) that were unknown.
+    mismatched_cells: known codeword cells that disagree with the marker.
+    quality: fraction of codeword cells that are known and agree.
+    """
+
+    id: int
+    symbol: str
+    rotation: int
+    corrected: int
+    erased_cells: int
+    mismatched_cells: int
+    quality: float
 
 
 @dataclass(frozen=True)
@@ -51,20 +109,11 @@ class Ranking:
 
 
 class GridDecoder:
-    """Decodes sampled grids of one marker layout.
+    """Decodes sampled grids of one marker layout. Not thread-safe (``reedsolo``): one per thread."""
 
-    false_accept_bound: per-grid probability that a grid of random cells is
-        accepted by the bounded-distance decoder.
-    min_gap: the runner-up word must be at least this many cells further.
-    algebraic: also try the per-code RS decoder on grids the first step rejects.
-    """
-
-    def __init__(self, layout: MarkerLayout, false_accept_bound: float = DEFAULT_FALSE_ACCEPT_BOUND,
-                 min_gap: int = 6, algebraic: bool = True):
+    def __init__(self, layout: MarkerLayout, params: DecoderParams | None = None):
         self.layout = layout
-        self.false_accept_bound = false_accept_bound
-        self.min_gap = min_gap
-        self.algebraic = algebraic
+        self.params = params or DecoderParams()
         self._mask = layout.codeword_mask
         n_markers = len(layout.all_cells)
         # word w = rotation * n_markers + marker: the marker as it appears in a grid
@@ -96,10 +145,12 @@ class GridDecoder:
             total = 0
             for t in range(0, cap + 1):
                 total += comb(k, t)
-                if n_words * total / 2.0 ** k > self.false_accept_bound:
+                if n_words * total / 2.0 ** k > self.params.false_accept_probability:
                     break
                 radius[k] = t
         return radius
+
+    # ------------------------------------------------------------ batched decoding
 
     def rank(self, grids: np.ndarray) -> Ranking:
         """Distances of M grids (M, N, N) int8 to every word, reduced to the two nearest."""
@@ -113,14 +164,14 @@ class GridDecoder:
         return Ranking(order[:, 0], order[:, 1], d[rows, order[:, 0]].round().astype(int),
                        d[rows, order[:, 1]].round().astype(int), known.sum(1).astype(int))
 
-    def plausible(self, grids: np.ndarray, max_fraction: float = 0.3) -> np.ndarray:
-        """(M,) bool: grids (read roughly, e.g. one sample per cell) within ``max_fraction`` of their
-        known codeword cells of some word; a cheap screen before careful sampling and decoding."""
+    def plausible(self, grids: np.ndarray) -> np.ndarray:
+        """(M,) bool: grids (read roughly, e.g. one sample per cell) within ``screen_max_mismatch_fraction``
+        of their known codeword cells of some word; a cheap screen before careful sampling and decoding."""
         grids = self._as_grids(grids)
         if len(grids) == 0:
             return np.zeros(0, bool)
         ranking = self.rank(grids)
-        return (ranking.known > 0) & (ranking.d1 <= max_fraction * ranking.known)
+        return (ranking.known > 0) & (ranking.d1 <= self.params.screen_max_mismatch_fraction * ranking.known)
 
     def decode(self, grids: np.ndarray) -> list[DecodeResult | None]:
         """Decode M sampled grids (M, N, N) int8 (1 black, 0 white, -1 unknown), each on its own."""
@@ -162,7 +213,7 @@ class GridDecoder:
 
     def _accepted(self, ranking: Ranking) -> np.ndarray:
         radius = self.radius_by_known[ranking.known]
-        return (ranking.d1 <= radius) & (ranking.d2 >= ranking.d1 + self.min_gap)
+        return (ranking.d1 <= radius) & (ranking.d2 >= ranking.d1 + self.params.min_gap_cells)
 
     def _nearest(self, ranking: Ranking, i: int) -> tuple[int, int]:
         """(marker id, rotation) of grid i's nearest word."""
@@ -170,26 +221,106 @@ class GridDecoder:
         return marker_id, rotation
 
     def _worth_algebraic(self, ranking: Ranking, i: int) -> bool:
-        """Skip grids the RS decoder's own check would reject: its result must be the unique
-        nearest word, and the layout rejects more than ``max_mismatch_fraction`` of the known
-        cells disagreeing (d1 is a lower bound on that count)."""
+        """Skip grids the algebraic step's own check would reject: its result must be the unique
+        nearest word, and it rejects more than ``max_mismatch_fraction`` of the known cells
+        disagreeing (d1 is a lower bound on that count)."""
         return bool(ranking.d2[i] > ranking.d1[i]
-                    and ranking.d1[i] <= self.layout.max_mismatch_fraction * ranking.known[i])
+                    and ranking.d1[i] <= self.params.max_mismatch_fraction * ranking.known[i])
 
     def _algebraic(self, grid: np.ndarray, ranking: Ranking, i: int) -> DecodeResult | None:
-        """The lead's RS decoder, accepted only if it returns grid i's unique nearest word.
+        """The algebraic step, accepted only if it returns grid i's unique nearest word.
 
         Only that word's rotation is tried: any other answer would be refused.
         """
-        if not (self.algebraic and self._worth_algebraic(ranking, i)):
+        if not (self.params.algebraic and self._worth_algebraic(ranking, i)):
             return None
         marker_id, rotation = self._nearest(ranking, i)
-        result = self.layout.decode(grid, rotations=(rotation,))
-        if result is None or result.id != marker_id:
+        if self._algebraic_upright(np.rot90(grid, rotation)) != marker_id:
             return None
         return self._result(grid, marker_id, rotation)
 
+    # ------------------------------------------------------------ algebraic RS decoding
+
+    def decode_algebraic(self, grid: np.ndarray, rotations: tuple[int, ...] = (0, 1, 2, 3)) -> DecodeResult | None:
+        """Decode one sampled (N, N) int8 grid with the algebraic RS step alone, trying ``rotations``.
+
+        Returns the marker only if a Reed-Solomon code recovers data that is
+        exactly a dictionary marker and the known cells agree with that
+        marker's full codeword, in exactly one marker over the rotations;
+        otherwise None. Never a guess.
+        """
+        grid = np.asarray(grid, dtype=np.int8)
+        found = [(marker_id, k) for k in rotations
+                 if (marker_id := self._algebraic_upright(np.rot90(grid, k))) is not None]
+        if len({marker_id for marker_id, _ in found}) != 1:
+            return None
+        return self._result(grid, *found[0])
+
+    def _algebraic_upright(self, upright: np.ndarray) -> int | None:
+        """The one marker the RS codes recover from an upright grid and its known cells confirm, or None."""
+        candidates = dict.fromkeys(marker_id for data_bits in self._rs_candidates(upright)
+                                   if (marker_id := self._dictionary_id(data_bits)) is not None)
+        accepted = [marker_id for marker_id in candidates if self._agrees(upright, marker_id)]
+        return accepted[0] if len(accepted) == 1 else None
+
+    def _rs_candidates(self, upright: np.ndarray):
+        """Yield (n, n) data bits decoded by the row code and by the column code.
+
+        Each code is tried with the two parity copies merged and with each copy
+        alone: an occluder over one side band turns that copy into errors, and
+        the other copy alone then still decodes.
+        """
+        span = self.layout.data_span
+        data = upright[span, span]
+        for along_rows in (True, False):
+            symbols_bits = data if along_rows else data.T
+            near, far = self._parity_copies(upright, along_rows)
+            for parity_bits in (merge_copies(near, far), near, far):
+                symbols = self._rs_decode(np.concatenate([symbols_bits, parity_bits]))
+                if symbols is not None:
+                    bits = symbols_to_bits(symbols, self.layout.data_size)
+                    yield bits if along_rows else bits.T
+
+    def _parity_copies(self, upright: np.ndarray, along_rows: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The two (p, n) int8 copies of the row code's (or column code's) parity bits."""
+        lay = self.layout
+        copies = []
+        for near in (True, False):
+            index = [lay.parity_band(k, near) for k in range(lay.parity)]
+            copies.append(upright[index, lay.data_span] if along_rows else upright[lay.data_span, index].T)
+        return copies[0], copies[1]
+
+    def _rs_decode(self, codeword_bits: np.ndarray) -> np.ndarray | None:
+        """(n + p, n) bits with unknowns -> (n,) data symbols, or None if undecodable."""
+        lay = self.layout
+        erasures = np.flatnonzero((codeword_bits == UNKNOWN).any(axis=1))
+        if len(erasures) > lay.parity:
+            return None
+        received = bits_to_symbols(np.where(codeword_bits == UNKNOWN, 0, codeword_bits))
+        try:
+            _, full, _ = lay.rs_codec.decode(bytearray(received.tolist()), erase_pos=erasures.tolist())
+        except reedsolo.ReedSolomonError:
+            return None
+        full = np.array(full, dtype=np.int64)
+        if lay.parity_of(full[:lay.data_size]).tolist() != full[lay.data_size:].tolist():
+            return None  # reedsolo returned something that is not a codeword
+        return full[:lay.data_size]
+
+    def _dictionary_id(self, data_bits: np.ndarray) -> int | None:
+        matches = np.flatnonzero((self.layout.dictionary.bits == data_bits).all(axis=(1, 2)))
+        return int(matches[0]) if len(matches) else None
+
+    def _agrees(self, upright: np.ndarray, marker_id: int) -> bool:
+        """At most ``max_mismatch_fraction`` of the known codeword cells disagree with the marker's codeword."""
+        cells = upright[self._mask]
+        known = cells != UNKNOWN
+        mismatched = int(np.count_nonzero(known & (cells != self.layout.all_cells[marker_id][self._mask])))
+        return mismatched <= self.params.max_mismatch_fraction * np.count_nonzero(known)
+
+    # ------------------------------------------------------------ the result
+
     def _result(self, grid: np.ndarray, marker_id: int, rotation: int) -> DecodeResult:
+        """The DecodeResult of a grid read as marker ``marker_id`` at ``rotation`` (the only place one is built)."""
         upright = np.rot90(grid, rotation)
         expected = self.layout.all_cells[marker_id].astype(np.int8)
         mask = self._mask
@@ -214,13 +345,18 @@ class GridDecoder:
         both of its copies are (one intact copy is enough).
         """
         lay = self.layout
-        n, p, size = lay.data_size, lay.parity, lay.n_cells
-        r0 = lay.inner_origin + 1
-        span = slice(r0, r0 + n)
+        span = lay.data_span
         counts = []
         for b in (bad, bad.T):  # row code, then column code (columns as rows)
             data = int(np.count_nonzero(b[span, span].any(axis=1)))
-            # parity symbol k: near copy at row p - 1 - k, far copy at row N - p + k
-            parity = sum(bool(b[p - 1 - k, span].any() and b[size - p + k, span].any()) for k in range(p))
+            parity = sum(bool(b[lay.parity_band(k, True), span].any() and b[lay.parity_band(k, False), span].any())
+                         for k in range(lay.parity))
             counts.append(data + parity)
         return min(counts)
+
+
+def merge_copies(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Bitwise merge of two copies: a bit known in either; copies that disagree -> unknown."""
+    merged = np.where(a == UNKNOWN, b, a)
+    merged[(a != UNKNOWN) & (b != UNKNOWN) & (a != b)] = UNKNOWN
+    return merged

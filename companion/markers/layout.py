@@ -1,4 +1,4 @@
-"""The RS marker: cell layout, Reed-Solomon encoding, and decoding of a sampled grid.
+"""The RS marker: cell layout and Reed-Solomon encoding (decoding: ``companion.markers.codec``).
 
 Layout (docs/marker-spec.md has the figure). For an n x n data grid (n = 6 by
 default), p parity symbols per code and a one-cell white gap:
@@ -16,13 +16,16 @@ default), p parity symbols per code and a one-cell white gap:
 * a white gap of one cell separates the parity bands from the black border;
 * the four void corners carry one large and two small black circles each.
 
+Where each of these lies is written once, here: ``inner_origin`` (the inner
+marker's first cell), ``data_origin`` (the first data cell),
+``parity_band`` (the row, or column, of each parity copy).
+
 Grid coordinates (u, v) are in cells from the grid's outer top-left corner,
 u right and v down; cell (row r, column c) spans u in [c, c + 1], v in [r, r + 1].
 The grid is N = n + 2 + 2 (p + 1) cells square: 14 for n = 6, p = 2.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from functools import cached_property
 
 import cv2
@@ -31,7 +34,7 @@ import reedsolo
 
 from companion.markers.dictionary import MarkerDictionary, load_dictionary
 
-UNKNOWN = -1
+UNKNOWN = -1  # a sampled cell that could not be read (black 1, white 0)
 GAP_CELLS = 1
 PRIMITIVE_POLYNOMIALS = {5: 0x25, 6: 0x43, 8: 0x11D}  # x^5+x^2+1, x^6+x+1, x^8+x^4+x^3+x^2+1
 
@@ -47,35 +50,10 @@ class MarkerLayoutError(ValueError):
     """A layout was asked for with parameters we do not support."""
 
 
-@dataclass(frozen=True)
-class DecodeResult:
-    """A grid that decoded to a dictionary marker.
-
-    rotation: k such that ``np.rot90(grid, k)`` is the upright marker
-        (the marker appears rotated k x 90 deg clockwise in the grid).
-    corrected: RS symbols corrected or recovered from erasures.
-    erased_cells: codeword cells (data and parity) that were unknown.
-    mismatched_cells: known codeword cells that disagree with the marker.
-    quality: fraction of codeword cells that are known and agree.
-    """
-
-    id: int
-    symbol: str
-    rotation: int
-    corrected: int
-    erased_cells: int
-    mismatched_cells: int
-    quality: float
-
-
 class MarkerLayout:
-    """Cell layout, encoder and decoder of RS markers of one parity and dictionary.
+    """Cell layout and encoder of RS markers of one parity and dictionary."""
 
-    Decoding uses module state inside ``reedsolo``: call it from one thread.
-    """
-
-    def __init__(self, parity: int = 2, dictionary: str | int = "6x6", gap_cells: int = GAP_CELLS,
-                 max_mismatch_fraction: float = 0.25):
+    def __init__(self, parity: int = 2, dictionary: str | int = "6x6", gap_cells: int = GAP_CELLS):
         if parity not in TOP_LEFT_CIRCLES:
             raise MarkerLayoutError(f"parity must be one of {sorted(TOP_LEFT_CIRCLES)}, not {parity}")
         self.dictionary: MarkerDictionary = load_dictionary(dictionary)
@@ -84,9 +62,10 @@ class MarkerLayout:
         self.data_size = n = self.dictionary.size
         self.inner_origin = parity + gap_cells
         self.inner_cells = n + 2
+        self.data_origin = self.inner_origin + 1  # inside the inner marker's one-cell border
         self.n_cells = n + 2 + 2 * self.inner_origin
-        self.max_mismatch_fraction = max_mismatch_fraction
-        self._codec = reedsolo.RSCodec(nsym=parity, nsize=2**n - 1, c_exp=n, prim=PRIMITIVE_POLYNOMIALS[n])
+        # RS(n + p, n) over GF(2^n), shared by the row and the column code (and by the decoder)
+        self.rs_codec = reedsolo.RSCodec(nsym=parity, nsize=2**n - 1, c_exp=n, prim=PRIMITIVE_POLYNOMIALS[n])
         self._masks = self._codeword_masks()
 
     # ----- geometry -------------------------------------------------------------------------
@@ -112,12 +91,20 @@ class MarkerLayout:
         lo, hi = self.inner_origin, self.inner_origin + self.inner_cells
         return np.array([[lo, lo], [hi, lo], [hi, hi], [lo, hi]], dtype=float)
 
+    @property
+    def data_span(self) -> slice:
+        """The grid rows (and columns) of the data cells."""
+        return slice(self.data_origin, self.data_origin + self.data_size)
+
     def data_cell(self, row: int, column: int) -> tuple[int, int]:
         """Grid (row, column) of data bit (row, column)."""
-        return self.inner_origin + 1 + row, self.inner_origin + 1 + column
+        return self.data_origin + row, self.data_origin + column
 
-    def _band_index(self, k: int, near_side: bool) -> int:
-        """Grid row (or column) of parity symbol k in the band before (True) or after the marker."""
+    def parity_band(self, k: int, near_side: bool) -> int:
+        """Grid row (or column) of parity symbol k in the band before (True) or after the marker.
+
+        Symbol k sits k cells away from the gap: row p - 1 - k before, N - p + k after.
+        """
         if near_side:
             return self.parity - 1 - k
         return self.n_cells - self.parity + k
@@ -125,15 +112,15 @@ class MarkerLayout:
     def _codeword_masks(self) -> dict[str, np.ndarray]:
         """Boolean (N, N) masks of the data, each parity band, and the fixed cells."""
         shape = (self.n_cells, self.n_cells)
+        span = self.data_span
         data = np.zeros(shape, bool)
-        r0 = self.inner_origin + 1
-        data[r0:r0 + self.data_size, r0:r0 + self.data_size] = True
+        data[span, span] = True
         bands = np.zeros(shape, bool)
         for k in range(self.parity):
             for near in (True, False):
-                i = self._band_index(k, near)
-                bands[i, r0:r0 + self.data_size] = True
-                bands[r0:r0 + self.data_size, i] = True
+                i = self.parity_band(k, near)
+                bands[i, span] = True
+                bands[span, i] = True
         border = np.zeros(shape, bool)
         lo, hi = self.inner_origin, self.inner_origin + self.inner_cells
         border[lo:hi, lo:hi] = True
@@ -161,128 +148,32 @@ class MarkerLayout:
         """(n, n) data bits -> (row-code parity, column-code parity), each (p,) symbols."""
         rows = bits_to_symbols(data_bits)
         columns = bits_to_symbols(data_bits.T)
-        return self._parity(rows), self._parity(columns)
+        return self.parity_of(rows), self.parity_of(columns)
 
-    def _parity(self, message: np.ndarray) -> np.ndarray:
-        return np.array(self._codec.encode(bytearray(message.tolist()))[-self.parity:], dtype=np.int64)
+    def parity_of(self, message: np.ndarray) -> np.ndarray:
+        """(p,) int parity symbols of a message of (n,) symbols."""
+        return np.array(self.rs_codec.encode(bytearray(message.tolist()))[-self.parity:], dtype=np.int64)
 
     def cells(self, marker_id: int) -> np.ndarray:
         """(N, N) uint8 cells of marker ``marker_id``: 1 = black. Circles are not cells."""
         data_bits = self.dictionary.bits[marker_id]
-        n, r0 = self.data_size, self.inner_origin + 1
+        n, span = self.data_size, self.data_span
         grid = self.border_mask.astype(np.uint8)
-        grid[r0:r0 + n, r0:r0 + n] = data_bits
+        grid[span, span] = data_bits
         row_parity, column_parity = self.parity_symbols(data_bits)
         for k in range(self.parity):
             row_bits = symbols_to_bits(row_parity[k:k + 1], n)[0]
             column_bits = symbols_to_bits(column_parity[k:k + 1], n)[0]
             for near in (True, False):
-                i = self._band_index(k, near)
-                grid[i, r0:r0 + n] = row_bits
-                grid[r0:r0 + n, i] = column_bits
+                i = self.parity_band(k, near)
+                grid[i, span] = row_bits
+                grid[span, i] = column_bits
         return grid
 
     @cached_property
     def all_cells(self) -> np.ndarray:
         """(50, N, N) uint8 cells of every marker of the dictionary."""
         return np.stack([self.cells(i) for i in range(len(self.dictionary.bits))])
-
-    # ----- decoding -------------------------------------------------------------------------
-
-    def decode(self, grid: np.ndarray, rotations: tuple[int, ...] = (0, 1, 2, 3)) -> DecodeResult | None:
-        """Decode a sampled (N, N) int8 grid (1 black, 0 white, -1 unknown), trying ``rotations``.
-
-        Returns the marker only if a Reed-Solomon code recovers data that is
-        exactly a dictionary marker and the known cells agree with that
-        marker's full codeword; otherwise None. Never a guess.
-        """
-        results = [r for k in rotations if (r := self._decode_upright(np.rot90(grid, k), k)) is not None]
-        if len({r.id for r in results}) != 1:
-            return None
-        return results[0]
-
-    def _decode_upright(self, grid: np.ndarray, rotation: int) -> DecodeResult | None:
-        candidates: dict[int, int] = {}
-        for data_bits, corrected in self._rs_candidates(grid):
-            marker_id = self._dictionary_id(data_bits)
-            if marker_id is not None:
-                candidates[marker_id] = min(corrected, candidates.get(marker_id, corrected))
-        verdicts = [self._verify(grid, marker_id, corrected, rotation) for marker_id, corrected in candidates.items()]
-        accepted = [v for v in verdicts if v is not None]
-        return accepted[0] if len(accepted) == 1 else None
-
-    def _rs_candidates(self, grid: np.ndarray):
-        """Yield (data bits, symbols corrected) from the row code and from the column code.
-
-        Each code is tried with the two parity copies merged and with each copy
-        alone: an occluder over one side band turns that copy into errors, and
-        the other copy alone then still decodes.
-        """
-        n, r0 = self.data_size, self.inner_origin + 1
-        data = grid[r0:r0 + n, r0:r0 + n]
-        for along_rows in (True, False):
-            symbols_bits = data if along_rows else data.T
-            near, far = self._parity_copies(grid, along_rows)
-            for parity_bits in (merge_copies(near, far), near, far):
-                decoded = self._rs_decode(np.concatenate([symbols_bits, parity_bits]))
-                if decoded is not None:
-                    symbols, corrected = decoded
-                    bits = symbols_to_bits(symbols, n)
-                    yield (bits if along_rows else bits.T), corrected
-
-    def _parity_copies(self, grid: np.ndarray, along_rows: bool) -> tuple[np.ndarray, np.ndarray]:
-        """The two (p, n) int8 copies of the row code's (or column code's) parity bits."""
-        n, r0 = self.data_size, self.inner_origin + 1
-        copies = []
-        for near in (True, False):
-            index = [self._band_index(k, near) for k in range(self.parity)]
-            copies.append(grid[index, r0:r0 + n] if along_rows else grid[r0:r0 + n, index].T)
-        return copies[0], copies[1]
-
-    def _rs_decode(self, codeword_bits: np.ndarray) -> tuple[np.ndarray, int] | None:
-        """(n + p, n) bits with unknowns -> (n data symbols, symbols changed) or None if undecodable."""
-        erasures = np.flatnonzero((codeword_bits == UNKNOWN).any(axis=1))
-        if len(erasures) > self.parity:
-            return None
-        received = bits_to_symbols(np.where(codeword_bits == UNKNOWN, 0, codeword_bits))
-        try:
-            _, full, _ = self._codec.decode(bytearray(received.tolist()), erase_pos=erasures.tolist())
-        except reedsolo.ReedSolomonError:
-            return None
-        full = np.array(full, dtype=np.int64)
-        if self._parity(full[:self.data_size]).tolist() != full[self.data_size:].tolist():
-            return None  # reedsolo returned something that is not a codeword
-        return full[:self.data_size], int(np.count_nonzero(full != received))
-
-    def _dictionary_id(self, data_bits: np.ndarray) -> int | None:
-        matches = np.flatnonzero((self.dictionary.bits == data_bits).all(axis=(1, 2)))
-        return int(matches[0]) if len(matches) else None
-
-    def _verify(self, grid: np.ndarray, marker_id: int, corrected: int, rotation: int) -> DecodeResult | None:
-        """Accept a marker only if the known codeword cells agree with its full codeword."""
-        mask = self.codeword_mask
-        cells = grid[mask]
-        expected = self.all_cells[marker_id][mask]
-        known = cells != UNKNOWN
-        mismatched = int(np.count_nonzero(known & (cells != expected)))
-        if mismatched > self.max_mismatch_fraction * np.count_nonzero(known):
-            return None
-        return DecodeResult(
-            id=marker_id,
-            symbol=self.dictionary.symbol_of(marker_id),
-            rotation=rotation,
-            corrected=corrected,
-            erased_cells=int(np.count_nonzero(~known)),
-            mismatched_cells=mismatched,
-            quality=float(np.count_nonzero(known & (cells == expected)) / mask.sum()),
-        )
-
-
-def merge_copies(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Bitwise merge of two copies: a bit known in either; copies that disagree -> unknown."""
-    merged = np.where(a == UNKNOWN, b, a)
-    merged[(a != UNKNOWN) & (b != UNKNOWN) & (a != b)] = UNKNOWN
-    return merged
 
 
 def bits_to_symbols(bits: np.ndarray) -> np.ndarray:
