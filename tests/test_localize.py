@@ -112,7 +112,7 @@ def parity4_sequence(tmp_path_factory) -> Path:
     assert "\nparity: 2\n" in map_text
     (folder / "warehouse_p4.yaml").write_text(map_text.replace("\nparity: 2\n", "\nparity: 4\n"))
     facility_map = load_map(folder / "warehouse_p4.yaml")
-    hover = SEQUENCES / "warehouse_hover"
+    hover = SEQUENCES["warehouse_hover"]
     info = read_sequence_info(hover)
     camera = CameraModel.from_config(info["camera"], str(hover / "sequence.yaml"))
     truth = groundtruth(hover)
@@ -173,7 +173,7 @@ def test_a_replay_with_unreadable_frames_exits_non_zero(parity4_sequence, tmp_pa
 
 def test_a_replay_that_reads_nothing_exits_non_zero(tmp_path, capsys):
     hover = tmp_path / "hover"
-    shutil.copytree(SEQUENCES / "warehouse_hover", hover)
+    shutil.copytree(SEQUENCES["warehouse_hover"], hover)
     (hover / "video.avi").write_bytes(b"garbage")
     map_path = REPO / "maps" / "warehouse.yaml"
     code = cli.main(["localize", str(hover), "--map", str(map_path)])

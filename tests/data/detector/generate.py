@@ -22,7 +22,6 @@ import cv2
 import numpy as np
 
 from companion.geometry import frames
-from companion.sim import degrade
 from companion.sim import occluders
 from companion.sim import raster
 from companion.sim import scenes
