@@ -422,7 +422,7 @@ def test_pdf_rendered_by_poppler_has_35_mm_inner_squares_where_the_layout_puts_t
         sides_mm = np.linalg.norm(corners_mm - np.roll(corners_mm, 1, axis=0), axis=1)
         assert sides_mm.min() > 34.967 and sides_mm.max() < 35.019, sides_mm
         np.testing.assert_allclose(corners_mm.min(axis=0), expected_top_left_mm[marker_id], atol=0.03)
-        result = layout.decode(sample_grid(image, layout, corners_px))
+        result = GridDecoder(layout).decode_algebraic(sample_grid(image, layout, corners_px))
         assert (result.id, result.mismatched_cells, result.erased_cells) == (marker_id, 0, 0)
     # the scale bar: 1 mm high, its top 297 - 8 - 1.5 mm from the top edge, 50 mm long
     bar_row = image[round((297 - 8 - 1.0) / mm_per_px)]
