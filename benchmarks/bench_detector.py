@@ -44,6 +44,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common import aruco_detector, aruco_found, best_of, timed_together
 from companion.sim import degrade
 from companion.sim import raster
 from companion.sim import scenes
@@ -65,22 +66,6 @@ def fixed_targets(condition: str, parity: int) -> float | None:
 
 
 # ---------------------------------------------------------------- detectors
-
-def aruco_detector(dictionary, error_correction_rate: float | None = None) -> cv2.aruco.ArucoDetector:
-    params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    params.minDistanceToBorder = 0
-    if error_correction_rate is not None:
-        params.errorCorrectionRate = error_correction_rate
-    return cv2.aruco.ArucoDetector(dictionary, params)
-
-
-def aruco_found(detector: cv2.aruco.ArucoDetector, image: np.ndarray) -> list[tuple[int, np.ndarray]]:
-    corners, ids, _ = detector.detectMarkers(image)
-    if ids is None:
-        return []
-    return [(int(i), c.reshape(4, 2).astype(float)) for i, c in zip(ids.ravel(), corners)]
-
 
 class AprilTag:
     """pupil_apriltags tag36h11, 2 threads, full resolution (its best recall).
@@ -105,30 +90,6 @@ class AprilTag:
         return [(int(d.tag_id), np.asarray(d.corners, float)) for d in self._detector.detect(image)]
 
 
-def timed(function, image: np.ndarray, repeats: int):
-    """(result, best wall time in ms) over ``repeats`` runs."""
-    (result,), (best,), _ = timed_together([function], image, repeats)
-    return result, best
-
-
-def timed_together(functions, image: np.ndarray, repeats: int):
-    """Run the functions in turn, ``repeats`` rounds; (results, best wall ms, best CPU ms of each).
-
-    Alternating keeps a burst of load from other processes from landing on
-    one detector only; the best of several runs drops the rest of it. CPU
-    time is the process's (all threads): ArUco's thresholding runs on two
-    threads, our Python stages on one, so the CPU ratio is lower than the wall one.
-    """
-    wall = [np.inf] * len(functions)
-    cpu = [np.inf] * len(functions)
-    results = [None] * len(functions)
-    for _ in range(repeats):
-        for k, function in enumerate(functions):
-            start, start_cpu = time.perf_counter_ns(), time.process_time_ns()
-            results[k] = function(image)
-            wall[k] = min(wall[k], (time.perf_counter_ns() - start) / 1e6)
-            cpu[k] = min(cpu[k], (time.process_time_ns() - start_cpu) / 1e6)
-    return results, wall, cpu
 
 
 # ------------------------------------------------------------------ scoring
@@ -253,14 +214,14 @@ def run_condition(condition: str, parity: int, args, textures: Textures, detecto
         if parity != 2:
             continue  # the baselines do not depend on our parity
         aruco_scene = render_family(textures, "aruco", ids, condition, args.seed, index)
-        found, ms = timed(lambda im: aruco_found(detectors["aruco"], im), aruco_scene.image, args.repeats)
+        found, ms = best_of(aruco_found, detectors["aruco"], aruco_scene.image, repeats=args.repeats)
         scores["aruco"].add(aruco_scene.truths, found, ms)
         scores["aruco_ec1"].add(aruco_scene.truths, aruco_found(detectors["aruco_ec1"], aruco_scene.image), None)
         other_family_hits += len(ours.detect(aruco_scene.image))
         april_scene = render_family(textures, "apriltag", ids, condition, args.seed, index)
         other_family_hits += len(ours.detect(april_scene.image))
         if detectors["apriltag"].available:
-            found, ms = timed(detectors["apriltag"], april_scene.image, args.repeats)
+            found, ms = best_of(detectors["apriltag"], april_scene.image, repeats=args.repeats)
             scores["apriltag"].add(april_scene.truths, found, ms, upright_corners=False)
     return ConditionResult(condition, parity, scores, aruco_same, circles_frames, other_family_hits, stage_ms)
 
@@ -450,7 +411,7 @@ def main(argv=None) -> int:
     detectors = {
         "ours": {p: Detector(DetectorParams(parity=p)) for p in (2, 4)},
         "aruco": aruco_detector(textures.aruco_dictionary),
-        "aruco_ec1": aruco_detector(textures.aruco_dictionary, 1.0),
+        "aruco_ec1": aruco_detector(textures.aruco_dictionary, error_correction_rate=1.0),
         "apriltag": AprilTag(),
     }
     args.apriltag_available = detectors["apriltag"].available

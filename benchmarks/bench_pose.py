@@ -30,6 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common import REPO, aruco_detector, aruco_found
 from companion.geometry import frames
 from companion.sim import simulate
 from companion.sim import trajectory
@@ -39,7 +40,6 @@ from companion.localize import pose_errors
 from companion.geometry.pose import PoseParams, PoseSolver
 from companion.types import Detection
 
-REPO = Path(__file__).resolve().parents[1]
 MAP_PATH = REPO / "maps" / "warehouse.yaml"
 METHODS = ("joint", "single", "naive")
 RANGE_BINS_M = ((1.0, 3.0), (3.0, 6.0), (6.0, math.inf))
@@ -99,12 +99,13 @@ def recorded(path: Path) -> SequenceFrames:
 
 # --------------------------------------------------------------- detectors
 
-def make_detector(name: str):
-    """The RS detector (``companion.detect.detector``) or OpenCV ArUco on the same inner squares."""
+def make_detector(name: str, camera: CameraModel):
+    """The RS detector (``companion.detect.detector``, aligning corners through the camera's lens)
+    or OpenCV ArUco on the same inner squares."""
     if name == "rs":
         from companion.detect.detector import Detector
 
-        return Detector()
+        return Detector(camera=camera)
     return ArucoDetector()
 
 
@@ -115,17 +116,11 @@ class ArucoDetector:
         from companion.markers.dictionary import load_dictionary
 
         self.dictionary = load_dictionary("6x6")
-        params = cv2.aruco.DetectorParameters()
-        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        params.minDistanceToBorder = 0
-        self.detector = cv2.aruco.ArucoDetector(self.dictionary.aruco(), params)
+        self.detector = aruco_detector(self.dictionary.aruco())
 
     def detect(self, gray: np.ndarray) -> list[Detection]:
-        corners, ids, _ = self.detector.detectMarkers(gray)
-        if ids is None:
-            return []
-        return [Detection(self.dictionary.symbols[int(i)], int(i), c.reshape(4, 2).astype(float), "square", 0, 1.0)
-                for c, i in zip(corners, ids.ravel())]
+        return [Detection(self.dictionary.symbols[i], i, corners, "square", 0, 1.0)
+                for i, corners in aruco_found(self.detector, gray)]
 
 
 # ----------------------------------------------------------------- methods
@@ -157,8 +152,10 @@ class FrameRecord:
     seconds: dict
 
 
-def evaluate(sequence: SequenceFrames, facility_map: FacilityMap, detector, params: PoseParams) -> list[FrameRecord]:
+def evaluate(sequence: SequenceFrames, facility_map: FacilityMap, detector_name: str,
+             params: PoseParams) -> list[FrameRecord]:
     camera = sequence.camera
+    detector = make_detector(detector_name, camera)
     joint = PoseSolver(facility_map, camera, params)
     single = PoseSolver(facility_map, camera, replace(params, max_markers=1))
     records = []
@@ -262,14 +259,13 @@ def main(argv: list[str] | None = None) -> int:
     params = PoseParams(corner_sigma_px=args.corner_sigma, max_position_sd_m=args.max_position_sd,
                         max_tilt_deg=args.max_tilt)
     facility_map = load_map(MAP_PATH)
-    detector = make_detector(args.detector)
     if args.sequence:
         sequences = [recorded(p) for p in args.sequence]
     else:
         sequences = rendered(facility_map, CameraModel.from_config(simulate.DEFAULT_CAMERA, "simulate.DEFAULT_CAMERA"), args.fps)
     records = []
     for sequence in sequences:
-        records += evaluate(sequence, facility_map, detector, params)
+        records += evaluate(sequence, facility_map, args.detector, params)
     sources = ", ".join(f"{s.name}: {len(s.images)}" for s in sequences)
     print(report(records, sources, args.detector, params))
     return 0

@@ -37,13 +37,13 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from common import aruco_detector, aruco_found, best_of
 from companion.geometry import frames
 from companion.sim import degrade
 from companion.sim import raster
@@ -74,13 +74,6 @@ class Sample:
 
 
 # ------------------------------------------------------------ candidate methods
-
-def aruco_detector(method: int) -> cv2.aruco.ArucoDetector:
-    params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = method
-    params.minDistanceToBorder = 0
-    return cv2.aruco.ArucoDetector(load_dictionary("6x6").aruco(), params)
-
 
 def corner_subpix(gray: np.ndarray, corners_px: np.ndarray) -> np.ndarray:
     """cv2.cornerSubPix on the four corners, window half a cell (2-6 px)."""
@@ -185,8 +178,9 @@ def render_band(rng, layout: MarkerLayout, textures: dict, band, condition: str,
     an ArUco refinement's time is its detectMarkers time over CORNER_REFINE_NONE's, summed over the
     scenes, divided by the markers it refined.
     """
-    detectors = {name: aruco_detector(method) for name, method in ARUCO_METHODS.items()}
-    plain = aruco_detector(cv2.aruco.CORNER_REFINE_NONE)
+    dictionary = load_dictionary("6x6").aruco()
+    detectors = {name: aruco_detector(dictionary, method) for name, method in ARUCO_METHODS.items()}
+    plain = aruco_detector(dictionary, cv2.aruco.CORNER_REFINE_NONE)
     samples: list[Sample] = []
     aruco_corners: dict[str, list] = defaultdict(list)
     extra_ms: dict[str, float] = defaultdict(float)
@@ -215,21 +209,13 @@ def render_band(rng, layout: MarkerLayout, textures: dict, band, condition: str,
 
 def timed_detect(detector, image) -> tuple[float, dict[int, np.ndarray]]:
     """(best of three detectMarkers times in ms, {id: corners (4, 2)})."""
-    best = math.inf
-    for _ in range(3):
-        start = time.perf_counter()
-        corners, ids, _ = detector.detectMarkers(image)
-        best = min(best, (time.perf_counter() - start) * 1e3)
-    found = {} if ids is None else {int(i): np.asarray(c, float).reshape(4, 2) for c, i in zip(corners, ids.ravel())}
-    return best, found
+    found, best_ms = best_of(aruco_found, detector, image, repeats=3)
+    return best_ms, dict(found)
 
 
 def timed(function, *args) -> tuple[np.ndarray, float]:
     """(result, ms) of the second call (caches warm)."""
-    function(*args)
-    start = time.perf_counter()
-    result = function(*args)
-    return result, (time.perf_counter() - start) * 1e3
+    return best_of(function, *args, repeats=1, warmup=1)
 
 
 # ------------------------------------------------------------------- the tables
@@ -294,7 +280,7 @@ def lens_table(layout: MarkerLayout, markers: int, seed: int) -> None:
 
     width, height = IMAGE_SIZE
     K = intrinsics_from_hfov(width, height, 70.0)
-    detector = aruco_detector(cv2.aruco.CORNER_REFINE_SUBPIX)
+    detector = aruco_detector(load_dictionary("6x6").aruco())
     print("\nlens distortion (40-150 px, tilt <= 40 deg, anywhere in the frame; mean corner error px, median / p90; "
           "'edge' = markers > 90 px centred > 200 px off the image centre; det = companion.detect.detector.Detector):")
     print(f"{'k1, k2':<13} {'n':>3} {'aruco_subpix':>15} {'lk':>15} {'lk + camera':>15} {'lk edge':>9} "

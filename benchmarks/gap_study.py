@@ -22,9 +22,9 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
+from common import aruco_detector
 from companion.sim import raster
 from companion.sim import scenes
 from companion.markers.layout import MarkerLayout
@@ -52,12 +52,6 @@ class Tally:
     @property
     def rate(self) -> float:
         return self.detected / max(self.placed, 1)
-
-
-def aruco_detector(layout: MarkerLayout) -> cv2.aruco.ArucoDetector:
-    params = cv2.aruco.DetectorParameters()
-    params.minDistanceToBorder = 0
-    return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), params)
 
 
 def touching_markers(layout: MarkerLayout) -> int:
@@ -98,7 +92,7 @@ def score_scene(scene: scenes.Scene, corners: tuple, ids, tally: Tally) -> None:
 def run_configuration(parity: int, gap_cells: int, background: str, views: int, seed: int) -> Tally:
     layout = MarkerLayout(parity, gap_cells=gap_cells)
     textures = [raster.rs_marker_texture(layout, i, TEXTURE_PX_PER_CELL) for i in range(len(layout.all_cells))]
-    detector = aruco_detector(layout)
+    detector = aruco_detector(layout.dictionary.aruco(), corner_refinement=None)
     tally = Tally()
     n_markers = len(textures)
     n_scenes = views * n_markers // MARKERS_PER_SCENE
