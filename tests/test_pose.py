@@ -1,5 +1,6 @@
 """Pose solver on synthetic projections of the example map: accuracy against truth."""
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -128,7 +129,7 @@ def test_noisy_aisle_view_is_accurate():
 def test_joint_beats_single_marker():
     rng = np.random.default_rng(11)
     joint = PoseSolver(FACILITY, CAMERA)
-    single = PoseSolver(FACILITY, CAMERA, PoseParams(max_markers=1, max_position_sd_m=10.0))
+    single = PoseSolver(FACILITY, CAMERA, PoseParams(max_markers=1))
     # The single marker's IPPE branches are ambiguous at this range: a prior near
     # the truth picks the branch, so only accuracy is compared.
     prior = AISLE_VIEW @ frames.make_transform(frames.rot_z(0.05), [0.1, 0.1, 0.0])
@@ -206,8 +207,7 @@ def test_upside_down_body_is_implausible():
 # Marker N (north wall, 0.20 m) seen nearly head-on from 5 m: IPPE's two poses
 # reproject within a fraction of a pixel of each other.
 FAR_N_VIEW = body_pose(np.array([9.0, 5.5, 1.3]), [9.5, 10.5, 1.5])
-# Accept uncertain poses, to test the ambiguity logic on its own.
-LENIENT = PoseParams(max_position_sd_m=10.0)
+LENIENT = PoseParams()
 
 
 def test_far_single_marker_is_ambiguous_without_prior():
@@ -221,23 +221,36 @@ def test_far_single_marker_is_ambiguous_without_prior():
 
 def test_ambiguity_resolved_by_prior():
     detections = detections_for(FAR_N_VIEW, symbols={"N"})
-    wrong_fit_positions = []
     for prior_offset in ([0.1, -0.1, 0.05], [-0.1, 0.05, 0.0]):
         prior = FAR_N_VIEW @ frames.make_transform(frames.rot_z(math.radians(3)), prior_offset)
         solution = PoseSolver(FACILITY, CAMERA, LENIENT).solve_detailed(detections, t_ns=0, prior_T_map_body=prior)
-        assert solution.status == "ok" and solution.ambiguous and solution.used_prior
+        assert solution.status == "ok" and solution.used_prior
         assert position_error_m(solution.measurement, FAR_N_VIEW) < 1e-3
-    # The rejected branch really is far away: choosing it would have been a gross error.
-    for fit in solution.fits:
+    # The other branch really is far away: choosing it would have been a gross error.
+    unresolved = PoseSolver(FACILITY, CAMERA, LENIENT).solve_detailed(detections, t_ns=0)
+    wrong_fit_positions = []
+    for fit in unresolved.fits:
         T_map_body = frames.invert_transform(fit.T_camera_map) @ CAMERA.T_camera_body
         wrong_fit_positions.append(np.linalg.norm(T_map_body[:3, 3] - FAR_N_VIEW[:3, 3]))
     assert max(wrong_fit_positions) > 0.1
 
 
-def test_far_single_marker_is_too_uncertain_even_with_a_prior():
-    detections = detections_for(FAR_N_VIEW, symbols={"N"})
+def test_far_single_marker_with_a_prior_is_sent_with_its_large_covariance():
+    """Nothing consistent is withheld for being uncertain: the covariance says how little one far marker fixes."""
+    rng = np.random.default_rng(12)
+    detections = detections_for(FAR_N_VIEW, symbols={"N"}, noise_px=0.5, rng=rng)
     solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0, prior_T_map_body=FAR_N_VIEW)
-    assert solution.measurement is None and solution.status == "uncertain"
+    assert solution.status == "ok"
+    m = solution.measurement
+    near = PoseSolver(FACILITY, CAMERA).solve(detections_for(B_VIEW, noise_px=0.5, rng=rng), t_ns=0)
+    # 0.20 m at 5 m: decimetres along the line of sight (the old 0.10 m cut withheld it)
+    assert math.sqrt(np.linalg.eigvalsh(m.covariance_ned[:3, :3])[-1]) > 0.10
+    assert np.trace(m.covariance_ned[:3, :3]) > 20 * np.trace(near.covariance_ned[:3, :3])
+
+
+def test_removed_max_position_sd_key_is_explained():
+    with pytest.raises(ConfigError, match=r"^site.yaml: pose.max_position_sd_m: replaced by the covariance sent"):
+        config_from_dict(config_with("pose", {"max_position_sd_m": 0.1}), "site.yaml")
 
 
 def test_last_accepted_pose_is_the_prior():
@@ -261,12 +274,16 @@ def test_noise_beyond_the_expected_corner_noise_is_rejected():
     assert PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=2.0, max_rms_px=10.0)).solve(detections, t_ns=0) is not None
 
 
+def with_sigma(detections, sigma_px):
+    return [replace(d, corner_sigma_px=sigma_px) for d in detections]
+
+
 def test_covariance_grows_with_noise_and_range():
     rng = np.random.default_rng(3)
-    # Chi-square gates off (gate_probability 1): the residual variance alone scales the covariance.
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.2, gate_probability=1.0, max_rms_px=10.0, max_position_sd_m=1.0))
-    quiet = solver.solve(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), t_ns=0)
-    loud = solver.solve(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), t_ns=0)
+    # Each detection states its own corner noise (as the detector does): the covariance follows it.
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(max_rms_px=10.0))
+    quiet = solver.solve(with_sigma(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), 0.15), t_ns=0)
+    loud = solver.solve(with_sigma(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), 1.5), t_ns=0)
     assert np.trace(loud.covariance_ned[:3, :3]) > 10 * np.trace(quiet.covariance_ned[:3, :3])
     near = solver.solve(detections_for(body_pose(np.array([6.0, 5.0, 1.4]), [7.0, 3.5, 1.4]), symbols={"B"}), t_ns=0)
     far = solver.solve(detections_for(body_pose(np.array([7.0, 6.3, 1.4]), [7.0, 3.5, 1.4]), symbols={"B"}), t_ns=0)
@@ -351,16 +368,16 @@ def test_pose_jacobian_matches_finite_differences(camera, view):
     points_map = np.vstack([o.points_map for o in observations])
     # Away from the pose the points were seen from, with a rotation part that matters.
     T = T_map_body @ frames.make_transform(cv2.Rodrigues(np.array([0.02, -0.03, 0.05]))[0], [0.03, -0.02, 0.01])
-    analytic = solver._pose_jacobian(T, observations)
+    analytic = solver._pose_jacobian(T, points_map)
     numeric = finite_difference_jacobian(camera, T, points_map)
     assert analytic.shape == numeric.shape == (2 * len(points_map), 6)
     np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-8 * np.abs(numeric).max())
 
 
-def test_covariance_is_sigma2_times_the_inverse_normal_matrix():
+def test_covariance_is_the_inverse_weighted_normal_matrix():
     """The covariance sent, recomputed here from a finite-difference Jacobian on map axes."""
     rng = np.random.default_rng(4)
-    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5))
+    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5, model_sigma_px=0.0))
     for _ in range(3):
         detections = detections_for(AISLE_VIEW, noise_px=0.5, rng=rng, camera=FISHEYE_CAMERA)
         solution = solver.solve_detailed(detections, t_ns=0)
@@ -371,9 +388,9 @@ def test_covariance_is_sigma2_times_the_inverse_normal_matrix():
         points_px = np.vstack([d.corners_px for d in used])
         J = finite_difference_jacobian(FISHEYE_CAMERA, m.T_map_body, points_map)
         residuals = FISHEYE_CAMERA.project_from(FISHEYE_CAMERA.T_camera_body @ np.linalg.inv(m.T_map_body), points_map) - points_px
-        # sigma^2 = r.r / (2K - 6), at least corner_sigma_px^2
-        sigma2 = max(float(np.sum(residuals ** 2)) / (residuals.size - 6), 0.5 ** 2)
-        covariance_map = sigma2 * np.linalg.inv(J.T @ J)
+        # every point's sigma is corner_sigma_px (the detections state none): C = sigma^2 (J^T J)^-1
+        assert np.sqrt(np.mean(residuals ** 2)) < 1.0
+        covariance_map = 0.5 ** 2 * np.linalg.inv(J.T @ J)
         B = np.kron(np.eye(2), FACILITY.T_ned_map[:3, :3])
         np.testing.assert_allclose(m.covariance_ned, B @ covariance_map @ B.T, rtol=1e-5, atol=1e-12)
 
@@ -420,7 +437,7 @@ def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
 
 def test_circle_centres_join_the_fit():
     rng = np.random.default_rng(17)
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0, max_position_sd_m=1.0))
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0))
     plain_errors, circle_errors = [], []
     for _ in range(20):
         detections = detections_for(B_VIEW, noise_px=1.0, rng=rng)
