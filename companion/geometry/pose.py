@@ -8,8 +8,9 @@ the reason in ``status``). The steps:
    corners and, for the circles path, its corner-circle centres, as map-frame
    points against image points. Each point's noise is the detection's own
    ``corner_sigma_px`` (what the detector measured), else
-   ``PoseParams.corner_sigma_px``; every squared error below is in units of
-   that noise (chi-square).
+   ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` added in
+   quadrature; every squared error below is in units of that noise
+   (chi-square).
 2. Attitude: the flight controller's roll and pitch at the capture time
    (``companion.geometry.attitude``), when given, join every fit as a prior
    of standard deviation ``attitude_sd_deg``: two more residuals, so a
@@ -74,10 +75,10 @@ class PoseParams:
 
     corner_sigma_px: standard deviation of a detected point's x and y for
         detections that do not state their own (``Detection.corner_sigma_px``).
-    model_sigma_px: standard deviation of one shift common to all points of
-        a marker in the image, x and y: what the point noise leaves out (the
-        marker's surveyed position, the camera calibration, the print). A
-        map surveyed to d metres seen from r metres adds about d f / r pixels.
+    model_sigma_px: added in quadrature to every point's noise: what the
+        detector's own estimate leaves out (video compression, the camera
+        calibration, the marker's surveyed position: a map surveyed to d
+        metres seen from r metres is off by about d f / r pixels).
     gate_probability: probability that corner noise alone passes the
         chi-square tests (0.999: one honest marker in a thousand fails; 1.0
         turns them off).
@@ -99,7 +100,7 @@ class PoseParams:
     """
 
     corner_sigma_px: float = 0.5
-    model_sigma_px: float = 0.05
+    model_sigma_px: float = 0.02
     gate_probability: float = 0.999
     max_rms_px: float = 2.0
     hypothesis_gate_px: float = 30.0
@@ -155,19 +156,12 @@ class MarkerObservation:
 
 @dataclass(frozen=True, eq=False)
 class _Points:
-    """The points of a frame's observations, stacked once, and how their errors are weighed.
+    """The points of a frame's observations, stacked once.
 
     map: (K, 3); px: (K, 2); marker: (K,) index of each point's observation;
     starts, counts: (M,) each observation's first point and number of
     points; marker_ids: (M,) their map ids; sigma_px: (M,) each
-    observation's point noise; shift_weight: (M,) 1 / sqrt(sigma^2 + n tau^2).
-
-    A marker's n points have independent noise sigma (x and y) plus one
-    shift tau common to all of them (``PoseParams.model_sigma_px``): the
-    covariance of its residuals is ``sigma^2 I + tau^2 B B^T`` with ``B`` the
-    (2n, 2) stack of identities. With ``P = B B^T / n`` (the projector on a
-    common shift) its inverse square root is
-    ``(I - P) / sigma + P / sqrt(sigma^2 + n tau^2)``: ``whiten`` applies it.
+    observation's point noise (the detection's, the model's added).
     """
 
     map: np.ndarray
@@ -177,16 +171,15 @@ class _Points:
     counts: np.ndarray
     marker_ids: np.ndarray
     sigma_px: np.ndarray
-    shift_weight: np.ndarray
 
     @classmethod
     def of(cls, observations: list[MarkerObservation], model_sigma_px: float) -> _Points:
         counts = np.array([len(o.points_map) for o in observations])
-        sigma_px = np.array([o.sigma_px for o in observations])
+        # sigma^2 = sigma_detection^2 + sigma_model^2
+        sigma_px = np.sqrt(np.array([o.sigma_px for o in observations]) ** 2 + model_sigma_px ** 2)
         return cls(np.vstack([o.points_map for o in observations]), np.vstack([o.points_px for o in observations]),
                    np.repeat(np.arange(len(observations)), counts), np.cumsum(counts) - counts, counts,
-                   np.array([o.marker.id for o in observations]), sigma_px,
-                   1.0 / np.sqrt(sigma_px ** 2 + counts * model_sigma_px ** 2))
+                   np.array([o.marker.id for o in observations]), sigma_px)
 
     def of_markers(self, members: np.ndarray) -> _Points:
         """The points of the observations ``members`` (indices, ascending)."""
@@ -195,23 +188,15 @@ class _Points:
         keep = np.isin(self.marker, members)
         counts = self.counts[members]
         return _Points(self.map[keep], self.px[keep], np.repeat(np.arange(len(members)), counts),
-                       np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members],
-                       self.shift_weight[members])
+                       np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members])
 
     def whiten(self, values: np.ndarray) -> np.ndarray:
-        """(K, 2, ...) per-point errors (or their derivatives) -> whitened, the same shape.
-
-        x_i -> (x_i - mean) / sigma + mean / sqrt(sigma^2 + n tau^2), per marker.
-        """
-        mean = np.add.reduceat(values, self.starts, axis=0) / self.counts.reshape((-1,) + (1,) * (values.ndim - 1))
-        a = np.repeat(1.0 / self.sigma_px, self.counts).reshape((-1,) + (1,) * (values.ndim - 1))
-        b_minus_a = np.repeat(self.shift_weight - 1.0 / self.sigma_px, self.counts).reshape(a.shape)
-        return a * values + b_minus_a * np.repeat(mean, self.counts, axis=0)
+        """(K, 2, ...) per-point errors (or their derivatives) over their points' sigma."""
+        return values / np.repeat(self.sigma_px, self.counts).reshape((-1,) + (1,) * (values.ndim - 1))
 
     def marker_chi2(self, errors_px: np.ndarray) -> np.ndarray:
         """(M,) each marker's chi-square from its (K, 2) point errors."""
-        whitened = self.whiten(errors_px)
-        return np.add.reduceat(np.sum(whitened ** 2, axis=1), self.starts)
+        return np.add.reduceat(np.sum(self.whiten(errors_px) ** 2, axis=1), self.starts)
 
 
 @dataclass(frozen=True)
@@ -644,9 +629,8 @@ class PoseSolver:
     def _covariance_map(self, T_map_body: np.ndarray, points: _Points, gravity: _Gravity | None) -> np.ndarray:
         """(6, 6) covariance of [body position (3), small rotation (3)], both on map axes.
 
-        C = (J^T W J + A^T A)^-1: J = d(pixels)/d(pose), W the inverse covariance
-        of the points (``_Points``), A = d(whitened roll, pitch)/d(pose) when the
-        attitude was used.
+        C = (J^T W J + A^T A)^-1: J = d(pixels)/d(pose), W = diag(1 / sigma_px^2),
+        A = d(whitened roll, pitch)/d(pose) when the attitude was used.
         """
         J = points.whiten(self._pose_jacobian(T_map_body, points.map).reshape(-1, 2, 6)).reshape(-1, 6)
         information = J.T @ J
