@@ -24,7 +24,7 @@ from companion.mavlink.link import LinkParams, Origin
 from companion.capture.replay import SEQUENCE_FILE, read_sequence_info
 from companion.yaml_input import Where, read_yaml
 
-TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status"}
+TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status", "attitude"}
 SOURCE_KINDS = ("replay", "v4l2")
 REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
 V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
@@ -35,6 +35,8 @@ MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
 MAVLINK_SPECIAL_KEYS = {"messages", "origin"}
 LINK_FIELDS = {f.name for f in dataclasses.fields(LinkParams)} - {"origin"} - set(MESSAGES.values())
 STATUS_KEYS = {"interval_s"}
+ATTITUDE_KEYS = {"source", "max_age_s", "rate_hz"}
+ATTITUDE_SOURCES = ("auto", "none")
 DEFAULT_CONFIG = "default.yaml"
 
 
@@ -61,6 +63,22 @@ class V4L2Config:
 
 
 @dataclass(frozen=True)
+class AttitudeConfig:
+    """Where the flight controller's roll and pitch come from, and when they are too old.
+
+    source: "auto" (a camera: the flight controller's ATTITUDE over MAVLink;
+        a replay: its sequence's attitude.csv, if any) or "none".
+    max_age_s: at a frame's capture time, attitude older than this is stale:
+        the pose is solved without it (and the daemon says so once).
+    rate_hz: the rate ATTITUDE is requested at (MAV_CMD_SET_MESSAGE_INTERVAL).
+    """
+
+    source: str = "auto"
+    max_age_s: float = 0.1
+    rate_hz: float = 50.0
+
+
+@dataclass(frozen=True)
 class Config:
     path: Path
     source: ReplayConfig | V4L2Config
@@ -71,6 +89,7 @@ class Config:
     fusion: FusionParams
     mavlink: LinkParams
     status_interval_s: float = 0.5
+    attitude: AttitudeConfig = AttitudeConfig()
 
 
 def default_config_path() -> Path:
@@ -108,7 +127,21 @@ def config_from_dict(data, path) -> Config:
         fusion=_parameters(data.get("fusion"), where.sub("fusion"), FusionParams, "fusion parameters"),
         mavlink=_mavlink(data.get("mavlink"), where.sub("mavlink"), facility_map),
         status_interval_s=status_where.number(status, "interval_s", 0.5, minimum=0.05),
+        attitude=_attitude(data.get("attitude"), where.sub("attitude")),
     )
+
+
+def _attitude(section, where: Where) -> AttitudeConfig:
+    section = where.mapping(section, "source, max_age_s, rate_hz")
+    where.reject_unknown(section, ATTITUDE_KEYS)
+    source = section.get("source", "auto")
+    if source not in ATTITUDE_SOURCES:
+        raise where.error(f"must be one of {', '.join(ATTITUDE_SOURCES)}, got {source!r}", "source")
+    rate_hz = where.number(section, "rate_hz", 50.0, minimum=1.0)
+    if rate_hz > 500.0:
+        raise where.error(f"must be <= 500, got {rate_hz:g}", "rate_hz")
+    return AttitudeConfig(source=source, max_age_s=where.number(section, "max_age_s", 0.1, minimum=0.005),
+                          rate_hz=rate_hz)
 
 
 def _source(section, where: Where) -> ReplayConfig | V4L2Config:

@@ -32,6 +32,8 @@ from companion.geometry import frames
 from companion.daemon.config import Config, ConfigError, ReplayConfig
 from companion.detect.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter
+from companion.geometry.attitude import AttitudeHistory, AttitudeLookup
+from companion.mavlink.attitude import AttitudeStream
 from companion.mavlink.link import MavlinkLink
 from companion.daemon.notify import Notifier
 from companion.daemon.pipeline import Pipeline
@@ -78,13 +80,15 @@ class Daemon:
         self.status_stream = status_stream
         detector = make_detector(config)
         self.source = make_source(config)
-        self.link = MavlinkLink(config.mavlink)
+        attitude_stream, attitude = attitude_source(config, self.source)
+        self.link = MavlinkLink(config.mavlink, attitude_stream)
         self.pipeline = Pipeline(
             detector,
             PoseSolver(config.facility_map, config.camera, config.pose),
             PoseFilter(config.fusion),
             self.link,
             T_map_ned=frames.invert_transform(config.facility_map.T_ned_map),
+            attitude=attitude,
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
         self.notifier = Notifier()
@@ -189,6 +193,30 @@ class Daemon:
                  dict(self.link.counters.sent))
         for name, median_ms, p99_ms in stats.stage_table():
             log.info("stage %-14s median %7.2f ms  p99 %7.2f ms", name, median_ms, p99_ms)
+
+
+def attitude_source(config: Config, source: FrameSource) -> tuple[AttitudeStream | None, AttitudeLookup | None]:
+    """(the link's attitude stream, the pipeline's attitude lookup) the config asks for.
+
+    A camera: the flight controller's ATTITUDE over MAVLink. A replay: its
+    recording's attitude.csv (a live autopilot's attitude has nothing to do
+    with recorded frames), or none.
+    """
+    settings = config.attitude
+    if settings.source == "none":
+        log.info("attitude: off (attitude.source: none): poses without the flight controller's roll and pitch")
+        return None, None
+    if isinstance(config.source, ReplayConfig):
+        lookup = source.attitude_lookup(settings.max_age_s)
+        if lookup is None:
+            log.info("attitude: the replay has no attitude.csv: poses without the flight controller's roll and pitch")
+        else:
+            log.info("attitude: from the replay's attitude.csv")
+        return None, lookup
+    history = AttitudeHistory(settings.max_age_s)
+    log.info("attitude: ATTITUDE from the flight controller at %g Hz, stale after %g s", settings.rate_hz,
+             settings.max_age_s)
+    return AttitudeStream(history, settings.rate_hz), history.lookup
 
 
 def make_source(config: Config) -> FrameSource:

@@ -7,6 +7,10 @@ Threads (both stop on ``close()``):
   TIMESYNC requests, runs the origin handshake and sends pending STATUSTEXTs;
 * ``heartbeat`` sends HEARTBEAT at 1 Hz (type 18, autopilot 8).
 
+With an ``AttitudeStream`` (``companion.mavlink.attitude``) the link also asks
+the flight controller for its attitude and files each ATTITUDE it sends, on
+our clock, for the pose stage: that part lives in its own module.
+
 The pipeline thread calls ``publish(estimate)``, which sends at once (lowest
 latency) when the link is streaming, and never faster than ``max_rate_hz``
 (50 Hz at most: ArduPilot drops samples closer than 20 ms), judged on capture
@@ -34,6 +38,7 @@ from dataclasses import dataclass, field
 from companion.mavlink import messages as mm  # sets MAVLINK20 before pymavlink loads
 from pymavlink import mavutil  # noqa: E402  (after mavlink_messages on purpose)
 
+from companion.mavlink.attitude import ATTITUDE_MESSAGES, AttitudeStream
 from companion.types import Estimate
 
 log = logging.getLogger(__name__)
@@ -144,8 +149,9 @@ class _TransportLost(ConnectionError):
 class MavlinkLink:
     """Owns the connection to the FC; see the module docstring for the threads."""
 
-    def __init__(self, params: LinkParams):
+    def __init__(self, params: LinkParams, attitude: AttitudeStream | None = None):
         self.params = params
+        self.attitude = attitude
         self.counters = LinkCounters()
         self.state = LinkState.CONNECTING
         self.fc_system_id: int | None = None
@@ -309,7 +315,9 @@ class MavlinkLink:
     def _handle(self, message) -> None:
         kind = message.get_type()
         self.counters.received[kind] += 1
-        if kind == "HEARTBEAT" and message.autopilot != mm.mavlink2.MAV_AUTOPILOT_INVALID:
+        if kind in ATTITUDE_MESSAGES:
+            self._on_attitude(message)
+        elif kind == "HEARTBEAT" and message.autopilot != mm.mavlink2.MAV_AUTOPILOT_INVALID:
             self._on_fc_heartbeat(message)
         elif mm.is_timesync_request(message):
             self._send(mm.timesync_reply(message.ts1, time.monotonic_ns()))
@@ -330,6 +338,8 @@ class MavlinkLink:
                             self.fc_system_id, self.params.system_id)
             # A FC that appears (or reappears after a reboot) gets the origin before any vision.
             self._begin_handshake(now_s)
+            if self.attitude is not None:
+                self.attitude.autopilot_appeared()
 
     def _on_origin(self, message) -> None:
         origin = Origin(message.latitude * 1e-7, message.longitude * 1e-7, message.altitude * 1e-3)
@@ -344,6 +354,21 @@ class MavlinkLink:
             self.counters.origin_confirmed += 1
             log.info("link: origin confirmed by the flight controller; streaming vision")
             self.state = LinkState.STREAMING
+
+    # ---------------------------------------------------------- attitude
+
+    def _on_attitude(self, message) -> None:
+        """The autopilot's attitude (not another component's) into the attitude stream."""
+        receive_ns = time.monotonic_ns()
+        if self.attitude is None or self.fc_system_id is None:
+            return
+        if (message.get_srcSystem(), message.get_srcComponent()) == (self.fc_system_id, self.fc_component_id):
+            self.attitude.on_message(message, receive_ns)
+
+    def _request_attitude(self, now_s: float) -> None:
+        if self.attitude is not None and self.fc_seen:
+            for message in self.attitude.requests_due(now_s, self.fc_system_id, self.fc_component_id):
+                self._send(message)
 
     # ------------------------------------------------------- periodic
 
@@ -367,6 +392,7 @@ class MavlinkLink:
             self._begin_handshake(now_s)
         if self.state is LinkState.HANDSHAKE:
             self._handshake_step(now_s)
+        self._request_attitude(now_s)
         if self._statustexts and now_s - self._last_statustext_s >= self.params.statustext_interval_s:
             severity, text = self._statustexts.popleft()
             if self._send(mm.statustext(severity, text)):
