@@ -547,3 +547,79 @@ def test_detector_circles_path_poses_of_every_dictionary(dictionary):
             assert m is not None
             errors.append(position_error_m(m, T_map_body))
     assert np.median(errors) < 0.02 and max(errors) < 0.05
+
+
+# ----------------------------------------------------------------- attitude
+
+def attitude_of(T_map_body, roll_error_deg=0.0, pitch_error_deg=0.0):
+    """The flight controller's roll and pitch for a body pose (the truth), plus errors."""
+    from companion.types import AttitudeSample
+
+    roll, pitch = frames.roll_pitch_321(FACILITY.T_ned_map[:3, :3] @ T_map_body[:3, :3])
+    return AttitudeSample(0, roll + math.radians(roll_error_deg), pitch + math.radians(pitch_error_deg))
+
+
+def test_roll_pitch_jacobian_matches_finite_differences():
+    R = frames.rotation_from_euler_321(0.3, -0.4, 2.0)
+    numeric = []
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = 1e-7
+        plus = frames.roll_pitch_321(cv2.Rodrigues(step)[0] @ R)
+        minus = frames.roll_pitch_321(cv2.Rodrigues(-step)[0] @ R)
+        numeric.append((np.array(plus) - np.array(minus)) / 2e-7)
+    np.testing.assert_allclose(frames.roll_pitch_321_jacobian(R), np.column_stack(numeric), atol=1e-6)
+    assert frames.roll_pitch_321(R) == pytest.approx(frames.euler_321_from_rotation(R)[:2])
+
+
+def test_attitude_picks_the_ippe_branch_of_a_far_single_marker():
+    """The far, head-on N view is ambiguous from the corners alone; the measured roll and pitch pick the branch."""
+    rng = np.random.default_rng(30)
+    detections = detections_for(FAR_N_VIEW, symbols={"N"}, noise_px=0.05, rng=rng)
+    plain = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.05)).solve_detailed(detections, t_ns=0)
+    assert plain.status == "ambiguous"
+    solution = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.05)).solve_detailed(
+        detections, t_ns=0, attitude=attitude_of(FAR_N_VIEW, 0.2, -0.3))
+    assert solution.status == "ok" and solution.used_attitude and not solution.ambiguous
+    # one 0.20 m marker head-on at 5 m: decimetres along the wall, and the covariance says so
+    error_m = position_error_m(solution.measurement, FAR_N_VIEW)
+    assert error_m < 0.3
+    assert error_m < 3.0 * math.sqrt(np.linalg.eigvalsh(solution.measurement.covariance_ned[:3, :3])[-1])
+    # the branch the attitude ruled out is the far one
+    assert max(np.linalg.norm((frames.invert_transform(f.T_camera_map) @ CAMERA.T_camera_body)[:3, 3]
+                              - FAR_N_VIEW[:3, 3]) for f in plain.fits) > 0.3
+
+
+def test_attitude_disagreeing_with_many_markers_is_left_out():
+    """Ten degrees off (a wrong mount, a bad estimate): the markers win and the pose is solved without it."""
+    detections = detections_for(AISLE_VIEW, noise_px=0.05, rng=np.random.default_rng(2))
+    solution = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.05)).solve_detailed(
+        detections, t_ns=0, attitude=attitude_of(AISLE_VIEW, 10.0, 0.0))
+    assert solution.status == "ok" and not solution.used_attitude
+    assert position_error_m(solution.measurement, AISLE_VIEW) < 0.02
+
+
+def test_covariance_with_attitude_matches_the_scatter():
+    """Corner noise and attitude noise at their stated sigmas: the normalised 6-dof errors average about 6,
+    and the roll/pitch variances are at most the attitude's."""
+    rng = np.random.default_rng(8)
+    params = PoseParams(corner_sigma_px=0.3, attitude_sd_deg=0.5, model_sigma_px=0.0)
+    truth_ned = FACILITY.T_ned_map @ B_VIEW
+    scores, with_attitude, without = [], [], []
+    for _ in range(200):
+        detections = detections_for(B_VIEW, noise_px=0.3, rng=rng)
+        errors_deg = rng.normal(0.0, 0.5, 2)
+        m = PoseSolver(FACILITY, CAMERA, params).solve(detections, t_ns=0, prior_T_map_body=B_VIEW,
+                                                       attitude=attitude_of(B_VIEW, *errors_deg))
+        if m is None:
+            continue
+        dp = m.T_ned_body[:3, 3] - truth_ned[:3, 3]
+        dtheta = frames.rotvec_from_rotation(m.T_ned_body[:3, :3] @ truth_ned[:3, :3].T)
+        error = np.concatenate([dp, dtheta])
+        scores.append(error @ np.linalg.solve(m.covariance_ned, error))
+        with_attitude.append(np.trace(m.covariance_ned[:3, :3]))
+        assert m.covariance_ned[3, 3] <= math.radians(0.5) ** 2 * 1.0001
+    plain = PoseSolver(FACILITY, CAMERA, params).solve(detections_for(B_VIEW), t_ns=0, prior_T_map_body=B_VIEW)
+    assert len(scores) >= 190
+    assert 4.5 < np.mean(scores) < 8.0
+    assert np.mean(with_attitude) < np.trace(plain.covariance_ned[:3, :3])

@@ -62,13 +62,20 @@ class AttitudeHistory:
         with self._lock:
             return self._samples[-1] if self._samples else None
 
+    def samples(self) -> list[AttitudeSample]:
+        """A copy of the samples held, oldest first."""
+        with self._lock:
+            return list(self._samples)
+
     def at(self, t_ns: int) -> AttitudeSample | None:
         """Roll and pitch at ``t_ns``, or None when the attitude is stale or missing there."""
         with self._lock:
             before, after = _around(self._samples, t_ns)
         if before is None:
             # before the first sample: only a sample just after the frame will do
-            return after if after is not None and after.t_ns - t_ns <= self.max_age_ns else None
+            if after is not None and after.t_ns - t_ns <= self.max_age_ns:
+                return AttitudeSample(t_ns, after.roll_rad, after.pitch_rad)
+            return None
         if after is not None and after.t_ns - before.t_ns <= self.max_age_ns:
             return _interpolated(before, after, t_ns)
         return AttitudeSample(t_ns, before.roll_rad, before.pitch_rad) if t_ns - before.t_ns <= self.max_age_ns else None
