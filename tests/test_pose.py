@@ -605,7 +605,7 @@ def test_covariance_with_attitude_matches_the_scatter():
     rng = np.random.default_rng(8)
     params = PoseParams(corner_sigma_px=0.3, attitude_sd_deg=0.5, model_sigma_px=0.0)
     truth_ned = FACILITY.T_ned_map @ B_VIEW
-    scores, with_attitude, without = [], [], []
+    scores, with_attitude = [], []
     for _ in range(200):
         detections = detections_for(B_VIEW, noise_px=0.3, rng=rng)
         errors_deg = rng.normal(0.0, 0.5, 2)
