@@ -101,6 +101,9 @@ class PoseMeasurement:
         axes), derived from the reprojection residuals and geometry.
     marker_ids: ids of the map markers used.
     reprojection_rms_px: RMS reprojection error of the accepted fit.
+    unambiguous: the pose stage ruled out every other pose on its own (by
+        the image or the flight controller's attitude), without a prior: a
+        fix that needs no confirmation by further frames.
     """
 
     t_ns: int
@@ -109,6 +112,7 @@ class PoseMeasurement:
     covariance_ned: np.ndarray
     marker_ids: tuple[int, ...]
     reprojection_rms_px: float
+    unambiguous: bool = False
 
 
 @dataclass(frozen=True)

@@ -338,7 +338,8 @@ class PoseSolver:
             return PoseSolution(None, choice.status, **common)
         with_attitude = choice.fit.with_attitude
         measurement = self._measurement(choice.fit, points.of_markers(np.array(used)), observations, t_ns,
-                                        gravity if with_attitude else None)
+                                        gravity if with_attitude else None,
+                                        unambiguous=not (choice.ambiguous or choice.used_prior))
         self._last = (t_ns, measurement.T_map_body)
         rejected = tuple(o.marker.id for i, o in enumerate(observations) if i not in used)
         return PoseSolution(measurement, "ok", used_prior=choice.used_prior, used_attitude=with_attitude,
@@ -613,7 +614,7 @@ class PoseSolver:
     # ---------------------------------------------------------- measurement
 
     def _measurement(self, fit: Fit, points: _Points, observations: list[MarkerObservation], t_ns: int,
-                     gravity: _Gravity | None) -> PoseMeasurement:
+                     gravity: _Gravity | None, unambiguous: bool) -> PoseMeasurement:
         T_map_body = _body_pose(fit.T_camera_map, self._T_camera_body)
         covariance_map = self._covariance_map(T_map_body, points, gravity)
         T_ned_map = self.facility_map.T_ned_map
@@ -624,6 +625,7 @@ class PoseSolver:
             covariance_ned=frames.rotate_pose_covariance(covariance_map, T_ned_map[:3, :3]),
             marker_ids=tuple(observations[i].marker.id for i in fit.inliers),
             reprojection_rms_px=fit.rms_px,
+            unambiguous=unambiguous,
         )
 
     def _covariance_map(self, T_map_body: np.ndarray, points: _Points, gravity: _Gravity | None) -> np.ndarray:
