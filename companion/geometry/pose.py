@@ -151,7 +151,8 @@ class MarkerObservation:
     def side_px(self) -> float:
         """Mean side length of the marker's inner square in the image."""
         corners = self.detection.corners_px
-        return float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+        sides = corners - corners[[3, 0, 1, 2]]
+        return float(np.sqrt((sides * sides).sum(axis=1)).mean())
 
 
 @dataclass(frozen=True, eq=False)
