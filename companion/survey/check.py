@@ -14,16 +14,21 @@ it for the markers that shared a frame with it, until nothing changes.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
 
 import numpy as np
+from tqdm import tqdm
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
+from companion.markers.layout import MarkerLayout
 from companion.survey import graph
 from companion.survey.adjust import BundleAdjustment
-from companion.survey.observations import SurveyFrame
+from companion.survey.observations import SurveyError, SurveyFrame, collect, keyframes
 
 VERDICTS = ("ok", "moved", "unseen")
 
@@ -70,17 +75,22 @@ class MarkerCheck:
 
 
 def check_markers(survey_frames: list[SurveyFrame], facility_map: FacilityMap, camera: CameraModel,
-                  frames_seen: dict[int, int], params: CheckParams = CheckParams(), progress=None) -> list[MarkerCheck]:
+                  frames_seen: dict[int, int], params: CheckParams = CheckParams(),
+                  on_checked: Callable[[], None] | None = None) -> list[MarkerCheck]:
     """A MarkerCheck for every marker of the map (in map order), from frames of mapped markers only.
 
-    progress: called once per marker checked (for a progress bar).
+    on_checked: called after each marker's estimate (a progress bar's step).
     """
     mapped = {m: marker.T_map_marker for m, marker in facility_map.markers.items()}
     shown = [_only_mapped(f, mapped) for f in survey_frames]
     shown = [f for f in shown if len(f.sightings) >= 2]
-    results = {m: _check_one(m, shown, mapped, set(), camera, frames_seen, facility_map, params) for m in mapped}
-    if progress:
-        progress(len(mapped))
+    def check(m: int, excluded: set[int]) -> MarkerCheck:
+        result = _check_one(m, shown, mapped, excluded, camera, frames_seen, facility_map, params)
+        if on_checked is not None:
+            on_checked()
+        return result
+
+    results = {m: check(m, set()) for m in mapped}
     moved: set[int] = set()
     while True:
         newly = {m for m, r in results.items() if r.verdict == "moved"} - moved
@@ -90,7 +100,7 @@ def check_markers(survey_frames: list[SurveyFrame], facility_map: FacilityMap, c
         # only the markers that shared a frame with a newly moved one change
         affected = {m for f in shown if newly & set(f.marker_ids) for m in f.marker_ids}
         for m in affected:
-            results[m] = _check_one(m, shown, mapped, moved - {m}, camera, frames_seen, facility_map, params)
+            results[m] = check(m, moved - {m})
     return [results[m] for m in facility_map.markers]
 
 
@@ -148,3 +158,24 @@ def _spread(items: list, count: int) -> list:
     if len(items) <= count:
         return items
     return [items[i] for i in np.linspace(0, len(items) - 1, count).round().astype(int)]
+
+
+def check_map(sequences: list[Path], facility_map: FacilityMap, camera: CameraModel, params: CheckParams = CheckParams(),
+              fps: float | None = None, min_motion_px: float = 3.0, progress: bool = False) -> list[MarkerCheck]:
+    """Replay walk-throughs against a map: a MarkerCheck per map marker (markers not in the map are ignored)."""
+    from companion.detect.detector import Detector, DetectorParams
+
+    layout = MarkerLayout(parity=facility_map.parity, dictionary=facility_map.dictionary)
+    detector = Detector(DetectorParams(parity=facility_map.parity, dictionary=facility_map.dictionary), camera=camera)
+
+    def size_m(marker_id: int) -> float | None:
+        marker = facility_map.markers.get(marker_id)
+        return None if marker is None else marker.size_m
+
+    footage = collect(sequences, camera, detector, size_m, layout, fps, progress)
+    if not footage.frames:
+        raise SurveyError(f"no marker of {facility_map.path} in the footage ({footage.frame_count} frames read)")
+    with tqdm(total=len(facility_map.markers), unit="marker", desc="checking", disable=not progress,
+              file=sys.stderr) as bar:
+        return check_markers(keyframes(footage.frames, min_motion_px), facility_map, camera, footage.frames_seen(),
+                             params, on_checked=lambda: bar.update(1))

@@ -89,11 +89,11 @@ class Footage:
         return counts
 
 
-def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callable[[int], float],
+def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callable[[int], float | None],
             layout: MarkerLayout, fps: float | None = None, progress: bool = True) -> Footage:
     """Detect markers in every frame of every sequence; raises SurveyError for unusable footage.
 
-    size_m: the inner-square side of a marker id (fixes its points in the marker frame).
+    size_m: the inner-square side of a marker id (fixes its points in the marker frame); None leaves it out.
     """
     found: list[SurveyFrame] = []
     frame_count = skipped = 0
@@ -107,6 +107,7 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
         source.start()
         bar = tqdm(total=len(recording.frames), unit="frame", desc=f"detecting {Path(sequence).name}",
                    disable=not progress, file=sys.stderr)
+        first = True
         try:
             while True:
                 frame = source.get(GET_TIMEOUT_S)
@@ -114,8 +115,9 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
                     if source.finished:
                         break
                     continue
-                if frame_count == 0 or frame.index == recording.frames[0]:
+                if first:
                     check_frame_size(frame.image, camera, sequence)
+                    first = False
                 frame_count += 1
                 bar.update(1)
                 sightings = sightings_of(detector.detect(frame.image), size_m, layout)
@@ -137,16 +139,17 @@ def check_frame_size(image: np.ndarray, camera: CameraModel, sequence) -> None:
                           f"{camera.width}x{camera.height} camera; calibrate this camera at this resolution")
 
 
-def sightings_of(detections: list[Detection], size_m: Callable[[int], float],
+def sightings_of(detections: list[Detection], size_m: Callable[[int], float | None],
                  layout: MarkerLayout) -> tuple[Sighting, ...]:
-    """Each marker decoded once in the frame as points; a marker decoded twice is left out (it cannot be both)."""
+    """Each marker decoded once in the frame as points; a marker decoded twice is left out (it cannot be
+    both), and so is one whose size is None."""
     ids = [d.id for d in detections]
     circles_uv = np.asarray(layout.circles, dtype=float)[:, :2]
     sightings = []
     for detection in detections:
-        if ids.count(detection.id) > 1:
-            continue
         size = size_m(detection.id)
+        if ids.count(detection.id) > 1 or size is None:
+            continue
         points_marker = [frames.marker_inner_corners_m(size)]
         points_px = [np.asarray(detection.corners_px, dtype=float).reshape(4, 2)]
         circle_ids = np.asarray(detection.circle_ids, dtype=int).reshape(-1)
