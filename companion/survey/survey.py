@@ -132,7 +132,7 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
     mapped_ids = set(counts) - set(dropped)
     kept = [_without(f, set(dropped)) for f in keyframes(footage.frames, options.min_motion_px)]
     shared = [f for f in kept if len(f.sightings) >= 2]
-    _check_groups(shared, mapped_ids, anchors, symbols, footage)
+    groups = _check_groups(shared, mapped_ids, anchors, symbols, footage)
 
     moved: list[MarkerCheck] = []
     fixed = {m: marker.T_map_marker for m, marker in anchors.markers.items() if m in mapped_ids}
@@ -141,19 +141,17 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
                  if c.verdict == "moved"]
         for check in moved:
             del fixed[check.marker_id]
+    agreement: list[AnchorAgreement] = []
+    if len(fixed) >= 2 and not extend:
+        agreement = _anchor_agreement(shared, camera, fixed, groups, counts, anchors, symbols, options)
     initial = graph.initial_poses(shared, fixed, camera)
     for check in moved:  # start from where the check found it
         initial[check.marker_id] = check.T_map_marker
     posed_frames, cameras = _posed(shared, initial, camera)
     free_ids = sorted(m for m in initial if m not in fixed)
-    on_wall = frozenset(m for m in free_ids if anchors.survey.on_wall(symbols[m]))
-    priors = Priors(on_wall=on_wall, wall_sd_rad=math.radians(anchors.survey.wall_sd_deg))
-    agreement: list[AnchorAgreement] = []
-    if len(fixed) >= 2 and not extend:
-        agreement, initial, cameras = _anchor_agreement(posed_frames, camera, initial, cameras, free_ids, fixed,
-                                                        priors, anchors, symbols, options)
+    priors = _priors(free_ids, anchors, symbols)
     adjustment, posed_frames = _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options)
-    markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, on_wall)
+    markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall)
     facility_map = replace(anchors, path="", markers={s.marker.id: s.marker for s in markers})
     if extend:  # the existing map's markers not seen this time stay as they were
         facility_map = replace(facility_map, markers={**anchors.markers, **facility_map.markers})
@@ -196,14 +194,14 @@ def _without(frame: SurveyFrame, ids: set[int]) -> SurveyFrame:
     return SurveyFrame(frame.walk, frame.index, frame.t_ns, tuple(s for s in frame.sightings if s.marker_id not in ids))
 
 
-def _check_groups(shared, mapped_ids: set[int], anchors: FacilityMap, symbols, footage: Footage) -> None:
-    """Every group of markers seen together must hold an anchor; else name the groups and the markers that need
-    a shared view (those seen closest in time across the gap)."""
+def _check_groups(shared, mapped_ids: set[int], anchors: FacilityMap, symbols, footage: Footage) -> list[set[int]]:
+    """The groups of markers seen together; each must hold an anchor, else SurveyError names the groups and the
+    markers that need a shared view (those seen closest in time across the gap)."""
     groups = graph.marker_groups(shared, mapped_ids)
     anchored = [g for g in groups if g & set(anchors.markers)]
     loose = [g for g in groups if not g & set(anchors.markers)]
     if not loose:
-        return
+        return groups
     text = "; ".join("{" + _names(g, symbols) + "}" for g in groups)
     hints = [_bridge(footage, set().union(*anchored), g, symbols) for g in loose]
     raise SurveyError(f"the markers fall into {len(groups)} groups never seen together: {text}. No anchor is in "
@@ -250,17 +248,32 @@ def _posed(shared, known: dict[int, np.ndarray], camera: CameraModel) -> tuple[l
     return posed, np.array(cameras)
 
 
-def _anchor_agreement(posed_frames, camera, initial, cameras, free_ids, fixed, priors: Priors, anchors: FacilityMap,
-                      symbols, options: SurveyOptions):
-    """Adjust with the anchors held softly; raise SurveyError when they disagree beyond their stated uncertainty.
+def _priors(free_ids, anchors: FacilityMap, symbols) -> Priors:
+    on_wall = frozenset(m for m in free_ids if anchors.survey.on_wall(symbols[m]))
+    return Priors(on_wall=on_wall, wall_sd_rad=math.radians(anchors.survey.wall_sd_deg))
 
-    Returns the agreement of each anchor and the adjusted poses (a good start for the final adjustment).
+
+def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, counts, anchors: FacilityMap, symbols,
+                      options: SurveyOptions) -> list[AnchorAgreement]:
+    """How far the images move each anchor when all are held softly (to within their stated uncertainty);
+    SurveyError when they disagree beyond it (a chi-square test over all of them).
+
+    The map is first grown from one anchor per group (the most seen), so that the images, not the other
+    anchors, place each anchor to begin with: a badly measured anchor then pulls against the images.
     """
+    references = {}
+    for group in groups:
+        in_group = [m for m in fixed if m in group]
+        if in_group:
+            best = max(in_group, key=lambda m: counts.get(m, 0))
+            references[best] = fixed[best]
+    start = graph.initial_poses(shared, references, camera)
+    posed_frames, cameras = _posed(shared, start, camera)
     hints = anchors.survey
-    soft = replace(priors, soft_anchors=dict(fixed), anchor_sd_m=hints.anchor_sd_m,
+    free_ids = sorted(start)
+    soft = replace(_priors(free_ids, anchors, symbols), soft_anchors=dict(fixed), anchor_sd_m=hints.anchor_sd_m,
                    anchor_sd_rad=math.radians(hints.anchor_sd_deg))
-    problem = BundleAdjustment(posed_frames, camera, initial, cameras, sorted(set(free_ids) | set(fixed)), soft,
-                               options.sigma_px)
+    problem = BundleAdjustment(posed_frames, camera, start, cameras, free_ids, soft, options.sigma_px)
     adjustment = problem.solve(options.max_iterations, options.progress, "checking the anchors")
     agreement = []
     for m, T_stated in sorted(fixed.items()):
@@ -270,15 +283,14 @@ def _anchor_agreement(posed_frames, camera, initial, cameras, free_ids, fixed, p
         chi2_value = (position_m / hints.anchor_sd_m) ** 2 + (angle_rad / math.radians(hints.anchor_sd_deg)) ** 2
         agreement.append(AnchorAgreement(symbols[m], position_m, math.degrees(angle_rad), chi2_value))
     total = sum(a.chi2 for a in agreement)
-    limit = float(chi2.ppf(GATE_PROBABILITY, 6 * (len(fixed) - 1)))
+    limit = float(chi2.ppf(GATE_PROBABILITY, 6 * (len(fixed) - len(references))))
     if total > limit:
         worst = max(agreement, key=lambda a: a.chi2)
         detail = ", ".join(f"{a.symbol} {a.position_m * 1000:.0f} mm {a.angle_deg:.1f} deg" for a in agreement)
         raise SurveyError(f"the anchors of {anchors.path} disagree beyond their stated uncertainty "
                           f"({hints.anchor_sd_m * 1000:g} mm, {hints.anchor_sd_deg:g} deg): the images move them by "
                           f"{detail}; measure {worst.symbol} again (or state a larger survey.anchor_sd_m/anchor_sd_deg)")
-    markers = {m: T for m, T in adjustment.markers.items() if m not in fixed}
-    return agreement, {**markers, **fixed}, adjustment.cameras
+    return agreement
 
 
 def _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options: SurveyOptions):
