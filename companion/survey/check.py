@@ -9,7 +9,8 @@ position or orientation differs from the map by more than ``sigmas``
 standard deviations along the difference, and by more than a floor that
 stands for the map's own error (``min_position_m``, ``min_angle_deg``).
 A moved marker is no reference for the others: the check runs again without
-it for the markers that shared a frame with it, until nothing changes.
+the worst of them for the markers that shared a frame with it, and so on
+until no new marker is moved.
 """
 from __future__ import annotations
 
@@ -91,17 +92,24 @@ def check_markers(survey_frames: list[SurveyFrame], facility_map: FacilityMap, c
         return result
 
     results = {m: check(m, set()) for m in mapped}
-    moved: set[int] = set()
+    excluded: set[int] = set()
     while True:
-        newly = {m for m, r in results.items() if r.verdict == "moved"} - moved
-        if not newly:
+        # the worst moved marker first: when two markers disagree only with each other, both look moved
+        candidates = [r for m, r in results.items() if r.verdict == "moved" and m not in excluded]
+        if not candidates:
             break
-        moved |= newly
-        # only the markers that shared a frame with a newly moved one change
-        affected = {m for f in shown if newly & set(f.marker_ids) for m in f.marker_ids}
+        worst = max(candidates, key=_excess).marker_id
+        excluded.add(worst)
+        # only the markers that shared a frame with it change
+        affected = {m for f in shown if worst in f.marker_ids for m in f.marker_ids} - {worst}
         for m in affected:
-            results[m] = check(m, moved - {m})
+            results[m] = check(m, excluded - {m})
     return [results[m] for m in facility_map.markers]
+
+
+def _excess(check: MarkerCheck) -> float:
+    """How far beyond its limits a marker's disagreement is (the larger ratio)."""
+    return max(check.position_error_m / check.position_limit_m, check.angle_error_deg / check.angle_limit_deg)
 
 
 def _only_mapped(frame: SurveyFrame, mapped) -> SurveyFrame:
