@@ -276,3 +276,32 @@ def test_survey_extends_an_existing_map_and_resurveys_a_moved_marker(tmp_path, n
                                             truth.marker_by_symbol(symbol).T_map_marker)
         assert position_m < 0.01 and angle_deg < 0.5
     assert new.marker_by_symbol("A").T_map_marker.tolist() == truth.marker_by_symbol("A").T_map_marker.tolist()
+
+
+# ------------------------------------------------------------------ daemon watch
+
+def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
+    """The pose stage's decisions as it reports them (PoseSolution): O left out in most frames, N once."""
+    import logging
+
+    from companion.daemon.map_watch import MapWatch, MapWatchParams
+    from companion.daemon.pipeline import FrameRecord
+    from companion.geometry.pose import PoseSolution
+
+    facility_map = load_map(MAP)
+    ids = {symbol: facility_map.marker_by_symbol(symbol).id for symbol in ("UP", "O", "N")}
+    watch = MapWatch(facility_map, link=None, params=MapWatchParams(window=30, min_rejected=20))
+
+    def frame(index: int, rejected: tuple[str, ...]):
+        used = tuple(ids[s] for s in ids if s not in rejected)
+        solution = PoseSolution(None, "ok", marker_ids=used, rejected_ids=tuple(ids[s] for s in rejected))
+        watch(None, FrameRecord(index, index, (0, 0, 0, 0), None, (), solution, None))
+
+    with caplog.at_level(logging.WARNING, logger="companion"):
+        for index in range(40):
+            frame(index, ("N",) if index == 3 else ("O",) if index % 3 else ())
+            if index == 28:   # 19 of O's 29 frames so far: not yet
+                assert watch.reported == []
+    messages = [r.getMessage() for r in caplog.records if "disagrees with the map" in r.getMessage()]
+    assert [facility_map.markers[m].symbol for m in watch.reported] == ["O"]
+    assert len(messages) == 1 and messages[0].startswith("marker O disagrees with the map")
