@@ -36,6 +36,7 @@ from companion.geometry.attitude import AttitudeHistory, AttitudeLookup
 from companion.mavlink.attitude import AttitudeStream
 from companion.mavlink.link import MavlinkLink
 from companion.daemon.notify import Notifier
+from companion.daemon.map_watch import MapWatch
 from companion.daemon.pipeline import Pipeline
 from companion.daemon.status import DaemonStatus, recent_activity
 from companion.geometry.pose import PoseSolver
@@ -91,6 +92,8 @@ class Daemon:
             attitude=attitude,
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
+        # a marker the pose stage keeps leaving out is said once (docs/survey.md)
+        self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
         self.notifier = Notifier()
         self.stop_event = threading.Event()
         self.failed = False
