@@ -8,8 +8,9 @@ the reason in ``status``). The steps:
    corners and, for the circles path, its corner-circle centres, as map-frame
    points against image points. Each point's noise is the detection's own
    ``corner_sigma_px`` (what the detector measured), else
-   ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` added in
-   quadrature; every squared error below is in units of that noise
+   ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` and the map's
+   own error (``map_sd_m``, in pixels at the marker's size in the image)
+   added in quadrature; every squared error below is in units of that noise
    (chi-square).
 2. Attitude: the flight controller's roll and pitch at the capture time
    (``companion.geometry.attitude``), when given, join every fit as a prior
@@ -77,8 +78,12 @@ class PoseParams:
         detections that do not state their own (``Detection.corner_sigma_px``).
     model_sigma_px: added in quadrature to every point's noise: what the
         detector's own estimate leaves out (video compression, the camera
-        calibration, the marker's surveyed position: a map surveyed to d
-        metres seen from r metres is off by about d f / r pixels).
+        calibration).
+    map_sd_m: standard deviation of each marker's mapped position (each
+        axis): a marker of side s seen s_px pixels wide is off by about
+        map_sd_m s_px / s pixels, added in quadrature to its points' noise
+        (0.005: a survey; 0.02: a tape measure; 0: an exact map, as in
+        simulation).
     gate_probability: probability that corner noise alone passes the
         chi-square tests (0.999: one honest marker in a thousand fails; 1.0
         turns them off).
@@ -101,6 +106,7 @@ class PoseParams:
 
     corner_sigma_px: float = 0.5
     model_sigma_px: float = 0.02
+    map_sd_m: float = 0.005
     gate_probability: float = 0.999
     max_rms_px: float = 2.0
     hypothesis_gate_px: float = 30.0
@@ -127,9 +133,10 @@ class PoseParams:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"pose parameter {name} must be a positive number, got {value!r}")
-        if not (isinstance(self.model_sigma_px, (int, float)) and math.isfinite(self.model_sigma_px)
-                and self.model_sigma_px >= 0):
-            raise ValueError(f"pose parameter model_sigma_px must be a number >= 0, got {self.model_sigma_px!r}")
+        for name in ("model_sigma_px", "map_sd_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"pose parameter {name} must be a number >= 0, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -162,7 +169,7 @@ class _Points:
     map: (K, 3); px: (K, 2); marker: (K,) index of each point's observation;
     starts, counts: (M,) each observation's first point and number of
     points; marker_ids: (M,) their map ids; sigma_px: (M,) each
-    observation's point noise (the detection's, the model's added).
+    observation's point noise (the detection's, the model's and the map's).
     """
 
     map: np.ndarray
@@ -174,10 +181,13 @@ class _Points:
     sigma_px: np.ndarray
 
     @classmethod
-    def of(cls, observations: list[MarkerObservation], model_sigma_px: float) -> _Points:
+    def of(cls, observations: list[MarkerObservation], params: PoseParams) -> _Points:
         counts = np.array([len(o.points_map) for o in observations])
-        # sigma^2 = sigma_detection^2 + sigma_model^2
-        sigma_px = np.sqrt(np.array([o.sigma_px for o in observations]) ** 2 + model_sigma_px ** 2)
+        detection_px = np.array([o.sigma_px for o in observations])
+        # the map's error in pixels: map_sd_m over the marker's side, times its side in pixels
+        map_px = params.map_sd_m * np.array([o.side_px / o.marker.size_m for o in observations])
+        # sigma^2 = sigma_detection^2 + sigma_model^2 + sigma_map^2
+        sigma_px = np.sqrt(detection_px ** 2 + params.model_sigma_px ** 2 + map_px ** 2)
         return cls(np.vstack([o.points_map for o in observations]), np.vstack([o.points_px for o in observations]),
                    np.repeat(np.arange(len(observations)), counts), np.cumsum(counts) - counts, counts,
                    np.array([o.marker.id for o in observations]), sigma_px)
@@ -326,7 +336,7 @@ class PoseSolver:
         observations, unmapped = self.observations(detections)
         if not observations:
             return PoseSolution(None, "no mapped markers", unmapped_ids=unmapped)
-        points = _Points.of(observations, self.params.model_sigma_px)
+        points = _Points.of(observations, self.params)
         prior = self._prior(t_ns, prior_T_map_body)
         gravity = None if attitude is None else self._gravity(attitude)
         fits, choice = self._solve(points, len(observations), prior, gravity)
