@@ -1,6 +1,7 @@
 """The small typed values that flow one way through the pipeline.
 
     Frame -> [Detection] -> PoseMeasurement -> Estimate -> MAVLink message
+                         ^ AttitudeSample (the flight controller's roll and pitch at the frame)
 
 Conventions stated once, here, for every stage:
 
