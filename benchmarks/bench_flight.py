@@ -13,7 +13,7 @@ through the daemon's own pipeline (``companion.daemon.service.Daemon``:
 detector, pose, Kalman filter, MAVLink link to a UDP sink on loopback):
 once with the replay's attitude and once without (``attitude.source:
 none``), same frames. The rendered hall is exactly its map: the pose stage
-is told so (``pose.map_sd_m: 0``).
+is told so (``pose.map_sd_m``, ``map_sd_deg``: 0).
 
 A frame is **readable** when the detector decodes a mapped marker in it. Per
 run: the readable frames; the time from the first readable frame to the
@@ -121,7 +121,7 @@ def fly(sequence: Path, port: int, workdir: Path, attitude: bool) -> list[Row]:
         # no flight controller on the sink: stream at once; one message per frame at 30 fps
         "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "max_rate_hz": 50, "origin_wait_s": 0.0},
         "attitude": {"source": "auto" if attitude else "none"},
-        "pose": {"map_sd_m": 0.0},  # the rendered hall is exactly its map
+        "pose": {"map_sd_m": 0.0, "map_sd_deg": 0.0},  # the rendered hall is exactly its map
     }
     config = config_from_dict(data, workdir / "bench_flight.yaml")
     daemon = Daemon(config, status_stream=None, record_frames=100_000)

@@ -67,7 +67,7 @@ class Method:
 
 
 # The rendered world's map is exact (map_sd_m 0); no prior pose (a cold start every frame).
-SINGLE_FRAME = PoseParams(prior_max_age_s=0.0, map_sd_m=0.0)
+SINGLE_FRAME = PoseParams(prior_max_age_s=0.0, map_sd_m=0.0, map_sd_deg=0.0)
 METHODS = (
     Method("no attitude", SINGLE_FRAME, None),
     Method("attitude", replace(SINGLE_FRAME, attitude_sd_deg=0.2), simulate.AttitudeNoise(noise_deg=0.2)),
@@ -183,7 +183,7 @@ def evaluate(sequence: SequenceFrames, facility_map: FacilityMap, seed: int) -> 
     camera = sequence.camera
     detector = Detector(camera=camera)
     solvers = {m.name: PoseSolver(facility_map, camera, m.params) for m in METHODS}
-    tracking = PoseSolver(facility_map, camera, PoseParams(attitude_sd_deg=0.2, map_sd_m=0.0))
+    tracking = PoseSolver(facility_map, camera, PoseParams(attitude_sd_deg=0.2, map_sd_m=0.0, map_sd_deg=0.0))
     rng = np.random.default_rng(seed)
     records = []
     for image, t_ns, T_true in zip(sequence.images, sequence.t_ns, sequence.T_map_body):

@@ -140,7 +140,7 @@ def test_poses_with_the_peers_attitude_match_the_ground_truth(started, tmp_path)
     peer, link = started("--attitude-csv", str(sequence / "attitude.csv"), "--attitude-start-ns", str(start_ns),
                          history=history)
     detector = map_detector(facility_map, camera)
-    params = PoseParams(prior_max_age_s=0.0, max_markers=1, attitude_sd_deg=0.3, map_sd_m=0.0)  # a rendered, exact map
+    params = PoseParams(prior_max_age_s=0.0, max_markers=1, attitude_sd_deg=0.3, map_sd_m=0.0, map_sd_deg=0.0)  # a rendered, exact map
     with_attitude, without = PoseSolver(facility_map, camera, params), PoseSolver(facility_map, camera, params)
     images = {number: image for number, image in zip(recording.frames, _images(sequence))}
     rows = []

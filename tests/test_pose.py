@@ -26,7 +26,7 @@ CAMERA_SECTION = {
 }
 CAMERA = CameraModel.from_config(CAMERA_SECTION, "test")
 # The detections below are projections of the map itself: an exact map.
-EXACT_MAP = PoseParams(map_sd_m=0.0)
+EXACT_MAP = PoseParams(map_sd_m=0.0, map_sd_deg=0.0)
 
 
 def body_pose(position_map, look_at_map, pitch_deg=0.0, roll_deg=0.0):
@@ -131,7 +131,7 @@ def test_noisy_aisle_view_is_accurate():
 def test_joint_beats_single_marker():
     rng = np.random.default_rng(11)
     joint = PoseSolver(FACILITY, CAMERA, EXACT_MAP)
-    single = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, max_markers=1))
+    single = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, max_markers=1))
     # The single marker's IPPE branches are ambiguous at this range: a prior near
     # the truth picks the branch, so only accuracy is compared.
     prior = AISLE_VIEW @ frames.make_transform(frames.rot_z(0.05), [0.1, 0.1, 0.0])
@@ -209,7 +209,7 @@ def test_upside_down_body_is_implausible():
 # Marker N (north wall, 0.20 m) seen nearly head-on from 5 m: IPPE's two poses
 # reproject within a fraction of a pixel of each other.
 FAR_N_VIEW = body_pose(np.array([9.0, 5.5, 1.3]), [9.5, 10.5, 1.5])
-LENIENT = PoseParams(map_sd_m=0.0)
+LENIENT = PoseParams(map_sd_m=0.0, map_sd_deg=0.0)
 
 
 def test_far_single_marker_is_ambiguous_without_prior():
@@ -273,7 +273,7 @@ def test_noise_beyond_the_expected_corner_noise_is_rejected():
     detections = detections_for(AISLE_VIEW, noise_px=2.0, rng=rng)
     solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
     assert solution.measurement is None and solution.status in ("reprojection", "inconsistent markers")
-    assert PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=2.0, max_rms_px=10.0)).solve(detections, t_ns=0) is not None
+    assert PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=2.0, max_rms_px=10.0)).solve(detections, t_ns=0) is not None
 
 
 def with_sigma(detections, sigma_px):
@@ -283,7 +283,7 @@ def with_sigma(detections, sigma_px):
 def test_covariance_grows_with_noise_and_range():
     rng = np.random.default_rng(3)
     # Each detection states its own corner noise (as the detector does): the covariance follows it.
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, max_rms_px=10.0))
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, max_rms_px=10.0))
     quiet = solver.solve(with_sigma(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), 0.15), t_ns=0)
     loud = solver.solve(with_sigma(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), 1.5), t_ns=0)
     assert np.trace(loud.covariance_ned[:3, :3]) > 10 * np.trace(quiet.covariance_ned[:3, :3])
@@ -299,7 +299,7 @@ def test_covariance_grows_with_noise_and_range():
 def test_covariance_matches_the_scatter_of_errors():
     """Normalised errors e^T C^-1 e over many noisy solves average about 6 (chi-square, 6 dof)."""
     rng = np.random.default_rng(21)
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=1.0))
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=1.0))
     truth_ned = FACILITY.T_ned_map @ AISLE_VIEW
     scores = []
     for _ in range(150):
@@ -379,7 +379,7 @@ def test_pose_jacobian_matches_finite_differences(camera, view):
 def test_covariance_is_the_inverse_weighted_normal_matrix():
     """The covariance sent, recomputed here from a finite-difference Jacobian on map axes."""
     rng = np.random.default_rng(4)
-    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5, model_sigma_px=0.0, map_sd_m=0.0))
+    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5, model_sigma_px=0.0, map_sd_m=0.0, map_sd_deg=0.0))
     for _ in range(3):
         detections = detections_for(AISLE_VIEW, noise_px=0.5, rng=rng, camera=FISHEYE_CAMERA)
         solution = solver.solve_detailed(detections, t_ns=0)
@@ -439,7 +439,7 @@ def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
 
 def test_circle_centres_join_the_fit():
     rng = np.random.default_rng(17)
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=1.0))
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=1.0))
     plain_errors, circle_errors = [], []
     for _ in range(20):
         detections = detections_for(B_VIEW, noise_px=1.0, rng=rng)
@@ -517,7 +517,7 @@ def test_circle_centres_of_every_dictionary_fit_the_rendered_truth(dictionary, p
     rng = np.random.default_rng(8)
     facility = wall_map(dictionary, parity)
     marker = next(iter(facility.markers.values()))
-    solver = PoseSolver(facility, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=0.3))
+    solver = PoseSolver(facility, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.3))
     errors, rotation_errors_deg = [], []
     for _, T_map_body, truth in rendered_views(facility, 4, rng):
         assert truth.corners_visible.all() and truth.circles_visible.all()
@@ -539,7 +539,7 @@ def test_detector_circles_path_poses_of_every_dictionary(dictionary):
     rng = np.random.default_rng(3)
     facility = wall_map(dictionary, 2)
     detector = Detector(DetectorParams(parity=2, dictionary=dictionary))
-    solver = PoseSolver(facility, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=0.3))
+    solver = PoseSolver(facility, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.3))
     errors = []
     for side in ("left", "top", "right", "bottom"):
         for image, T_map_body, _ in rendered_views(facility, 1, rng, strip_side=side):
@@ -578,9 +578,9 @@ def test_attitude_picks_the_ippe_branch_of_a_far_single_marker():
     """The far, head-on N view is ambiguous from the corners alone; the measured roll and pitch pick the branch."""
     rng = np.random.default_rng(30)
     detections = detections_for(FAR_N_VIEW, symbols={"N"}, noise_px=0.05, rng=rng)
-    plain = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=0.05)).solve_detailed(detections, t_ns=0)
+    plain = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.05)).solve_detailed(detections, t_ns=0)
     assert plain.status == "ambiguous"
-    solution = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=0.05)).solve_detailed(
+    solution = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.05)).solve_detailed(
         detections, t_ns=0, attitude=attitude_of(FAR_N_VIEW, 0.2, -0.3))
     assert solution.status == "ok" and solution.used_attitude and not solution.ambiguous
     # one 0.20 m marker head-on at 5 m: decimetres along the wall, and the covariance says so
@@ -595,7 +595,7 @@ def test_attitude_picks_the_ippe_branch_of_a_far_single_marker():
 def test_attitude_disagreeing_with_many_markers_is_left_out():
     """Ten degrees off (a wrong mount, a bad estimate): the markers win and the pose is solved without it."""
     detections = detections_for(AISLE_VIEW, noise_px=0.05, rng=np.random.default_rng(2))
-    solution = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, corner_sigma_px=0.05)).solve_detailed(
+    solution = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.05)).solve_detailed(
         detections, t_ns=0, attitude=attitude_of(AISLE_VIEW, 10.0, 0.0))
     assert solution.status == "ok" and not solution.used_attitude
     assert position_error_m(solution.measurement, AISLE_VIEW) < 0.02
@@ -605,7 +605,7 @@ def test_covariance_with_attitude_matches_the_scatter():
     """Corner noise and attitude noise at their stated sigmas: the normalised 6-dof errors average about 6,
     and the roll/pitch variances are at most the attitude's."""
     rng = np.random.default_rng(8)
-    params = PoseParams(map_sd_m=0.0, corner_sigma_px=0.3, attitude_sd_deg=0.5, model_sigma_px=0.0)
+    params = PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.3, attitude_sd_deg=0.5, model_sigma_px=0.0)
     truth_ned = FACILITY.T_ned_map @ B_VIEW
     scores, with_attitude = [], []
     for _ in range(200):
@@ -627,7 +627,7 @@ def test_covariance_with_attitude_matches_the_scatter():
     assert np.mean(with_attitude) < np.trace(plain.covariance_ned[:3, :3])
 
 
-def test_the_maps_error_widens_the_point_noise_by_the_markers_size_in_the_image():
+def test_the_maps_error_lets_markers_disagree_by_it_and_widens_the_covariance():
     """A tape-measured map (2 cm): markers that disagree by a couple of centimetres are still consistent,
     and the covariance grows; an exact map rejects the same frame."""
     import dataclasses
@@ -640,7 +640,7 @@ def test_the_maps_error_widens_the_point_noise_by_the_markers_size_in_the_image(
     detections[0] = Detection(first.symbol, first.id, CAMERA.project_from(T_camera_map, real.corners_map()), "square", 0, 1.0,
                               corner_sigma_px=0.02)
     detections = [d if d.corner_sigma_px else dataclasses.replace(d, corner_sigma_px=0.02) for d in detections]
-    exact = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0)).solve_detailed(detections, t_ns=0)
+    exact = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0)).solve_detailed(detections, t_ns=0)
     assert exact.rejected_ids == (first.id,)  # the exact map's gate leaves the moved marker out
     taped = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.02)).solve_detailed(detections, t_ns=0)
     assert taped.status == "ok" and taped.rejected_ids == () and first.id in taped.measurement.marker_ids

@@ -8,10 +8,11 @@ the reason in ``status``). The steps:
    corners and, for the circles path, its corner-circle centres, as map-frame
    points against image points. Each point's noise is the detection's own
    ``corner_sigma_px`` (what the detector measured), else
-   ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` and the map's
-   own error (``map_sd_m``, in pixels at the marker's size in the image)
-   added in quadrature; every squared error below is in units of that noise
-   (chi-square).
+   ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` added in
+   quadrature; the map's own error (``map_sd_m``, ``map_sd_deg``) moves all
+   of a marker's points together, so a marker's errors are weighed by the
+   inverse of their joint covariance. Every squared error below is in those
+   units (chi-square).
 2. Attitude: the flight controller's roll and pitch at the capture time
    (``companion.geometry.attitude``), when given, join every fit as a prior
    of standard deviation ``attitude_sd_deg``: two more residuals, so a
@@ -79,11 +80,11 @@ class PoseParams:
     model_sigma_px: added in quadrature to every point's noise: what the
         detector's own estimate leaves out (video compression, the camera
         calibration).
-    map_sd_m: standard deviation of each marker's mapped position (each
-        axis): a marker of side s seen s_px pixels wide is off by about
-        map_sd_m s_px / s pixels, added in quadrature to its points' noise
-        (0.005: a survey; 0.02: a tape measure; 0: an exact map, as in
-        simulation).
+    map_sd_m, map_sd_deg: standard deviation of each marker's mapped
+        position (each axis) and orientation (about each axis): the map's own
+        error, which moves all of a marker's points together (0.005 m and
+        0.2 degrees: a survey, as ``companion survey`` measures it; 0.02 m and
+        2 degrees: a tape measure; 0: an exact map, as in a simulation).
     gate_probability: probability that corner noise alone passes the
         chi-square tests (0.999: one honest marker in a thousand fails; 1.0
         turns them off).
@@ -107,6 +108,7 @@ class PoseParams:
     corner_sigma_px: float = 0.5
     model_sigma_px: float = 0.02
     map_sd_m: float = 0.005
+    map_sd_deg: float = 0.2
     gate_probability: float = 0.999
     max_rms_px: float = 2.0
     hypothesis_gate_px: float = 30.0
@@ -133,7 +135,7 @@ class PoseParams:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"pose parameter {name} must be a positive number, got {value!r}")
-        for name in ("model_sigma_px", "map_sd_m"):
+        for name in ("model_sigma_px", "map_sd_m", "map_sd_deg"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"pose parameter {name} must be a number >= 0, got {value!r}")
@@ -169,7 +171,8 @@ class _Points:
     map: (K, 3); px: (K, 2); marker: (K,) index of each point's observation;
     starts, counts: (M,) each observation's first point and number of
     points; marker_ids: (M,) their map ids; sigma_px: (M,) each
-    observation's point noise (the detection's, the model's and the map's).
+    observation's point noise (the detection's and the model's); centres:
+    (M, 3) the markers' centres in the map.
     """
 
     map: np.ndarray
@@ -179,18 +182,17 @@ class _Points:
     counts: np.ndarray
     marker_ids: np.ndarray
     sigma_px: np.ndarray
+    centres: np.ndarray
 
     @classmethod
     def of(cls, observations: list[MarkerObservation], params: PoseParams) -> _Points:
         counts = np.array([len(o.points_map) for o in observations])
-        detection_px = np.array([o.sigma_px for o in observations])
-        # the map's error in pixels: map_sd_m over the marker's side, times its side in pixels
-        map_px = params.map_sd_m * np.array([o.side_px / o.marker.size_m for o in observations])
-        # sigma^2 = sigma_detection^2 + sigma_model^2 + sigma_map^2
-        sigma_px = np.sqrt(detection_px ** 2 + params.model_sigma_px ** 2 + map_px ** 2)
+        # sigma^2 = sigma_detection^2 + sigma_model^2
+        sigma_px = np.sqrt(np.array([o.sigma_px for o in observations]) ** 2 + params.model_sigma_px ** 2)
         return cls(np.vstack([o.points_map for o in observations]), np.vstack([o.points_px for o in observations]),
                    np.repeat(np.arange(len(observations)), counts), np.cumsum(counts) - counts, counts,
-                   np.array([o.marker.id for o in observations]), sigma_px)
+                   np.array([o.marker.id for o in observations]), sigma_px,
+                   np.array([o.marker.T_map_marker[:3, 3] for o in observations]))
 
     def of_markers(self, members: np.ndarray) -> _Points:
         """The points of the observations ``members`` (indices, ascending)."""
@@ -199,15 +201,38 @@ class _Points:
         keep = np.isin(self.marker, members)
         counts = self.counts[members]
         return _Points(self.map[keep], self.px[keep], np.repeat(np.arange(len(members)), counts),
-                       np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members])
+                       np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members],
+                       self.centres[members])
+
+
+@dataclass(frozen=True, eq=False)
+class _Weights:
+    """How a frame's point errors are weighed: per marker, ``Sigma^-1/2`` of its (2n, 2n) error covariance.
+
+    ``Sigma = sigma^2 I + G S G^T``: the points' own noise, and the map's
+    error of the marker's pose, S = diag(map_sd_m^2 (3), map_sd_rad^2 (3)),
+    seen through G = d(pixels)/d(the marker's pose in the map), which moves
+    all its points together. ``inverse_roots`` is None without map error
+    (then ``Sigma^-1/2 = I / sigma``).
+    """
+
+    points: _Points
+    inverse_roots: list[np.ndarray] | None
 
     def whiten(self, values: np.ndarray) -> np.ndarray:
-        """(K, 2, ...) per-point errors (or their derivatives) over their points' sigma."""
-        return values / np.repeat(self.sigma_px, self.counts).reshape((-1,) + (1,) * (values.ndim - 1))
+        """(K, 2, ...) point errors (or their derivatives) -> whitened, the same shape."""
+        points = self.points
+        if self.inverse_roots is None:
+            return values / np.repeat(points.sigma_px, points.counts).reshape((-1,) + (1,) * (values.ndim - 1))
+        out = np.empty_like(values)
+        for start, count, root in zip(points.starts, points.counts, self.inverse_roots):
+            block = values[start:start + count]
+            out[start:start + count] = (root @ block.reshape(2 * count, -1)).reshape(block.shape)
+        return out
 
     def marker_chi2(self, errors_px: np.ndarray) -> np.ndarray:
         """(M,) each marker's chi-square from its (K, 2) point errors."""
-        return np.add.reduceat(np.sum(self.whiten(errors_px) ** 2, axis=1), self.starts)
+        return np.add.reduceat(np.sum(self.whiten(errors_px) ** 2, axis=1), self.points.starts)
 
 
 @dataclass(frozen=True)
@@ -496,7 +521,8 @@ class PoseSolver:
 
     def _grow_and_refine(self, T_camera_map: np.ndarray, points: _Points, gravity: _Gravity | None) -> Fit | None:
         """Refine a hypothesis on the markers it explains; None if it explains none."""
-        chi2_m, sse_m = self._marker_errors(T_camera_map, points)
+        errors = self.camera.project_from(T_camera_map, points.map) - points.px
+        sse_m = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
         members = np.flatnonzero(sse_m < points.counts * self.params.hypothesis_gate_px ** 2)
         for _ in range(3):
             if len(members) == 0:
@@ -505,7 +531,7 @@ class PoseSolver:
             if refined is None:
                 return None
             T_camera_map = refined
-            chi2_m, sse_m = self._marker_errors(T_camera_map, points)
+            chi2_m, sse_m = self._marker_errors(T_camera_map, points, self._weights(T_camera_map, points))
             agreeing = np.flatnonzero([self._within_noise(c, 2 * n) for c, n in zip(chi2_m, points.counts)])
             if np.array_equal(agreeing, members):
                 break
@@ -531,14 +557,16 @@ class PoseSolver:
         theta_map = -R^T w. None if a point falls behind the camera.
         """
         R, t = T_camera_map[:3, :3], T_camera_map[:3, 3]
+        # the weights at the start: the map error's share changes little while the pose is refined
+        weights = self._weights(T_camera_map, points)
         damping, previous = 0.0, None
         for _ in range(MAX_ITERATIONS):
             rotated = points.map @ R.T
             px, dpx_dX = self.camera.project_with_jacobian(rotated + t)
             # d(pixels)/dw: row a of d(pixels)/dX_c gives a . (w x RX) = w . (RX x a)
             d_rotation = _cross(rotated[:, None, :], dpx_dX)
-            residual = points.whiten(px - points.px).reshape(-1)
-            J = points.whiten(np.concatenate([d_rotation, dpx_dX], axis=2)).reshape(-1, 6)
+            residual = weights.whiten(px - points.px).reshape(-1)
+            J = weights.whiten(np.concatenate([d_rotation, dpx_dX], axis=2)).reshape(-1, 6)
             if gravity is not None:
                 error, d_theta = gravity.residual(R.T @ self._T_camera_body[:3, :3])
                 residual = np.concatenate([residual, error])
@@ -566,12 +594,38 @@ class PoseSolver:
                 break
         return _transform(R, t)
 
-    def _marker_errors(self, T_camera_map: np.ndarray, points: _Points) -> tuple[np.ndarray, np.ndarray]:
+    def _marker_errors(self, T_camera_map: np.ndarray, points: _Points,
+                       weights: _Weights) -> tuple[np.ndarray, np.ndarray]:
         """((M,) chi-square, (M,) squared pixel errors) of each marker under the pose (inf if behind the camera)."""
         errors = self.camera.project_from(T_camera_map, points.map) - points.px
         sse = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
-        chi2_m = points.marker_chi2(errors)
+        chi2_m = weights.marker_chi2(errors)
         return np.where(np.isfinite(chi2_m), chi2_m, np.inf), np.where(np.isfinite(sse), sse, np.inf)
+
+    def _weights(self, T_camera_map: np.ndarray, points: _Points) -> _Weights:
+        """The points' weights at a camera pose (see ``_Weights``)."""
+        if self.params.map_sd_m == 0 and self.params.map_sd_deg == 0:
+            return _Weights(points, None)
+        R, t = T_camera_map[:3, :3], T_camera_map[:3, 3]
+        # d(pixels)/dX_map = d(pixels)/dX_c R: (K, 2, 3)
+        D = self.camera.projection_jacobian(points.map @ R.T + t) @ R
+        # the marker moved by dt and turned by dtheta about its centre c: dX = dt + dtheta x (X - c);
+        # row a of D gives a . (dtheta x r) = dtheta . (r x a)
+        r = points.map - np.repeat(points.centres, points.counts, axis=0)
+        G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
+        S = np.array([self.params.map_sd_m ** 2] * 3 + [math.radians(self.params.map_sd_deg) ** 2] * 3)
+        roots: list[np.ndarray | None] = [None] * len(points.counts)
+        for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
+            markers = np.flatnonzero(points.counts == count)
+            g = np.stack([G[points.starts[m]:points.starts[m] + count].reshape(2 * count, 6) for m in markers])
+            sigma2 = points.sigma_px[markers, None] ** 2
+            # Sigma = sigma^2 I + G S G^T = V diag(l) V^T; Sigma^-1/2 = V diag(l^-1/2) V^T (l >= sigma^2: a
+            # point behind the camera of a wild hypothesis gives a huge G, and Cholesky would fail)
+            values, vectors = np.linalg.eigh(sigma2[:, :, None] * np.eye(2 * count) + (g * S) @ g.transpose(0, 2, 1))
+            inverse_roots = (vectors / np.sqrt(np.maximum(values, sigma2))[:, None, :]) @ vectors.transpose(0, 2, 1)
+            for m, root in zip(markers, inverse_roots):
+                roots[m] = root
+        return _Weights(points, roots)
 
     # --------------------------------------------------------------- choice
 
@@ -642,10 +696,12 @@ class PoseSolver:
     def _covariance_map(self, T_map_body: np.ndarray, points: _Points, gravity: _Gravity | None) -> np.ndarray:
         """(6, 6) covariance of [body position (3), small rotation (3)], both on map axes.
 
-        C = (J^T W J + A^T A)^-1: J = d(pixels)/d(pose), W = diag(1 / sigma_px^2),
-        A = d(whitened roll, pitch)/d(pose) when the attitude was used.
+        C = (J^T W J + A^T A)^-1: J = d(pixels)/d(pose), W the points' inverse
+        covariance (``_Weights``: their noise and the map's error), A =
+        d(whitened roll, pitch)/d(pose) when the attitude was used.
         """
-        J = points.whiten(self._pose_jacobian(T_map_body, points.map).reshape(-1, 2, 6)).reshape(-1, 6)
+        weights = self._weights(self._T_camera_map(T_map_body), points)
+        J = weights.whiten(self._pose_jacobian(T_map_body, points.map).reshape(-1, 2, 6)).reshape(-1, 6)
         information = J.T @ J
         if gravity is not None:
             A = np.hstack([np.zeros((2, 3)), gravity.residual(T_map_body[:3, :3])[1]])
