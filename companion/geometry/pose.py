@@ -234,6 +234,11 @@ class _Weights:
         """(M,) each marker's chi-square from its (K, 2) point errors."""
         return np.add.reduceat(np.sum(self.whiten(errors_px) ** 2, axis=1), self.points.starts)
 
+    def of_markers(self, members: np.ndarray) -> _Weights:
+        """The weights of the observations ``members`` (indices, ascending)."""
+        roots = None if self.inverse_roots is None else [self.inverse_roots[m] for m in members]
+        return _Weights(self.points.of_markers(members), roots)
+
 
 @dataclass(frozen=True)
 class Fit:
@@ -524,14 +529,16 @@ class PoseSolver:
         errors = self.camera.project_from(T_camera_map, points.map) - points.px
         sse_m = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
         members = np.flatnonzero(sse_m < points.counts * self.params.hypothesis_gate_px ** 2)
+        # the weights at the start: the map error's share changes little while the pose is refined
+        weights = self._weights(T_camera_map, points)
         for _ in range(3):
             if len(members) == 0:
                 return None
-            refined = self._refine(T_camera_map, points.of_markers(members), gravity)
+            refined = self._refine(T_camera_map, weights.of_markers(members), gravity)
             if refined is None:
                 return None
             T_camera_map = refined
-            chi2_m, sse_m = self._marker_errors(T_camera_map, points, self._weights(T_camera_map, points))
+            chi2_m, sse_m = self._marker_errors(T_camera_map, points, weights)
             agreeing = np.flatnonzero([self._within_noise(c, 2 * n) for c, n in zip(chi2_m, points.counts)])
             if np.array_equal(agreeing, members):
                 break
@@ -548,17 +555,16 @@ class PoseSolver:
         """Chi-square test: squared errors explained by the points' noise."""
         return chi2_value < chi2_quantile(self.params.gate_probability, dof)
 
-    def _refine(self, T_camera_map: np.ndarray, points: _Points, gravity: _Gravity | None) -> np.ndarray | None:
-        """Gauss-Newton (Levenberg-Marquardt damped) on T_camera_map over these points and the attitude.
+    def _refine(self, T_camera_map: np.ndarray, weights: _Weights, gravity: _Gravity | None) -> np.ndarray | None:
+        """Gauss-Newton (Levenberg-Marquardt damped) on T_camera_map over these points (weighed) and the attitude.
 
         Perturbation: R' = exp(w) R, t' = t + dt (camera axes), so a map point
         seen at X_c = R X + t moves by dX_c = w x (R X) + dt, and the camera
         gives d(pixels)/dX_c. With the attitude, R_map_body = R^T R_cb moves by
         theta_map = -R^T w. None if a point falls behind the camera.
         """
+        points = weights.points
         R, t = T_camera_map[:3, :3], T_camera_map[:3, 3]
-        # the weights at the start: the map error's share changes little while the pose is refined
-        weights = self._weights(T_camera_map, points)
         damping, previous = 0.0, None
         for _ in range(MAX_ITERATIONS):
             rotated = points.map @ R.T
