@@ -40,12 +40,16 @@ the reason in ``status``). The steps:
    within ``ambiguity_chi2`` of the best makes the result ambiguous; then
    the candidate nearest a prior pose is taken, and without a prior the
    frame is rejected (a flipped single-marker pose is metres and tens of
-   degrees off). With the attitude most flips cost far more than that.
+   degrees off). With the attitude most flips cost far more than that. A
+   pose chosen with every rival ruled out and no prior is marked
+   ``unambiguous``: the Kalman filter takes it as a fix without waiting for
+   more frames.
 6. Covariance: ``(J^T W J + A^T W_a A)^-1``, J the Jacobian of the
-   reprojection residuals with respect to the body pose, W the inverse
-   point variances, A and W_a the attitude prior's: it includes the
-   attitude's uncertainty. Rotated into NED. Nothing consistent is withheld
-   for being uncertain: the covariance says how good the pose is.
+   reprojection residuals with respect to the body pose, W the points'
+   inverse covariance (their noise and the map's error), A and W_a the
+   attitude prior's: it includes the attitude's uncertainty. Rotated into
+   NED. Nothing consistent is withheld for being uncertain: the covariance
+   says how good the pose is.
 
 All axis conventions come from ``companion.geometry.frames``.
 """
