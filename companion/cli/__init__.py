@@ -22,6 +22,8 @@ COMMANDS = {
     "calibrate": ("companion.cli.calibrate", "calibrate a camera from chessboard images"),
     "survey": ("companion.cli.survey", "build a facility map from walk-through footage and a few measured anchors"),
     "map": ("companion.cli.map", "check a facility map against a walk-through (markers that moved)"),
+    "sitl-home": ("companion.cli.sitl_home", "print the --home LAT,LON,ALT,HEADING that starts a simulator at "
+                  "the config's start position"),
 }
 
 

@@ -23,7 +23,8 @@ class DaemonStatus:
     estimate: the newest estimate given to the link (None: no pose);
     track_state: the filter's state ("acquiring", "tracking", "coasting");
     link_state: the MAVLink link's ("connecting", "handshake", "streaming");
-    frames, sent: totals since start; rejected, resets: the filter's counters.
+    frames, sent: totals since start; rejected, resets: the filter's counters;
+    render_ms: a simulated camera's median render time per frame (None: a real camera).
     """
 
     fps: float
@@ -36,6 +37,7 @@ class DaemonStatus:
     sent: int
     rejected: int
     resets: int
+    render_ms: float | None = None
 
     def line(self) -> str:
         """fps, markers seen, pose, latency, tracking and link state on one line."""
@@ -47,7 +49,8 @@ class DaemonStatus:
             pose = "no pose"
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
                 f"{self.track_state} | link {self.link_state} | "
-                f"sent {self.sent} rejected {self.rejected} resets {self.resets}")
+                f"sent {self.sent} rejected {self.rejected} resets {self.resets}"
+                + (f" | render {self.render_ms:.1f} ms" if self.render_ms is not None else ""))
 
 
 def recent_activity(stats: PipelineStats, window_s: float = 1.0) -> tuple[float, int, float | None, Estimate | None]:
