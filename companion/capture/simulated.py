@@ -19,9 +19,16 @@ The closed loop in a simulator (docs/sitl.md)::
   The position goes into the map frame through the map's ``geodetic_origin``
   and ``x_bearing_deg`` (``frames.ned_from_geodetic``: ArduPilot's own
   flat-earth rule).
-* **Time.** SIM_STATE carries no timestamp: a sample's time is when the link
-  received it (on one machine, the simulator's send slot plus a loopback
-  hop: a few milliseconds at most). SITL must run in real time (speedup 1).
+* **Time.** SIM_STATE carries no timestamp: a sample's time comes from when
+  the link received it. A busy machine delays the link's thread and hands it
+  a burst of samples at once, which would stamp them all alike: positions up
+  to a burst's length old would be rendered as now. The simulator sends them
+  at a regular interval, so ``SendClock`` stamps each one no later than the
+  previous stamp plus the mean interval of the last 32 arrivals (never later
+  than it arrived, never more than 10 intervals before): a burst gets back
+  its spacing, an on-time sample puts the clock back on its arrival. (A
+  sample lost in between would be stamped one interval early: TCP and
+  loopback lose none.) SITL must run in real time (speedup 1).
 * **Render.** Every ``1 / fps`` the thread renders the state at ``now -
   render_delay`` (interpolated between the two samples around it: positions
   linearly, attitudes by slerp; past the newest sample it extrapolates with
@@ -140,6 +147,32 @@ class SimStateHistory:
         return SimState(t_ns, position, slerp([f]).as_matrix()[0], velocity)
 
 
+class SendClock:
+    """Send times of a message sent at a regular interval, from its receive times (see the module docstring)."""
+
+    def __init__(self, window: int = 32, max_lag_intervals: float = 10.0):
+        self._arrivals_ns: collections.deque[int] = collections.deque(maxlen=window)
+        self.max_lag_intervals = max_lag_intervals
+        self._last_stamp_ns: int | None = None
+
+    def stamp(self, receive_ns: int) -> int:
+        arrivals = self._arrivals_ns
+        arrivals.append(receive_ns)
+        if self._last_stamp_ns is None or len(arrivals) < 8:
+            stamp_ns = receive_ns
+        else:
+            # mean interval = (newest - oldest) / (n - 1): bursts and waits cancel out
+            interval_ns = (arrivals[-1] - arrivals[0]) / (len(arrivals) - 1)
+            stamp_ns = min(receive_ns, self._last_stamp_ns + int(interval_ns))
+            stamp_ns = max(stamp_ns, receive_ns - int(self.max_lag_intervals * interval_ns))
+        self._last_stamp_ns = stamp_ns
+        return stamp_ns
+
+    def reset(self) -> None:
+        self._arrivals_ns.clear()
+        self._last_stamp_ns = None
+
+
 class SimStateStream:
     """The link's SIM_STATE subscriber: asks for it, converts it, files it (see the module docstring)."""
 
@@ -158,9 +191,10 @@ class SimStateStream:
         self.unusable = 0
         self._arrivals_s: collections.deque[float] = collections.deque()
         self._last_request_s = -math.inf
+        self.clock = SendClock()
 
     def on_message(self, message, receive_ns: int) -> None:
-        state = sim_state_from_message(message, receive_ns, self.origin)
+        state = sim_state_from_message(message, self.clock.stamp(receive_ns), self.origin)
         if state is None:
             self.unusable += 1
             if self.unusable == 1:
