@@ -23,12 +23,14 @@ The closed loop in a simulator (docs/sitl.md)::
   the link received it. A busy machine delays the link's thread and hands it
   a burst of samples at once, which would stamp them all alike: positions up
   to a burst's length old would be rendered as now. The simulator sends them
-  at a regular interval, so ``SendClock`` stamps each one no later than the
-  previous stamp plus the mean interval of the last 32 arrivals (never later
-  than it arrived, never more than 10 intervals before): a burst gets back
-  its spacing, an on-time sample puts the clock back on its arrival. (A
-  sample lost in between would be stamped one interval early: TCP and
-  loopback lose none.) SITL must run in real time (speedup 1).
+  at the interval asked for, so ``SendClock`` stamps each one no later than
+  the previous stamp plus that interval (never later than it arrived, never
+  more than 10 intervals before): a burst gets back its spacing, an on-time
+  sample puts the clock back on its arrival. A simulator that sends slower
+  than asked (the mean interval of the last 64 arrivals over 1.5 times the
+  asked one) is stamped by its mean interval instead. (A sample lost in
+  between would be stamped one interval early: TCP and loopback lose none.)
+  SITL must run in real time (speedup 1).
 * **Render.** Every ``1 / fps`` the thread renders the state at ``now -
   render_delay`` (interpolated between the two samples around it: positions
   linearly, attitudes by slerp; past the newest sample it extrapolates with
@@ -150,7 +152,8 @@ class SimStateHistory:
 class SendClock:
     """Send times of a message sent at a regular interval, from its receive times (see the module docstring)."""
 
-    def __init__(self, window: int = 32, max_lag_intervals: float = 10.0):
+    def __init__(self, interval_ns: int, window: int = 64, max_lag_intervals: float = 10.0):
+        self.interval_ns = interval_ns
         self._arrivals_ns: collections.deque[int] = collections.deque(maxlen=window)
         self.max_lag_intervals = max_lag_intervals
         self._last_stamp_ns: int | None = None
@@ -161,8 +164,9 @@ class SendClock:
         if self._last_stamp_ns is None or len(arrivals) < 8:
             stamp_ns = receive_ns
         else:
-            # mean interval = (newest - oldest) / (n - 1): bursts and waits cancel out
-            interval_ns = (arrivals[-1] - arrivals[0]) / (len(arrivals) - 1)
+            # mean interval = (newest - oldest) / (n - 1): bursts and waits cancel out over the window
+            mean_ns = (arrivals[-1] - arrivals[0]) / (len(arrivals) - 1)
+            interval_ns = self.interval_ns if mean_ns < 1.5 * self.interval_ns else mean_ns
             stamp_ns = min(receive_ns, self._last_stamp_ns + int(interval_ns))
             stamp_ns = max(stamp_ns, receive_ns - int(self.max_lag_intervals * interval_ns))
         self._last_stamp_ns = stamp_ns
@@ -191,7 +195,7 @@ class SimStateStream:
         self.unusable = 0
         self._arrivals_s: collections.deque[float] = collections.deque()
         self._last_request_s = -math.inf
-        self.clock = SendClock()
+        self.clock = SendClock(int(1e9 / rate_hz))
 
     def on_message(self, message, receive_ns: int) -> None:
         state = sim_state_from_message(message, self.clock.stamp(receive_ns), self.origin)
