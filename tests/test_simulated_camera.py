@@ -166,5 +166,11 @@ def test_camera_renders_from_the_state_and_stalls_without_it():
             assert frame.image.shape == (240, 320)
             assert frame.t_ns <= taken_ns  # handed over no earlier than its stamp
         assert source.render_ms() > 0
+        # the stream stops in the middle: no frames, and after stall_timeout_s the camera is lost, said once
+        deadline = time.monotonic() + 2.0
+        while source.lost_reason is None and time.monotonic() < deadline:
+            source.get(0.02)
+        assert source.lost_reason is not None and "no SIM_STATE for" in source.lost_reason
+        assert source.get(0.1) is None
     finally:
         source.close()
