@@ -20,16 +20,16 @@ The closed loop in a simulator (docs/sitl.md)::
   and ``x_bearing_deg`` (``frames.ned_from_geodetic``: ArduPilot's own
   flat-earth rule).
 * **Time.** SIM_STATE carries no timestamp: a sample's time comes from when
-  the link received it. A busy machine delays the link's thread and hands it
-  a burst of samples at once, which would stamp them all alike: positions up
-  to a burst's length old would be rendered as now. The simulator sends them
-  at the interval asked for, so ``SendClock`` stamps each one no later than
-  the previous stamp plus that interval (never later than it arrived, never
-  more than 10 intervals before): a burst gets back its spacing, an on-time
-  sample puts the clock back on its arrival. A simulator that sends slower
-  than asked (the mean interval of the last 64 arrivals over 1.5 times the
-  asked one) is stamped by its mean interval instead. (A sample lost in
-  between would be stamped one interval early: TCP and loopback lose none.)
+  the link received it. A busy machine delays the link's thread, by a
+  varying amount, and hands it a burst of samples at once, which would stamp
+  them all alike: positions up to a burst's length old would be rendered as
+  now. The simulator sends them at a regular interval, so ``SendClock``
+  stamps them on a regular grid (the interval fitted to the last 200
+  arrivals) through the promptest arrival among them, as the attitude's
+  clock does with ``time_boot_ms`` (``companion.mavlink.attitude``): the
+  error is that arrival's delay. (A sample lost in between would shift the
+  grid by one interval until it leaves the window: TCP and loopback lose
+  none.)
   SITL must run in real time (speedup 1).
 * **Render.** Every ``1 / fps`` the thread renders the state at ``now -
   render_delay`` (interpolated between the two samples around it: positions
@@ -150,31 +150,34 @@ class SimStateHistory:
 
 
 class SendClock:
-    """Send times of a message sent at a regular interval, from its receive times (see the module docstring)."""
+    """Send times of a message sent at a regular interval, from its receive times (see the module docstring).
 
-    def __init__(self, interval_ns: int, window: int = 64, max_lag_intervals: float = 10.0):
-        self.interval_ns = interval_ns
+    Over the last ``window`` arrivals, numbered i = 0..n-1: the interval is
+    the least-squares slope of the arrival times over i (it follows a
+    simulator slower than real time), the delay line the promptest arrival
+    (offset = min(arrival_i - i * interval)); the newest is stamped on it,
+    never later than it arrived.
+    """
+
+    def __init__(self, window: int = 200, min_arrivals: int = 8):
         self._arrivals_ns: collections.deque[int] = collections.deque(maxlen=window)
-        self.max_lag_intervals = max_lag_intervals
-        self._last_stamp_ns: int | None = None
+        self.min_arrivals = min_arrivals
 
     def stamp(self, receive_ns: int) -> int:
         arrivals = self._arrivals_ns
         arrivals.append(receive_ns)
-        if self._last_stamp_ns is None or len(arrivals) < 8:
-            stamp_ns = receive_ns
-        else:
-            # mean interval = (newest - oldest) / (n - 1): bursts and waits cancel out over the window
-            mean_ns = (arrivals[-1] - arrivals[0]) / (len(arrivals) - 1)
-            interval_ns = self.interval_ns if mean_ns < 1.5 * self.interval_ns else mean_ns
-            stamp_ns = min(receive_ns, self._last_stamp_ns + int(interval_ns))
-            stamp_ns = max(stamp_ns, receive_ns - int(self.max_lag_intervals * interval_ns))
-        self._last_stamp_ns = stamp_ns
-        return stamp_ns
+        n = len(arrivals)
+        if n < self.min_arrivals:
+            return receive_ns
+        t = np.asarray(arrivals, dtype=np.float64) - arrivals[0]
+        i = np.arange(n, dtype=np.float64)
+        # least squares: interval = cov(i, t) / var(i)
+        interval_ns = float(np.dot(i - i.mean(), t - t.mean()) / np.dot(i - i.mean(), i - i.mean()))
+        offset_ns = float(np.min(t - i * interval_ns))
+        return min(receive_ns, arrivals[0] + int(offset_ns + (n - 1) * interval_ns))
 
     def reset(self) -> None:
         self._arrivals_ns.clear()
-        self._last_stamp_ns = None
 
 
 class SimStateStream:
@@ -195,7 +198,7 @@ class SimStateStream:
         self.unusable = 0
         self._arrivals_s: collections.deque[float] = collections.deque()
         self._last_request_s = -math.inf
-        self.clock = SendClock(int(1e9 / rate_hz))
+        self.clock = SendClock()
 
     def on_message(self, message, receive_ns: int) -> None:
         state = sim_state_from_message(message, self.clock.stamp(receive_ns), self.origin)
