@@ -36,8 +36,8 @@ START_M = (3.5, 0.0, 0.15)
 START_HEADING_DEG = 180.0          # facing the marker wall at x = 0 (map -x)
 X_BEARING_DEG = 35.0               # the hall map's
 FPS = 30
-SPEED_M_S = 1.5                    # the stand-in's WPNAV_SPEED and WPNAV_ACCEL
-ACCEL_M_S2 = 1.5
+SPEED_M_S = 1.0                    # the stand-in's WPNAV_SPEED and WPNAV_ACCEL: an indoor flight
+ACCEL_M_S2 = 1.0
 # The stand-in turns corners at its full acceleration from one step to the next; the filter's defaults
 # (3 m/s^2 of process noise, gate 0.999) then reject good poses there (config/sitl-camera.yaml, docs/sitl.md)
 FUSION = {"accel_noise_m_s2": 6.0, "gate_probability": 0.99999}
