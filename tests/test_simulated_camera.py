@@ -181,3 +181,18 @@ def test_camera_renders_from_the_state_and_stalls_without_it():
         assert source.get(0.1) is None
     finally:
         source.close()
+
+
+def test_occluders_cross_the_view():
+    """With occluders a person or box walks across the view: the same pose renders differently while one passes."""
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0,
+                                      "mount": {"facing": "forward"}}, "test")
+    hall = load_map(HALL_MAP)
+    plain = SimulatedCamera(hall, camera, SimulatedCameraParams())
+    crowded = SimulatedCamera(hall, camera, SimulatedCameraParams(occluders_per_minute=600.0), world=plain.world)
+    R_ned_body = frames.rotation_from_euler_321(0, 0, math.radians(215.0))
+    changed = 0
+    for k in range(40):  # 4 s of states, 10 per second
+        state = SimState(k * 100_000_000, np.array([-2.87, -2.0, -1.2]), R_ned_body, np.zeros(3))
+        changed += int(np.mean(np.abs(plain._render(state, k).astype(int) - crowded._render(state, k))) > 2.0)
+    assert changed >= 5

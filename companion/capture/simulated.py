@@ -38,7 +38,10 @@ The closed loop in a simulator (docs/sitl.md)::
   ``CameraModel`` (intrinsics, distortion, mounting) over the world
   ``companion.sim.simulate.build_world`` makes of the facility map, with the
   configured ``Degradations`` (motion blur from the state's motion over the
-  exposure). The frame's ``t_ns`` is the state's time plus
+  exposure) and, at ``occluders_per_minute``, a person or a box walking
+  across the view (``companion.sim.occluders``: each starts beside the view
+  the camera has when it is planned, 0.8-1.8 m ahead, and crosses it at
+  0.9-1.4 m/s). The frame's ``t_ns`` is the state's time plus
   ``exposure_latency`` and it is handed over no earlier than that, like a
   camera whose driver delivers a frame that long after its exposure.
 * **A stopped stream is a stalled camera.** Without a state to render there
@@ -65,7 +68,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap, GeodeticOrigin
 from companion.mavlink import messages as mm
-from companion.sim import raster
+from companion.sim import occluders, raster
 from companion.sim.degrade import Degradations
 from companion.sim.simulate import World, build_world
 from companion.types import Frame
@@ -249,7 +252,9 @@ class SimulatedCameraParams:
     render_delay_ms: the state rendered is this far behind now, so that it lies
     between two samples; state_rate_hz: SIM_STATE asked for at this rate;
     stall_timeout_s: no state for this long: the camera is lost (``lost_reason``);
-    seed: the sensor noise's; degradations: the image-realism knobs.
+    seed: the sensor noise's and the occluders'; degradations: the
+    image-realism knobs; occluders_per_minute: people or boxes crossing the
+    view, on average (0: none).
     """
 
     fps: float = 30.0
@@ -259,6 +264,7 @@ class SimulatedCameraParams:
     stall_timeout_s: float = 1.0
     seed: int = 0
     degradations: Degradations = Degradations()
+    occluders_per_minute: float = 0.0
 
 
 class SimulatedCamera(ThreadedSource):
@@ -287,6 +293,9 @@ class SimulatedCamera(ThreadedSource):
         self._renderer = raster.Renderer.from_camera(camera)
         self._render_times: collections.deque[tuple[int, int]] = collections.deque(maxlen=512)  # (t_ns, render ns)
         self._render_lock = threading.Lock()
+        self._occluder_rng = np.random.default_rng(params.seed + 104729)
+        self._occluders: list[occluders.PassingOccluder] = []
+        self._next_occluder_s: float | None = None
 
     def render_ms(self, window_s: float = RENDER_WINDOW_S) -> float | None:
         """Median render time (ms) of the frames rendered in the newest ``window_s``; None if none."""
@@ -349,7 +358,8 @@ class SimulatedCamera(ThreadedSource):
         """(H, W) uint8: the degraded image the camera sees from ``state``."""
         started = time.perf_counter_ns()
         T_camera_map = self._T_camera_map(state.T_ned_body())
-        rendering = self._renderer.render(self.world.quads, T_camera_map, background=40.0)
+        rendering = self._renderer.render(self.world.quads + self._occluder_quads(state.t_ns * 1e-9, T_camera_map),
+                                          T_camera_map, background=40.0)
         degradations = self.params.degradations.at(state.t_ns * 1e-9, self.params.seed)
         motion = self._image_motion_px(state, T_camera_map) if degradations.motion_blur else None
         rng = np.random.default_rng([self.params.seed, index])
@@ -358,6 +368,38 @@ class SimulatedCamera(ThreadedSource):
         with self._render_lock:
             self._render_times.append((time.monotonic_ns(), finished - started))
         return image
+
+    def _occluder_quads(self, t_s: float, T_camera_map: np.ndarray) -> list[raster.TexturedQuad]:
+        """The quads of the people and boxes crossing the view at ``t_s``; plans the next crossing when due."""
+        rate_per_s = self.params.occluders_per_minute / 60.0
+        if rate_per_s <= 0:
+            return []
+        rng = self._occluder_rng
+        if self._next_occluder_s is None:
+            self._next_occluder_s = t_s + rng.exponential(1.0 / rate_per_s)
+        if t_s >= self._next_occluder_s:
+            self._occluders.append(self._plan_crossing(t_s, frames.invert_transform(T_camera_map), rng))
+            self._next_occluder_s = t_s + rng.exponential(1.0 / rate_per_s)
+        self._occluders = [o for o in self._occluders if o.t_end_s >= t_s]
+        quads = (o.quad_at(t_s) for o in self._occluders)
+        return [q for q in quads if q is not None]
+
+    def _plan_crossing(self, t_s: float, T_map_camera: np.ndarray, rng) -> occluders.PassingOccluder:
+        """A crossing that starts now beside the current view and walks across it, on the floor."""
+        optical_axis = T_map_camera[:3, 2]
+        forward = np.array([optical_axis[0], optical_axis[1], 0.0])
+        forward /= max(np.linalg.norm(forward), 1e-9)
+        right = np.array([forward[1], -forward[0], 0.0])
+        distance_m = rng.uniform(0.8, 1.8)
+        speed_m_s = rng.uniform(0.9, 1.4)
+        direction = 1.0 if rng.uniform() < 0.5 else -1.0
+        half_width_m = distance_m * math.tan(math.radians(40.0)) + 0.6
+        start = T_map_camera[:3, 3] + distance_m * forward - direction * half_width_m * right
+        start[2] = self.world.floor_z_m
+        duration_s = 2 * half_width_m / speed_m_s
+        kind = "person" if rng.uniform() < 0.6 else "box"
+        return occluders.PassingOccluder(kind, t_s, t_s + duration_s, start, direction * speed_m_s * right, -forward,
+                                         int(rng.integers(0, 2**31)))
 
     def _T_camera_map(self, T_ned_body: np.ndarray) -> np.ndarray:
         # T_camera_map = (T_map_ned T_ned_body T_body_camera)^-1

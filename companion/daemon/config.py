@@ -31,7 +31,7 @@ SOURCE_KINDS = ("replay", "v4l2", "simulated_camera")
 REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
 V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
 SIMULATED_KEYS = {"kind", "fps", "start_m", "start_heading_deg", "exposure_latency_ms", "render_delay_ms",
-                  "state_rate_hz", "stall_timeout_s", "seed", "degradations"}
+                  "state_rate_hz", "stall_timeout_s", "seed", "degradations", "occluders_per_minute"}
 DEGRADATION_KEYS = {f.name for f in dataclasses.fields(Degradations)}
 MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
             "VISION_SPEED_ESTIMATE": "send_vision_speed",
@@ -220,6 +220,7 @@ def _simulated_camera(section: dict, where: Where) -> SimulatedCameraConfig:
         stall_timeout_s=where.number(section, "stall_timeout_s", 1.0, minimum=0.1),
         seed=int(seed),
         degradations=_degradations(section.get("degradations"), where.sub("degradations")),
+        occluders_per_minute=where.number(section, "occluders_per_minute", 0.0, minimum=0.0),
     )
     if params.fps > 120.0:
         raise where.error(f"must be <= 120, got {params.fps:g}", "fps")
