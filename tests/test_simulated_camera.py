@@ -196,3 +196,18 @@ def test_occluders_cross_the_view():
         state = SimState(k * 100_000_000, np.array([-2.87, -2.0, -1.2]), R_ned_body, np.zeros(3))
         changed += int(np.mean(np.abs(plain._render(state, k).astype(int) - crowded._render(state, k))) > 2.0)
     assert changed >= 5
+
+
+def test_culling_leaves_the_image_as_it_is():
+    """Only the quads in view are drawn: the image equals the whole world's."""
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0,
+                                      "distortion": [-0.05, 0.02, 0.0, 0.0, 0.0], "mount": {"facing": "forward"}}, "t")
+    source = SimulatedCamera(load_map(HALL_MAP), camera, SimulatedCameraParams())
+    for position, yaw_deg in (([-2.87, -2.0, -1.2], 215.0), ([-1.0, 1.5, -1.0], 100.0), ([-3.0, -2.0, -0.2], 300.0)):
+        T_ned_body = frames.make_transform(frames.rotation_from_euler_321(0, 0, math.radians(yaw_deg)), position)
+        T_camera_map = source._T_camera_map(T_ned_body)
+        in_view = source._quads_in_view(T_camera_map)
+        assert len(in_view) < len(source.world.quads)
+        whole = source._renderer.render(source.world.quads, T_camera_map, background=40.0).image
+        culled = source._renderer.render(in_view, T_camera_map, background=40.0).image
+        np.testing.assert_array_equal(culled, whole)

@@ -291,6 +291,7 @@ class SimulatedCamera(ThreadedSource):
         self.state_stream = SimStateStream(self.history, origin, params.state_rate_hz)
         self.lost_reason: str | None = None
         self._renderer = raster.Renderer.from_camera(camera)
+        self._quad_corners = np.stack([quad.corners_world for quad in self.world.quads])  # (Q, 4, 3)
         self._render_times: collections.deque[tuple[int, int]] = collections.deque(maxlen=512)  # (t_ns, render ns)
         self._render_lock = threading.Lock()
         self._occluder_rng = np.random.default_rng(params.seed + 104729)
@@ -358,8 +359,8 @@ class SimulatedCamera(ThreadedSource):
         """(H, W) uint8: the degraded image the camera sees from ``state``."""
         started = time.perf_counter_ns()
         T_camera_map = self._T_camera_map(state.T_ned_body())
-        rendering = self._renderer.render(self.world.quads + self._occluder_quads(state.t_ns * 1e-9, T_camera_map),
-                                          T_camera_map, background=40.0)
+        quads = self._quads_in_view(T_camera_map) + self._occluder_quads(state.t_ns * 1e-9, T_camera_map)
+        rendering = self._renderer.render(quads, T_camera_map, background=40.0)
         degradations = self.params.degradations.at(state.t_ns * 1e-9, self.params.seed)
         motion = self._image_motion_px(state, T_camera_map) if degradations.motion_blur else None
         rng = np.random.default_rng([self.params.seed, index])
@@ -368,6 +369,21 @@ class SimulatedCamera(ThreadedSource):
         with self._render_lock:
             self._render_times.append((time.monotonic_ns(), finished - started))
         return image
+
+    def _quads_in_view(self, T_camera_map: np.ndarray) -> list[raster.TexturedQuad]:
+        """The world's quads that may reach the image: not all behind the camera, and not all in front of it
+        but beyond one edge of the renderer's canvas. The same image, without preparing the rest one by one."""
+        corners = self._quad_corners @ T_camera_map[:3, :3].T + T_camera_map[:3, 3]  # (Q, 4, 3) camera frame
+        z = corners[..., 2]
+        in_front = z > raster.NEAR_M
+        K, (width, height) = self._renderer.canvas_K, self._renderer.canvas_size
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # u = fx x / z + cx, v = fy y / z + cy
+            u = K[0, 0] * corners[..., 0] / z + K[0, 2]
+            v = K[1, 1] * corners[..., 1] / z + K[1, 2]
+        beyond_an_edge = (u < 0).all(1) | (u > width).all(1) | (v < 0).all(1) | (v > height).all(1)
+        seen = in_front.any(axis=1) & ~(in_front.all(axis=1) & beyond_an_edge)
+        return [quad for quad, keep in zip(self.world.quads, seen) if keep]
 
     def _occluder_quads(self, t_s: float, T_camera_map: np.ndarray) -> list[raster.TexturedQuad]:
         """The quads of the people and boxes crossing the view at ``t_s``; plans the next crossing when due."""
