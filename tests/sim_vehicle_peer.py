@@ -25,6 +25,12 @@ conversion here is written out on its own, from ArduPilot's sources.
   only).
 * SET_GPS_GLOBAL_ORIGIN is answered with GPS_GLOBAL_ORIGIN (ArduPilot sends it
   when its EKF takes the origin); MAV_CMD_REQUEST_MESSAGE(49) likewise.
+* The start order's other messages, as ArduPilot: EKF_STATUS_REPORT at 2 Hz
+  and on MAV_CMD_REQUEST_MESSAGE(193) (initialised 0.5 s after start);
+  HOME_POSITION on MAV_CMD_REQUEST_MESSAGE(242) once home is set (at the
+  first vision after the origin, or MAV_CMD_DO_SET_HOME); PARAM_VALUE for
+  PARAM_REQUEST_READ of the vision parameters (set for external navigation,
+  ``--viso-delay-ms``).
 * Flight like ArduCopter: SET_MODE / MAV_CMD_DO_SET_MODE (GUIDED 4, LAND 9),
   arming (MAV_CMD_COMPONENT_ARM_DISARM) refused unless in GUIDED with an
   origin and vision for the last second (the EKF "is using external nav
@@ -59,6 +65,12 @@ STREAMS = {mavlink.MAVLINK_MSG_ID_SIM_STATE, mavlink.MAVLINK_MSG_ID_ATTITUDE,
            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED}
 VISION_FRESH_S = 1.0
 STEP_S = 0.0025  # physics step: 400 Hz, as SITL's copter loop
+EKF_INITIALISED_S = 0.5
+EKF_STATUS_REPORT_ID, HOME_POSITION_ID = 193, 242
+# EKF_STATUS_REPORT flags of an EKF with attitude, velocity and position (not uninitialised)
+EKF_FLAGS = (mavlink.EKF_ATTITUDE | mavlink.EKF_VELOCITY_HORIZ | mavlink.EKF_VELOCITY_VERT | mavlink.EKF_POS_HORIZ_REL
+             | mavlink.EKF_POS_HORIZ_ABS | mavlink.EKF_POS_VERT_ABS | mavlink.EKF_PRED_POS_HORIZ_REL
+             | mavlink.EKF_PRED_POS_HORIZ_ABS)
 
 
 def offset_degrees(lat_deg: float, lon_deg: float, north_m: float, east_m: float) -> tuple[float, float]:
@@ -125,6 +137,10 @@ class Peer:
         self.lock = threading.Lock()
         self.out = open(args.out, "a", buffering=1)
         self.boot_s = time.monotonic()
+        self.home_set = False
+        self.parameters = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 1, "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6,
+                           "EK3_SRC1_YAW": 6, "EK3_SRC1_VELXY": 6, "VISO_DELAY_MS": args.viso_delay_ms,
+                           "VISO_POS_X": 0.0, "VISO_POS_Y": 0.0, "VISO_POS_Z": 0.0}
         self.ports = {}
         for name, port in (("companion", args.companion_port), ("gcs", args.gcs_port)):
             connection = mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}", source_system=1,
@@ -143,6 +159,17 @@ class Peer:
             port["connection"].mav.send(message)
         except OSError:
             pass  # not connected yet, or gone
+
+    def ekf_status(self):
+        initialised = time.monotonic() - self.boot_s > EKF_INITIALISED_S
+        flags = EKF_FLAGS if initialised else mavlink.EKF_UNINITIALIZED
+        return mavlink.MAVLink_ekf_status_report_message(flags, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def home_message(self):
+        lat, lon, alt = self.home
+        return mavlink.MAVLink_home_position_message(int(round(lat * 1e7)), int(round(lon * 1e7)),
+                                                     int(round(alt * 1000)), 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0],
+                                                     0.0, 0.0, 0.0)
 
     def heartbeat(self) -> None:
         v = self.vehicle
@@ -201,6 +228,12 @@ class Peer:
             self.record("received", kind, message.to_dict())
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
             self.on_position_target(message)
+        elif kind == "PARAM_REQUEST_READ":
+            name = message.param_id if isinstance(message.param_id, str) else message.param_id.decode()
+            if name in self.parameters:
+                self.send(port, mavlink.MAVLink_param_value_message(
+                    name.encode(), float(self.parameters[name]), mavlink.MAV_PARAM_TYPE_REAL32,
+                    len(self.parameters), list(self.parameters).index(name)))
 
     def origin_message(self):
         lat, lon, alt = self.origin
@@ -211,6 +244,7 @@ class Peer:
         fields = message.to_dict()
         self.record("received", kind, fields, sysid=message.get_srcSystem(), compid=message.get_srcComponent())
         if kind == "VISION_POSITION_ESTIMATE":
+            self.home_set |= self.origin is not None
             with self.lock:
                 self.vision_times.append(time.monotonic())
                 self.last_vision = (message.x, message.y, message.z)
@@ -247,6 +281,16 @@ class Peer:
                 result = mavlink.MAV_RESULT_FAILED
             else:
                 self.send(port, self.origin_message())
+        elif command == mavlink.MAV_CMD_REQUEST_MESSAGE and int(message.param1) == EKF_STATUS_REPORT_ID:
+            self.send(port, self.ekf_status())
+        elif command == mavlink.MAV_CMD_REQUEST_MESSAGE and int(message.param1) == HOME_POSITION_ID:
+            if self.home_set:
+                self.send(port, self.home_message())
+            else:
+                result = mavlink.MAV_RESULT_FAILED
+        elif command == mavlink.MAV_CMD_DO_SET_HOME:
+            self.home_set = self.origin is not None
+            result = mavlink.MAV_RESULT_ACCEPTED if self.home_set else mavlink.MAV_RESULT_FAILED
         elif command == mavlink.MAV_CMD_DO_SET_MODE:
             result = mavlink.MAV_RESULT_ACCEPTED if self.set_mode(int(message.param2)) else mavlink.MAV_RESULT_DENIED
         elif command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
@@ -284,7 +328,7 @@ class Peer:
     def run(self, duration_s: float, stop: threading.Event) -> None:
         self.record("event", "listening", {})
         deadline = time.monotonic() + duration_s
-        next_beat = next_step = time.monotonic()
+        next_beat = next_step = next_ekf_report = time.monotonic()
         while not stop.is_set() and time.monotonic() < deadline:
             now = time.monotonic()
             while next_step <= now:
@@ -293,6 +337,10 @@ class Peer:
             if now >= next_beat:
                 self.heartbeat()
                 next_beat = now + 1.0
+            if now >= next_ekf_report:
+                for port in self.ports.values():
+                    self.send(port, self.ekf_status())
+                next_ekf_report = now + 0.5
             for port in self.ports.values():
                 for message_id, due in port["streams"].items():
                     if now >= due[1]:
@@ -324,6 +372,7 @@ def main() -> None:
     parser.add_argument("--max-speed", type=float, default=1.5, help="m/s")
     parser.add_argument("--max-accel", type=float, default=1.5, help="m/s^2")
     parser.add_argument("--duration", type=float, default=60.0)
+    parser.add_argument("--viso-delay-ms", type=float, default=90.0, help="the VISO_DELAY_MS it reports")
     args = parser.parse_args()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
