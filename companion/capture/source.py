@@ -54,6 +54,7 @@ class SourceCounters:
 class FrameSource(Protocol):
     counters: SourceCounters
     error: Exception | None
+    lost_reason: str | None
 
     def start(self) -> None: ...
 

@@ -20,6 +20,7 @@ COMMANDS = {
     "localize": ("companion.cli.localize", "print the per-frame camera pose of a sequence (no filtering)"),
     "simulate": ("companion.cli.simulate", "render a synthetic camera sequence with ground truth"),
     "calibrate": ("companion.cli.calibrate", "calibrate a camera from chessboard images"),
+    "check-fc": ("companion.cli.check_fc", "read the flight controller's vision parameters and judge them"),
 }
 
 

@@ -1,4 +1,5 @@
-"""``companion run [--config FILE]``: start the positioning daemon (``companion.daemon``)."""
+"""``companion run [--config FILE] [--replay PATH] [--log-level LEVEL]``: start the positioning daemon
+(``companion.daemon``)."""
 from __future__ import annotations
 
 import logging
@@ -6,7 +7,7 @@ import signal
 import sys
 
 from companion.daemon.config import ConfigError, default_config_path, load_config
-from companion.daemon.service import Daemon, setup_logging
+from companion.daemon.service import LOG_LEVELS, Daemon, setup_logging
 
 log = logging.getLogger("companion")
 
@@ -15,12 +16,18 @@ def configure_parser(parser) -> None:
     parser.add_argument("--config", metavar="FILE", default=None,
                         help=f"YAML config (default: the embedded {default_config_path().name}: bundled replay, "
                              "maps/warehouse.yaml, udpout:127.0.0.1:14550)")
+    parser.add_argument("--replay", metavar="PATH", default=None,
+                        help="replay this sequence folder, video or image folder in real time instead of the "
+                             "config's source (the rest of the config as it is)")
+    parser.add_argument("--log-level", choices=LOG_LEVELS, default="info",
+                        help="least important messages logged (default info; debug adds every skipped frame "
+                             "and retry)")
 
 
 def main(args) -> int:
-    setup_logging()
+    setup_logging(args.log_level)
     try:
-        config = load_config(args.config)
+        config = load_config(args.config, replay=args.replay)
         daemon = Daemon(config, status_stream=sys.stdout)
     except (ConfigError, ValueError) as error:
         log.error("%s", error)

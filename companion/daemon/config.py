@@ -79,10 +79,19 @@ def default_config_path() -> Path:
     return Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
 
 
-def load_config(path=None) -> Config:
-    """Read, resolve and validate a config file (the default one when ``path`` is None)."""
+def load_config(path=None, replay=None) -> Config:
+    """Read, resolve and validate a config file (the default one when ``path`` is None).
+
+    replay: a sequence folder, video or image folder to replay in real time instead of the
+    config's source (the rest of the config as it is: try a site's config on a recording).
+    """
     path = Path(path) if path is not None else default_config_path()
-    return config_from_dict(read_yaml(path, ConfigError, "config"), path)
+    data = read_yaml(path, ConfigError, "config")
+    if replay is not None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the config must be a mapping of sections")
+        data = {**data, "source": {"kind": "replay", "path": str(Path(replay).resolve()), "realtime": True}}
+    return config_from_dict(data, path)
 
 
 def config_from_dict(data, path) -> Config:

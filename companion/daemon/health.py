@@ -15,7 +15,7 @@ States, worst first (``HealthState.state``; the status line shows it):
 camera lost        the source says why it delivers nothing (``lost_reason``)   critical
 camera stalled     no frame for 3 frame periods (at least 0.5 s, at most 1 s)  critical
 starting           no frame yet
-no markers         no marker decoded for ``no_markers_after_s`` (0.5 s)
+no markers         no marker decoded in the frames of ``no_markers_after_s`` (0.5 s)
 no pose            markers, but no pose for ``no_pose_after_s`` (2 s); the
                    reasons are the pose stage's statuses, counted
 acquiring,         the filter's state (from the estimates it gave)
@@ -68,13 +68,6 @@ class HealthState:
     @property
     def critical(self) -> bool:
         return self.state in CRITICAL_STATES
-
-    def text(self) -> str:
-        """``no pose 2.4 s: uncertain 42, reprojection 3``; the bare state when all is well."""
-        text = self.state
-        if self.since_s and self.state not in ("acquiring", "tracking", "coasting"):
-            text += f" {self.since_s:.1f} s"
-        return text + (": " + ", ".join(self.reasons) if self.reasons else "")
 
 
 class Health:
@@ -160,9 +153,10 @@ class Health:
         silent_s = _seconds(now_ns - last_frame_ns)
         if silent_s > stall_after_s:
             return HealthState("camera stalled", silent_s, (f"no frame for {silent_s:.1f} s",))
-        without_markers_s = _seconds(now_ns - (last_markers_ns or self._started_ns))
-        if without_markers_s > self.no_markers_after_s:
-            return HealthState("no markers", without_markers_s)
+        # judged on the frames that came: a slow camera between two frames is not "no markers"
+        markers_ns = last_markers_ns or self._started_ns
+        if _seconds(last_frame_ns - markers_ns) > self.no_markers_after_s:
+            return HealthState("no markers", _seconds(now_ns - markers_ns))
         if no_pose_since_ns is not None and _seconds(now_ns - no_pose_since_ns) > self.no_pose_after_s:
             return HealthState("no pose", _seconds(now_ns - no_pose_since_ns),
                                tuple(f"{status} {count}" for status, count in statuses))
