@@ -584,3 +584,30 @@ def test_a_second_daemon_on_the_same_vehicle_refuses_to_run(tmp_path):
     vision_id = 102
     assert router.sent_by[0].count(vision_id) > 20 and vision_id not in router.sent_by[1]
     assert any(r["t_ns"] > vision_after_ns for r in fc.records("VISION_POSITION_ESTIMATE"))
+
+
+def test_a_looping_replay_whose_files_vanish_does_not_flood_the_log(tmp_path, peers):
+    """loop: true and the frames deleted mid-run: a few log lines and one 'camera lost', not one
+    line per frame (the landed code wrote 480,000 lines in 16 s)."""
+    sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in read_rows(HOVER / "timestamps.csv")])
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    process = start_daemon(write_config(tmp_path, sequence, port, source={"loop": True}))
+    peer.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=20)
+    (sequence / "frames").rename(tmp_path / "gone")
+    texts = []
+    deadline = time.monotonic() + 15
+    while not any("camera lost" in t for t in texts) and time.monotonic() < deadline:
+        time.sleep(0.1)
+        texts = [r["fields"]["text"] for r in peer.records("STATUSTEXT")]
+    time.sleep(3.0)
+    process.send_signal(signal.SIGTERM)
+    code, _, stderr = finish(process)
+    assert code == 0, stderr
+    lines = stderr.splitlines()
+    assert len(lines) < 40, f"{len(lines)} log lines:\n" + "\n".join(lines[:60])
+    assert sum("camera lost" in line for line in lines) == 1
+    assert [t for t in texts if "camera lost" in t] == [next(t for t in texts if "camera lost" in t)]
+    assert any(r["fields"]["system_status"] == 5 for r in peer.records("HEARTBEAT"))
+    corrupt = int(re.search(r"corrupt (\d+)", stderr).group(1))
+    assert 0 < corrupt < 500, corrupt  # paced at the recording's 15 fps and backed off, not a tight loop
