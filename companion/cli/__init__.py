@@ -66,7 +66,21 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    return int(module.main(args) or 0)
+    from companion.cli.output import OutputError
+
+    try:
+        return int(module.main(args) or 0)
+    except OutputError as error:
+        print(f"companion {command}: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        # a file that vanished or a disk that filled up mid-way: one line, not a traceback
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"companion {command}: {where}{error.strerror or error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"companion {command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
