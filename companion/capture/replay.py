@@ -53,11 +53,12 @@ class Recording:
         return int(np.median(np.diff(self.t_ns))) if len(self.t_ns) > 1 else 33_333_333
 
 
-def open_recording(path, fps: float | None = None) -> Recording:
+def open_recording(path, fps: float | None = None, fps_option: str = "source.fps") -> Recording:
     """A sequence folder (timestamps.csv), a video file, or a folder of images.
 
     fps: frame rate for a video or image folder without timestamps (a video's
-    own rate is used when not given).
+    own rate is used when not given); fps_option: how the caller's user gives
+    it (the config key, or a command's flag), named in the errors.
     """
     path = Path(path)
     if path.is_dir() and (path / TIMESTAMPS_FILE).exists():
@@ -67,7 +68,7 @@ def open_recording(path, fps: float | None = None) -> Recording:
         if not files:
             raise SourceError(f"{path}: no {TIMESTAMPS_FILE} and no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
         if not fps:
-            raise SourceError(f"{path}: an image folder without {TIMESTAMPS_FILE} needs source.fps")
+            raise SourceError(f"{path}: an image folder without {TIMESTAMPS_FILE} needs {fps_option}")
         return _evenly_spaced(path, len(files), fps, files=files, video=None)
     if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
         capture = cv2.VideoCapture(str(path))
@@ -77,7 +78,7 @@ def open_recording(path, fps: float | None = None) -> Recording:
             raise SourceError(f"{path}: not a readable video")
         rate = fps or video_fps
         if not rate or rate <= 0:
-            raise SourceError(f"{path}: the video states no frame rate; set source.fps")
+            raise SourceError(f"{path}: the video states no frame rate; set {fps_option}")
         return _evenly_spaced(path, count, rate, files=None, video=path)
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder")
@@ -121,6 +122,39 @@ def read_sequence_info(folder) -> dict:
     if not path.is_file():
         return {}
     return read_yaml(path, SourceError, "sequence info")
+
+
+def sequence_map_path(folder, info: dict | None = None) -> Path | None:
+    """The facility map a sequence folder's ``sequence.yaml`` names, or None when it names none.
+
+    The map is relative to the folder: ``companion simulate`` puts a copy in it
+    (``map.yaml``), so a copied folder keeps its map. Older sequences named it
+    relative to the repository they were made in (``../../maps/x.yaml``): it is
+    looked for there too, and in the folders above. SourceError when named but
+    found nowhere, naming sequence.yaml and the way out (``--map``, ``map:``).
+    """
+    folder = Path(folder)
+    info = read_sequence_info(folder) if info is None else info
+    name = info.get("map")
+    if name is None:
+        return None
+    if not isinstance(name, str) or not name:
+        raise SourceError(f"{folder / SEQUENCE_FILE}: map: must be a path, got {name!r}")
+    candidate = Path(name)
+    if candidate.is_absolute():
+        if candidate.is_file():
+            return candidate
+    else:
+        for base in [folder, *folder.resolve().parents]:
+            if (base / candidate).is_file():
+                return base / candidate
+        # an old sequence's "../../maps/x.yaml" copied elsewhere: the same path below a folder above
+        tail = Path(*[part for part in candidate.parts if part != ".."])
+        for base in folder.resolve().parents:
+            if (base / tail).is_file():
+                return base / tail
+    raise SourceError(f"{folder / SEQUENCE_FILE}: map: {name} is found neither beside the sequence nor in a folder "
+                      "above it; give the map (--map, or map: in a config)")
 
 
 class ReplaySource(ThreadedSource):

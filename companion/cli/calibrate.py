@@ -7,6 +7,7 @@ from pathlib import Path
 
 import cv2
 
+from companion.cli.output import output_file
 from companion.geometry.calibration import (IMAGE_SUFFIXES, Board, CalibrationError, calibrate,
                                             write_calibration)
 
@@ -41,9 +42,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.square_mm <= 0:
+    if not args.square_mm > 0:
         print(f"companion calibrate: --square-mm must be positive, not {args.square_mm}", file=sys.stderr)
         return 2
+    output_file(args.out, "--out")  # before the work, not after it
     try:
         paths = image_paths(args.images)
         images = {str(p): cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths}

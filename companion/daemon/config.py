@@ -21,7 +21,7 @@ from companion.geometry.facility_map import FacilityMap, geodetic_origin, load_m
 from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
 from companion.mavlink.link import LinkParams, Origin
-from companion.capture.replay import SEQUENCE_FILE, read_sequence_info
+from companion.capture.replay import SEQUENCE_FILE, read_sequence_info, sequence_map_path
 from companion.yaml_input import Where, read_yaml
 
 TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status"}
@@ -182,26 +182,15 @@ def _map(data: dict, where: Where, sequence) -> FacilityMap:
     if "map" in data:
         map_path = where.path(data, "map")
     elif sequence is not None and "map" in sequence[0]:
-        map_path = _sequence_map_path(sequence[0]["map"], sequence[1])
+        try:
+            map_path = sequence_map_path(sequence[1].parent, sequence[0])
+        except ValueError as error:
+            raise ConfigError(str(error)) from None
     else:
         raise where.error("missing (a facility map file, unless the replayed sequence names one)", "map")
     if not map_path.is_file():
         raise where.error(f"{map_path} does not exist", "map")
     return load_map(map_path)
-
-
-def _sequence_map_path(name, info_path: Path) -> Path:
-    """A sequence's map: relative to the sequence folder, else to a folder above it (the repository)."""
-    where = Where(str(info_path), ConfigError)
-    if not isinstance(name, str) or not name:
-        raise where.error(f"must be a path, got {name!r}", "map")
-    candidate = Path(name)
-    if candidate.is_absolute():
-        return candidate
-    for folder in [info_path.parent, *info_path.parent.resolve().parents]:
-        if (folder / candidate).is_file():
-            return folder / candidate
-    raise where.error(f"{name} found neither in {info_path.parent} nor in a folder above it", "map")
 
 
 def _parameters(section, where: Where, params_type, what: str):

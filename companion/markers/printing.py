@@ -149,9 +149,9 @@ def check_png_size(marker: MarkerPrint, dpi: float) -> None:
     side_px = png_side_px(marker, dpi)
     if side_px > MAX_PNG_SIDE_PX:
         max_dpi = int(dpi * MAX_PNG_SIDE_PX / side_px)
+        lower = f", or --dpi {max_dpi} or less" if max_dpi >= 1 else ""
         raise PrintingError(f"a {num(marker.size_mm)} mm marker at {num(dpi)} dpi is a {side_px} px square PNG "
-                            f"(at most {MAX_PNG_SIDE_PX}): use --format svg or --format pdf (vector, any size), "
-                            f"or --dpi {max_dpi} or less")
+                            f"(at most {MAX_PNG_SIDE_PX}): use --format svg or --format pdf (vector, any size){lower}")
 
 
 def png_with_phys(png: bytes, px_per_m: int) -> bytes:
