@@ -346,15 +346,20 @@ class MavlinkLink:
 
     def _run_link(self) -> None:
         backoff_s = self.params.reconnect_initial_s
+        said = None  # the last "cannot open" reason logged: a new reason is logged, a repeat is not
         while not self._stop.is_set():
             try:
                 connection = self._open_connection()
             except Exception as error:  # pymavlink raises OSError, serial errors, ValueError
                 self.counters.transport_errors += 1
-                log.warning("link %s: cannot open (%s); retrying in %.1f s", self.params.connection, error, backoff_s)
+                log.log(logging.WARNING if str(error) != said else logging.DEBUG,
+                        "link %s: cannot open (%s); retrying with backoff (%.1f s, up to %.0f s)",
+                        self.params.connection, error, backoff_s, self.params.reconnect_max_s)
+                said = str(error)
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
                 continue
+            said = None
             with self._send_lock:
                 self._connection = connection
             self._connected_s = time.monotonic()
