@@ -47,6 +47,7 @@ from companion.mavlink import fc_params
 from companion.mavlink.link import LinkState, MavlinkLink
 from companion.mavlink.messages import SEVERITY_CRITICAL, SEVERITY_WARNING
 from companion.daemon.notify import Notifier
+from companion.daemon.map_watch import MapWatch
 from companion.daemon.pipeline import Pipeline
 from companion.daemon.status import DaemonStatus, recent_activity
 from companion.geometry.pose import PoseSolver
@@ -107,6 +108,8 @@ class Daemon:
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
         self.health = Health(self._say)
         self.pipeline.observers.append(self.health.observe)
+        # a marker the pose stage keeps leaving out is said once (docs/survey.md)
+        self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
         self.link.on_parameters = self._on_fc_parameters
         self.notifier = Notifier()
         self.stop_event = threading.Event()
