@@ -66,6 +66,13 @@ CASES = [
      "companion localize: {tmp}/images: an image folder without timestamps.csv needs --fps"),
     (["localize", str(HOVER), "--max-markers", "0"], 2, "companion localize: --max-markers must be 1 or more, not 0"),
     (["localize", str(HOVER), "--fps", "-3"], 2, "companion localize: --fps must be positive, not -3.0"),
+    # before the survey's work, not after it
+    (["survey", str(HOVER), "--camera", str(REPO / "config" / "camera-example.yaml"), "--map", str(MAP),
+      "--out", "/proc/companion-map.yaml", "--no-progress"], 2,
+     "companion survey: --out /proc/companion-map.yaml: cannot write in /proc"),
+    (["survey", str(HOVER), "--camera", str(REPO / "config" / "camera-example.yaml"), "--map", str(MAP),
+      "--out", "{tmp}/map.yaml", "--report", "{tmp}/a-file", "--no-progress"], 2,
+     "companion survey: --report {tmp}/a-file: exists and is not a folder"),
     (["check-fc", "serial0"], 2, "companion check-fc: connection 'serial0': want udpout:HOST:PORT"),
     (["check-fc", "udpout:127.0.0.1:9", "--config", "{tmp}/missing.yaml"], 2,
      "companion check-fc: {tmp}/missing.yaml: cannot read config"),
