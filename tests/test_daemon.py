@@ -416,12 +416,12 @@ class NotifyListener:
 
 
 def test_a_camera_that_stalls_is_reported_and_the_heartbeat_goes_critical(tmp_path, peers):
-    """The replay delivers nothing for 6 s in the middle (a stalled camera): the status line
+    """The replay delivers nothing for 3 s in the middle (a stalled camera): the status line
     says so with 0 fps, one STATUSTEXT per change, HEARTBEAT CRITICAL during the stall and
     ACTIVE again once frames return."""
     rows = read_rows(HOVER / "timestamps.csv")
     sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in rows], gap_after=12,
-                                gap_ns=6_000_000_000)
+                                gap_ns=3_000_000_000)
     port = free_port()
     peer = peers(port, "--origin-reply", "on_set")
     notify = NotifyListener(tmp_path / "notify.sock")
@@ -444,12 +444,12 @@ def test_a_camera_that_stalls_is_reported_and_the_heartbeat_goes_critical(tmp_pa
     assert after and set(after) == {4}   # MAV_STATE_ACTIVE once they are back
     # the first CRITICAL heartbeat and the STATUSTEXT come during the stall, long before the frames return
     first_critical_ns = min(t for t, status in heartbeats if status == 5)
-    assert last_before_ns < first_critical_ns < first_after_ns - 4e9
+    assert last_before_ns < first_critical_ns < first_after_ns - 1.5e9
     texts = [(r["t_ns"], r["fields"]["text"]) for r in peer.records("STATUSTEXT")]
     stalled = [t for t, text in texts if "camera stalled" in text]
     again = [t for t, text in texts if "frames again" in text]
     assert len(stalled) == 1 and len(again) == 1, texts
-    assert last_before_ns < stalled[0] < first_after_ns - 4e9 and again[0] > first_after_ns - 1e9
+    assert last_before_ns < stalled[0] < first_after_ns - 1.5e9 and again[0] > first_after_ns - 1e9
     statuses = notify.statuses()
     assert any(s.startswith("  0.0 fps") and "camera stalled" in s for s in statuses), statuses
     assert any(" fps | markers " in s and "| tracking |" in s for s in statuses)
@@ -611,3 +611,15 @@ def test_a_looping_replay_whose_files_vanish_does_not_flood_the_log(tmp_path, pe
     assert any(r["fields"]["system_status"] == 5 for r in peer.records("HEARTBEAT"))
     corrupt = int(re.search(r"corrupt (\d+)", stderr).group(1))
     assert 0 < corrupt < 500, corrupt  # paced at the recording's 15 fps and backed off, not a tight loop
+
+
+def test_log_level_chooses_what_is_logged(tmp_path):
+    config = write_config(tmp_path, HOVER, free_port())
+    quiet = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config), "--log-level", "warning"],
+                           capture_output=True, text=True, timeout=60)
+    assert quiet.returncode == 0, quiet.stderr
+    assert " INFO " not in quiet.stderr and "stage total" not in quiet.stderr
+    chatty = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config), "--log-level", "debug"],
+                            capture_output=True, text=True, timeout=60)
+    assert chatty.returncode == 0, chatty.stderr
+    assert " DEBUG " in chatty.stderr and "stage total" in chatty.stderr
