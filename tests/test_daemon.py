@@ -614,12 +614,22 @@ def test_a_looping_replay_whose_files_vanish_does_not_flood_the_log(tmp_path, pe
 
 
 def test_log_level_chooses_what_is_logged(tmp_path):
-    config = write_config(tmp_path, HOVER, free_port())
-    quiet = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config), "--log-level", "warning"],
-                           capture_output=True, text=True, timeout=60)
-    assert quiet.returncode == 0, quiet.stderr
-    assert " INFO " not in quiet.stderr and "stage total" not in quiet.stderr
-    chatty = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config), "--log-level", "debug"],
-                            capture_output=True, text=True, timeout=60)
-    assert chatty.returncode == 0, chatty.stderr
-    assert " DEBUG " in chatty.stderr and "stage total" in chatty.stderr
+    """Two unreadable frames in a row: the first is a warning at any level, the second (within the
+    throttle's 5 s) only at debug; info lines only from info down."""
+    sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in read_rows(HOVER / "timestamps.csv")])
+    rows = read_rows(sequence / "timestamps.csv")
+    for row in rows[10:12]:
+        (sequence / row["file"]).unlink()
+    config = write_config(tmp_path, sequence, free_port())
+
+    def run(level: str) -> str:
+        result = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config), "--log-level", level],
+                                capture_output=True, text=True, timeout=60)
+        assert result.returncode == 0, result.stderr
+        return result.stderr
+
+    quiet, chatty = run("warning"), run("debug")
+    assert " INFO " not in quiet and "stage total" not in quiet
+    assert quiet.count("is unreadable") == 1 and rows[10]["file"] in quiet
+    assert chatty.count("is unreadable") == 2 and f"DEBUG companion.capture.replay: replay: {sequence / rows[11]['file']}" in chatty
+    assert "stage total" in chatty
