@@ -254,3 +254,25 @@ def test_recorder_refuses_a_file_in_the_way(tmp_path):
     (tmp_path / "flight").write_text("not a folder")
     with pytest.raises(RecordError, match="flight already exists"):
         Recorder(RecordParams(path=tmp_path / "flight"), None, MAP)
+
+
+def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
+    """attitude.csv (t_ns,roll_deg,pitch_deg) with t_ns on the time base of timestamps.csv (0 = first frame);
+    samples from before the first frame have no place on it and are left out."""
+    from companion.daemon.pipeline import FrameRecord
+    from companion.types import Frame
+    recorder = Recorder(RecordParams(path=tmp_path / "flight"), CameraModel.from_config(
+        yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover"), MAP)
+    recorder.start()
+    start_ns = 5_000_000_000
+    recorder.attitude(start_ns - 10_000_000, 9.0, 9.0)
+    for index in range(3):
+        t_ns = start_ns + index * 33_000_000
+        record = FrameRecord(index, t_ns, (0, 0, 0, 0), None, (), None, None)
+        recorder(Frame(np.zeros((480, 640), np.uint8), t_ns, index), record)
+        recorder.attitude(t_ns + 5_000_000, 1.5 + index, -2.25)
+    recorder.close()
+    rows = read_rows(tmp_path / "flight" / "attitude.csv")
+    assert [(int(r["t_ns"]), float(r["roll_deg"]), float(r["pitch_deg"])) for r in rows] == \
+        [(5_000_000, 1.5, -2.25), (38_000_000, 2.5, -2.25), (71_000_000, 3.5, -2.25)]
+    assert [int(t) for t in open_recording(tmp_path / "flight").t_ns] == [0, 33_000_000, 66_000_000]
