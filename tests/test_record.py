@@ -276,3 +276,21 @@ def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
     assert [(int(r["t_ns"]), float(r["roll_deg"]), float(r["pitch_deg"])) for r in rows] == \
         [(5_000_000, 1.5, -2.25), (38_000_000, 2.5, -2.25), (71_000_000, 3.5, -2.25)]
     assert [int(t) for t in open_recording(tmp_path / "flight").t_ns] == [0, 33_000_000, 66_000_000]
+
+
+def test_a_nearly_full_disk_stops_the_recording_cleanly(tmp_path):
+    """The disk's real free space, with the floor set above it: the recording stops at its first check,
+    says why, and leaves a folder that replays."""
+    floor_mb = shutil.disk_usage(tmp_path).free / 1e6 + 1000.0
+    config = config_from_dict({
+        "source": {"kind": "replay", "path": str(HOVER), "realtime": False},
+        "map": str(MAP),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "record": {"path": str(tmp_path / "flight"), "min_free_mb": floor_mb},
+    }, tmp_path / "daemon.yaml")
+    daemon = Daemon(config)
+    assert daemon.run() == 0
+    info = yaml.safe_load((tmp_path / "flight" / "sequence.yaml").read_text())
+    assert info["stopped"].startswith("disk nearly full (") and info["frames"] < 31
+    assert daemon.pipeline.stats.frames == 31
+    assert len(open_recording(tmp_path / "flight").t_ns) == info["frames"]

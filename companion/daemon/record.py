@@ -19,8 +19,8 @@ The observer runs on the pipeline thread and only queues: images go through
 a bounded budget (``queue_frames``); when the writer thread falls behind (a
 slow disk) the image is dropped and counted, its estimate row is still
 written, and the pipeline never waits. The recording stops by itself at
-``max_duration_s`` or ``max_size_mb`` (logged once, with the reason), on a
-write error, or when the daemon stops.
+``max_duration_s`` or ``max_size_mb``, when the disk is nearly full (logged
+once, with the reason), on a write error, or when the daemon stops.
 """
 from __future__ import annotations
 
@@ -96,7 +96,8 @@ class RecordParams:
         per run. It must not exist or be empty.
     codec: a key of ``CODECS``; jpeg_quality: 1-100, for mjpg.
     max_duration_s, max_size_mb: the recording stops (the daemon goes on) at
-        whichever comes first.
+        whichever comes first; and when the disk has less than ``min_free_mb``
+        (or two seconds of recording) left.
     queue_frames: images waiting for the disk before new ones are dropped.
     """
 
@@ -105,6 +106,7 @@ class RecordParams:
     jpeg_quality: int = 95
     max_duration_s: float = 3600.0
     max_size_mb: float = 4000.0
+    min_free_mb: float = 50.0
     queue_frames: int = 30
 
     def __post_init__(self):
@@ -112,7 +114,7 @@ class RecordParams:
             raise ValueError(f"codec must be one of {', '.join(CODECS)}, got {self.codec!r}")
         if not (isinstance(self.jpeg_quality, int) and 1 <= self.jpeg_quality <= 100):
             raise ValueError(f"jpeg_quality must be an integer in 1..100, got {self.jpeg_quality!r}")
-        for name in ("max_duration_s", "max_size_mb"):
+        for name in ("max_duration_s", "max_size_mb", "min_free_mb"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
         if not (isinstance(self.queue_frames, int) and self.queue_frames >= 1):
@@ -215,8 +217,11 @@ class Recorder:
         self._files = {}
         self._csv = {}
         self._thread = threading.Thread(target=self._run, name="record", daemon=True)
-        self._open_tables()
-        self._write_info()
+        try:
+            self._open_tables()
+            self._write_info()
+        except OSError as error:
+            raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
 
     # ------------------------------------------------------ pipeline thread
 
@@ -346,8 +351,13 @@ class Recorder:
             self._stop(f"duration limit reached ({self.params.max_duration_s:g} s)")
         elif self.counters.rows % SIZE_CHECK_EVERY_FRAMES == 0:
             self.counters.bytes = folder_bytes(self.folder)
+            free_mb = shutil.disk_usage(self.folder).free / 1e6
+            # keep room for the last rows, the index ffmpeg writes on closing and for the rest of the system
+            reserve_mb = max(self.params.min_free_mb, 2.0 * self.counters.bytes / 1e6 / max(duration_s, 1.0))
             if self.counters.bytes >= self.params.max_size_mb * 1e6:
                 self._stop(f"size limit reached ({self.params.max_size_mb:g} MB)")
+            elif free_mb < reserve_mb:
+                self._stop(f"disk nearly full ({free_mb:.1f} MB free, {reserve_mb:.1f} MB kept free)")
         if self._limit_reached():
             log.warning("recording stopped: %s; %d frames in %s (the daemon goes on)",
                         self.stop_reason, self.counters.frames, self.folder)
@@ -375,15 +385,21 @@ class Recorder:
         if self._writer is not None:
             self._writer.release()
             self._writer = None
-        for handle in self._files.values():
-            handle.close()
+        for name, handle in self._files.items():
+            try:
+                handle.close()
+            except OSError as error:   # the last rows could not be flushed (disk full)
+                log.error("recording: %s: %s", self.folder / name, error.strerror or error)
         attitude = self.folder / ATTITUDE_FILE
         if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
             attitude.unlink()   # no attitude from the link: no file
         if self.counters.frames == 0:
             (self.folder / TIMESTAMPS_FILE).unlink(missing_ok=True)   # nothing to replay
         self.counters.bytes = folder_bytes(self.folder)
-        self._write_info()
+        try:
+            self._write_info()
+        except OSError as error:
+            log.error("recording: cannot write %s: %s", self.folder / SEQUENCE_FILE, error.strerror or error)
         log.info("recorded %d frames (%d dropped) to %s: %s", self.counters.frames, self.counters.dropped_frames,
                  self.folder, self.stop_reason or "recording")
 
