@@ -28,6 +28,7 @@ import json
 import logging
 import math
 import queue
+import socket
 import threading
 import time
 from http import HTTPStatus
@@ -86,7 +87,7 @@ class LiveView:
 
     def __init__(self, address: tuple[str, int], facility_map: FacilityMap, status: Callable[[], object],
                  records: Callable[[], list[FrameRecord]],
-                 statustexts: Callable[[], list[tuple[float, int, str]]] = list):
+                 statustexts: Callable[[], list[tuple[float, int, str]]] = lambda: []):
         self.facility_map = facility_map
         self.plane = MapPlane(facility_map)
         self._status = status
@@ -293,9 +294,7 @@ class _Server(ThreadingHTTPServer):
     allow_reuse_address = True
 
     def __init__(self, address, handler):
-        host = address[0]
-        if ":" in host:
-            import socket
+        if ":" in address[0]:      # an IPv6 address such as ::1
             self.address_family = socket.AF_INET6
         super().__init__(address, handler)
 
