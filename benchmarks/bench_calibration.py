@@ -65,7 +65,8 @@ def main() -> int:
             result = calibrate(views, board)
             pinhole, k1 = errors(result.parameters(), lens)
             plain_pinhole, plain_k1 = errors(plain_opencv(board, views), lens)
-            worst[name] = max(worst.get(name, (0, 0)), (pinhole, abs(k1)))
+            previous = worst.get(name, (0.0, 0.0))
+            worst[name] = (max(previous[0], pinhole), max(previous[1], abs(k1)))
             print(f"{name:<8} {hfov_deg(lens):5.1f} {seed:3d} {len(result.views):5d} {result.rms_px:7.3f} "
                   f"{100 * result.coverage:4.0f}% {pinhole:9.3f} {k1:+8.4f} {plain_pinhole:23.3f} {plain_k1:+8.4f}")
     for name, (pinhole, k1) in worst.items():
