@@ -1,22 +1,24 @@
-"""The live view's cost: pipeline time per frame with one client against the same run with none.
+"""The live view's cost: pipeline time per frame with one client against no client, in the same run.
 
-    python benchmarks/bench_liveview.py [--quick]
+    python benchmarks/bench_liveview.py [--quick] [--cycles N]
 
-Renders the aisle flight at 640x480 (as ``bench_daemon.py`` does), then runs
-the real daemon with ``status.http`` on, alternating runs with no client and
-with one client reading ``/stream.mjpg`` (a browser page costs the same: the
-view annotates and encodes at most ``MAX_FPS`` frames a second for any number
-of clients). Two modes:
+Renders the aisle flight at 640x480 (as ``bench_daemon.py`` does) and runs
+the real daemon on it, looping, with ``status.http`` on. One client reading
+``/stream.mjpg`` (a browser page costs the same: the view annotates and
+encodes at most ``MAX_FPS`` frames a second for any number of clients)
+connects for ``WINDOW_S`` seconds, disconnects for as long, and so on: the
+frames of the two kinds of window are compared. Alternating within one run
+lets the load of other processes on a shared machine fall on both alike.
+Two modes:
 
 * **real time** (30 fps, as a camera): the pipeline's time per frame
   (``Pipeline.process``: the four stages and every observer), median and p90;
-* **as fast as possible**: frames per second over the run.
+* **as fast as possible**: frames per second in each window, median.
 
-The encoder thread's own time per frame (annotate + JPEG) is printed too:
+The encoder thread's own work (annotate + JPEG) per second is printed too:
 it runs beside the pipeline, so what matters is how much it slows the
 pipeline. Target: with one client, at most 10 % more pipeline time than
-without (ratio <= 1.10). Baseline: the no-client runs, measured in the same
-run on the same frames.
+without (ratio <= 1.10). Baseline: the no-client windows of the same run.
 """
 from __future__ import annotations
 
@@ -34,11 +36,13 @@ import numpy as np
 from common import REPO  # noqa: E402  (puts the working tree's companion first)
 from bench_daemon import AISLE_WAYPOINTS, UdpSink, render_sequence  # noqa: E402
 
-from companion.daemon import overlay  # noqa: E402
+import companion.daemon.web as web  # noqa: E402
 from companion.daemon.config import config_from_dict  # noqa: E402
 from companion.daemon.service import Daemon  # noqa: E402
 
 TARGET_RATIO = 1.10
+WINDOW_S = 2.0
+SETTLE_S = 0.3      # left out at the start of each window (the stream opening or closing)
 
 
 class StreamClient:
@@ -63,51 +67,61 @@ class StreamClient:
         self._thread.join(timeout=5)
 
 
-def run(sequence: Path, realtime: bool, client: bool, sink_port: int, workdir: Path) -> dict:
+def run(sequence: Path, realtime: bool, cycles: int, sink_port: int, workdir: Path) -> dict:
+    """Frames processed in windows with and without the client: {"client": [...], "none": [...]} of
+    (start monotonic s, wall ns of Pipeline.process), plus the windows and the encoder's counts."""
     config = config_from_dict({
-        "source": {"kind": "replay", "path": str(sequence), "realtime": realtime},
+        "source": {"kind": "replay", "path": str(sequence), "realtime": realtime, "loop": True},
         "map": str(REPO / "maps" / "warehouse.yaml"),
         "mavlink": {"connection": f"udpout:127.0.0.1:{sink_port}", "max_rate_hz": 50, "origin_wait_s": 0.0},
         "status": {"http": "127.0.0.1:0"},
     }, workdir / "bench.yaml")
     daemon = Daemon(config, status_stream=None, record_frames=100_000)
-    process_ns, encode_ns = [], []
+    frames = []   # (start s, process ns)
     process = daemon.pipeline.process
 
     def timed_process(frame):
         start = time.perf_counter_ns()
         record = process(frame)
-        process_ns.append(time.perf_counter_ns() - start)
+        frames.append((start / 1e9, time.perf_counter_ns() - start))
         return record
 
     daemon.pipeline.process = timed_process
-    annotate = overlay.annotate
+    encode_ns = []
+    annotate = web.annotate
 
-    def timed_annotate(image, record):   # the encoder thread's share, JPEG encoding timed with it below
+    def timed_annotate(image, record):
         start = time.perf_counter_ns()
         result = annotate(image, record)
         encode_ns.append(time.perf_counter_ns() - start)
         return result
 
-    import companion.daemon.web as web
     web.annotate = timed_annotate
-    viewer = None
-    if client:
-        host, port = daemon.live_view.server.server_address[:2]
-        # the server is bound in the constructor: a client can connect before the daemon runs
-        viewer = StreamClient(host, port)
-    started = time.perf_counter()
+    runner = threading.Thread(target=daemon.run)
+    runner.start()
+    host, port = daemon.live_view.server.server_address[:2]
+    windows = []   # (kind, from s, to s)
     try:
-        daemon.run()
-    finally:
-        web.annotate = annotate
-        if viewer is not None:
+        time.sleep(1.0)   # the first frames warm caches up
+        for _ in range(cycles):
+            started = time.perf_counter()
+            viewer = StreamClient(host, port)
+            time.sleep(WINDOW_S)
             viewer.close()
-    wall_s = time.perf_counter() - started
-    process_ms = np.array(process_ns[5:]) / 1e6   # the first frames warm caches up
-    return {"frames": len(process_ns), "median_ms": float(np.median(process_ms)),
-            "p90_ms": float(np.percentile(process_ms, 90)), "fps": len(process_ns) / wall_s,
-            "encoded": daemon.live_view.counters.encoded, "streamed": viewer.frames if viewer else 0,
+            windows.append(("client", started + SETTLE_S, time.perf_counter()))
+            started = time.perf_counter()
+            time.sleep(WINDOW_S)
+            windows.append(("none", started + SETTLE_S, time.perf_counter()))
+    finally:
+        daemon.stop_event.set()
+        runner.join()
+        web.annotate = annotate
+    by_kind = {"client": [], "none": []}
+    for kind, begin, end in windows:
+        by_kind[kind].append([ns for t, ns in frames if begin <= t < end])
+    client_s = sum(end - begin for kind, begin, end in windows if kind == "client")
+    return {"windows": by_kind, "window_s": WINDOW_S - SETTLE_S, "encoded": daemon.live_view.counters.encoded,
+            "encoded_per_client_s": daemon.live_view.counters.encoded / client_s,
             "annotate_ms": float(np.median(encode_ns)) / 1e6 if encode_ns else float("nan")}
 
 
@@ -130,53 +144,46 @@ def jpeg_ms(sequence: Path) -> float:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: the first leg of the flight, one pair of runs")
-    parser.add_argument("--pairs", type=int, default=3, help="alternating (no client, client) pairs per mode (default 3)")
+    parser.add_argument("--quick", action="store_true", help="smoke test: 3 cycles per mode")
+    parser.add_argument("--cycles", type=int, default=15, help="client on/off cycles per mode (default 15)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.ERROR)
-    pairs = 1 if args.quick else args.pairs
-    waypoints = AISLE_WAYPOINTS[:2] if args.quick else AISLE_WAYPOINTS
+    cycles = 3 if args.quick else args.cycles
     sink = UdpSink()
-    results = {}
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp)
-        sequence = render_sequence(workdir, 640, 480, waypoints)
+        sequence = render_sequence(workdir, 640, 480, AISLE_WAYPOINTS)
         encode_jpeg_ms = jpeg_ms(sequence)
-        for realtime in (True, False):
-            for _ in range(pairs):
-                for client in (False, True):   # alternating: a burst of load hits both alike
-                    results.setdefault((realtime, client), []).append(run(sequence, realtime, client, sink.port, workdir))
+        results = {realtime: run(sequence, realtime, cycles, sink.port, workdir) for realtime in (True, False)}
     sink.close()
 
-    print("\nLive view cost at 640x480, one client on /stream.mjpg vs none (same frames, alternating runs; "
-          "medians over the runs)")
-    print(f"{'mode':<22} {'client':<7} {'frames':>6} {'pipeline ms':>11} {'p90 ms':>7} {'fps':>6} "
-          f"{'encoded':>7} {'ratio':>6} {'target':>7}")
-    for realtime in (True, False):
+    print(f"\nLive view cost at 640x480: one client on /stream.mjpg vs none, alternating {WINDOW_S:g} s windows "
+          f"in one run ({cycles} of each per mode)")
+    print(f"{'mode':<22} {'client':<7} {'frames':>6} {'pipeline ms':>11} {'p90 ms':>7} {'fps':>6} {'ratio':>6} "
+          f"{'target':>7}")
+    for realtime, result in results.items():
         mode = "real time (30 fps)" if realtime else "as fast as possible"
-        base = results[(realtime, False)]
-        for client in (False, True):
-            runs = results[(realtime, client)]
-            median_ms = float(np.median([r["median_ms"] for r in runs]))
-            base_ms = float(np.median([r["median_ms"] for r in base]))
-            fps = float(np.median([r["fps"] for r in runs]))
-            base_fps = float(np.median([r["fps"] for r in base]))
+        windows = result["windows"]
+        stats = {}
+        for kind in ("none", "client"):
+            times_ms = np.concatenate([np.array(w, dtype=float) for w in windows[kind]]) / 1e6
+            fps = float(np.median([len(w) / result["window_s"] for w in windows[kind]]))
+            stats[kind] = (len(times_ms), float(np.median(times_ms)), float(np.percentile(times_ms, 90)), fps)
+        for kind in ("none", "client"):
+            count, median_ms, p90_ms, fps = stats[kind]
             # real time: pipeline time per frame; as fast as possible: time per frame from the rate
-            ratio = median_ms / base_ms if realtime else base_fps / fps
-            verdict = "" if not client else ("met" if ratio <= TARGET_RATIO else "NOT met")
-            print(f"{mode:<22} {'one' if client else 'none':<7} {int(np.median([r['frames'] for r in runs])):6d} "
-                  f"{median_ms:11.2f} {float(np.median([r['p90_ms'] for r in runs])):7.2f} {fps:6.1f} "
-                  f"{int(np.median([r['encoded'] for r in runs])):7d} {ratio:6.3f} {verdict:>7}")
-    annotate_ms = float(np.nanmedian([r["annotate_ms"] for key, runs in results.items() if key[1] for r in runs]))
-    print(f"\nencoder thread, per frame shown (beside the pipeline, at most 15 a second): "
-          f"annotate {annotate_ms:.2f} ms + JPEG {encode_jpeg_ms:.2f} ms")
-    realtime_client = results[(True, True)]
-    shown_per_s = float(np.median([r["encoded"] / (r["frames"] / r["fps"]) for r in realtime_client]))
-    pipeline_per_s = float(np.median([r["median_ms"] * r["fps"] for r in results[(True, False)]]))
-    encoder_per_s = shown_per_s * (annotate_ms + encode_jpeg_ms)
-    print(f"real time: the encoder works {encoder_per_s:.1f} ms a second ({shown_per_s:.1f} frames shown) against "
-          f"the pipeline's {pipeline_per_s:.0f} ms a second: {100 * encoder_per_s / pipeline_per_s:.1f} % of "
-          "pipeline time, on another thread")
+            ratio = median_ms / stats["none"][1] if realtime else stats["none"][3] / fps
+            verdict = "" if kind == "none" else ("met" if ratio <= TARGET_RATIO else "NOT met")
+            print(f"{mode:<22} {'one' if kind == 'client' else 'none':<7} {count:6d} {median_ms:11.2f} "
+                  f"{p90_ms:7.2f} {fps:6.1f} {ratio:6.3f} {verdict:>7}")
+    realtime = results[True]
+    encoder_ms = realtime["annotate_ms"] + encode_jpeg_ms
+    none = np.concatenate([np.array(w, dtype=float) for w in realtime["windows"]["none"]]) / 1e6
+    pipeline_per_s = float(np.median(none)) * 30.0
+    encoder_per_s = realtime["encoded_per_client_s"] * encoder_ms
+    print(f"\nencoder thread, per frame shown: annotate {realtime['annotate_ms']:.2f} ms + JPEG {encode_jpeg_ms:.2f} ms; "
+          f"real time: {realtime['encoded_per_client_s']:.1f} frames shown a second, {encoder_per_s:.1f} ms of work a "
+          f"second beside the pipeline's {pipeline_per_s:.0f} ms ({100 * encoder_per_s / pipeline_per_s:.1f} %)")
     print("ratio: pipeline time per frame (real time) or time per frame from the rate (as fast as possible), "
           f"with the client / without; target <= {TARGET_RATIO:.2f}")
     return 0
