@@ -164,18 +164,20 @@ def main() -> int:
     for realtime, result in results.items():
         mode = "real time (30 fps)" if realtime else "as fast as possible"
         windows = result["windows"]
-        stats = {}
+        medians = {kind: [float(np.median(w)) / 1e6 for w in windows[kind]] for kind in ("none", "client")}
+        rates = {kind: [len(w) / result["window_s"] for w in windows[kind]] for kind in ("none", "client")}
+        # each client window against the no-client window right after it, then the median over the pairs
+        if realtime:
+            ratio = float(np.median([c / n for c, n in zip(medians["client"], medians["none"])]))
+        else:
+            ratio = float(np.median([n / c for c, n in zip(rates["client"], rates["none"])]))
         for kind in ("none", "client"):
             times_ms = np.concatenate([np.array(w, dtype=float) for w in windows[kind]]) / 1e6
-            fps = float(np.median([len(w) / result["window_s"] for w in windows[kind]]))
-            stats[kind] = (len(times_ms), float(np.median(times_ms)), float(np.percentile(times_ms, 90)), fps)
-        for kind in ("none", "client"):
-            count, median_ms, p90_ms, fps = stats[kind]
-            # real time: pipeline time per frame; as fast as possible: time per frame from the rate
-            ratio = median_ms / stats["none"][1] if realtime else stats["none"][3] / fps
+            shown = 1.0 if kind == "none" else ratio
             verdict = "" if kind == "none" else ("met" if ratio <= TARGET_RATIO else "NOT met")
-            print(f"{mode:<22} {'one' if kind == 'client' else 'none':<7} {count:6d} {median_ms:11.2f} "
-                  f"{p90_ms:7.2f} {fps:6.1f} {ratio:6.3f} {verdict:>7}")
+            print(f"{mode:<22} {'one' if kind == 'client' else 'none':<7} {len(times_ms):6d} "
+                  f"{float(np.median(times_ms)):11.2f} {float(np.percentile(times_ms, 90)):7.2f} "
+                  f"{float(np.median(rates[kind])):6.1f} {shown:6.3f} {verdict:>7}")
     realtime = results[True]
     encoder_ms = realtime["annotate_ms"] + encode_jpeg_ms
     none = np.concatenate([np.array(w, dtype=float) for w in realtime["windows"]["none"]]) / 1e6
@@ -185,7 +187,8 @@ def main() -> int:
           f"real time: {realtime['encoded_per_client_s']:.1f} frames shown a second, {encoder_per_s:.1f} ms of work a "
           f"second beside the pipeline's {pipeline_per_s:.0f} ms ({100 * encoder_per_s / pipeline_per_s:.1f} %)")
     print("ratio: pipeline time per frame (real time) or time per frame from the rate (as fast as possible), "
-          f"with the client / without; target <= {TARGET_RATIO:.2f}")
+          "in a client window / in the no-client window after it, median over the pairs; "
+          f"target <= {TARGET_RATIO:.2f}")
     return 0
 
 
