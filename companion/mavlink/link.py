@@ -205,6 +205,8 @@ class MavlinkLink:
         self._stop = threading.Event()
         self._transport_broken = threading.Event()
         self._statustexts: collections.deque = collections.deque(maxlen=STATUSTEXT_QUEUE)
+        # (wall time s, severity, text) of the latest STATUSTEXTs, for the live view
+        self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
         self._connected_s = 0.0
@@ -279,6 +281,7 @@ class MavlinkLink:
     def statustext(self, text: str, severity: int = SEVERITY_INFO) -> None:
         """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``."""
         self._statustexts.append((severity, text))
+        self.statustext_history.append((time.time(), severity, text))
 
     def set_critical(self, critical: bool) -> None:
         """HEARTBEAT system_status CRITICAL while ``critical`` (the daemon's health: camera stalled or lost)."""
