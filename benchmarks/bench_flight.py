@@ -118,8 +118,11 @@ class Row:
 def fly(sequence: Path, port: int, workdir: Path, attitude: bool) -> list[Row]:
     data = {
         "source": {"kind": "replay", "path": str(sequence), "realtime": False},
-        # no flight controller on the sink: stream at once; one message per frame at 30 fps
-        "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "max_rate_hz": 50, "origin_wait_s": 0.0},
+        # no flight controller on the sink: stream at once (no wait for the origin, nor for another companion:
+        # frames come faster than real time, a wall-clock hold would swallow seconds of the flight);
+        # one message per frame at 30 fps
+        "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "max_rate_hz": 50, "origin_wait_s": 0.0,
+                    "duplicate_listen_s": 0.0},
         "attitude": {"source": "auto" if attitude else "none"},
         "pose": {"map_sd_m": 0.0, "map_sd_deg": 0.0},  # the rendered hall is exactly its map
     }

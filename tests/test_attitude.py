@@ -66,7 +66,7 @@ def test_history_drops_out_of_order_samples_and_bisects_long_recordings():
 def test_attitude_csv_round_trip_and_streaming_writer(tmp_path):
     samples = [AttitudeSample(k * 20 * MS, math.radians(0.5 * k), math.radians(-0.25 * k)) for k in range(5)]
     write_attitude_csv(tmp_path / "a.csv", samples)
-    assert (tmp_path / "a.csv").read_text().splitlines()[:2] == ["t_ns,roll_deg,pitch_deg", "0,0.0000,-0.0000"]
+    assert (tmp_path / "a.csv").read_text().splitlines()[:2] == ["t_ns,roll_deg,pitch_deg", "0,0.000000,-0.000000"]
     back = read_attitude_csv(tmp_path / "a.csv")
     assert [s.t_ns for s in back] == [s.t_ns for s in samples]
     np.testing.assert_allclose([s.roll_rad for s in back], [s.roll_rad for s in samples], atol=1e-6)
@@ -208,7 +208,7 @@ def test_attitude_config_defaults_and_errors():
     config = config_from_dict(config_with(), "site.yaml")
     assert (config.attitude.source, config.attitude.max_age_s, config.attitude.rate_hz) == ("auto", 0.1, 50.0)
     assert config_from_dict(config_with(attitude={"source": "none", "max_age_s": 0.2}), "site.yaml").attitude.source == "none"
-    for section, message in (({"source": "imu"}, r"^site.yaml: attitude.source: must be one of auto, none, got 'imu'$"),
+    for section, message in (({"source": "imu"}, r"^site.yaml: attitude.source: must be one of auto, link, none, got 'imu'$"),
                              ({"max_age_s": 0}, r"^site.yaml: attitude.max_age_s: must be >= 0.005"),
                              ({"rate_hz": 1000}, r"^site.yaml: attitude.rate_hz: must be <= 500, got 1000$"),
                              ({"rate": 50}, r"^site.yaml: attitude.rate: unknown key 'rate'")):

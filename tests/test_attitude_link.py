@@ -2,7 +2,9 @@
 UDP on loopback) streams ATTITUDE on its own time base with a clock offset and send jitter."""
 from __future__ import annotations
 
+import logging
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -10,7 +12,11 @@ import numpy as np
 import pytest
 
 from companion import cli
+from companion.capture.attitude_csv import ATTITUDE_FILE
+from companion.daemon.config import config_from_dict
+from companion.daemon.health import Health
 from companion.daemon.pipeline import Pipeline
+from companion.daemon.service import Daemon
 from companion.detect.detector import Detector
 from companion.fusion import PoseFilter
 from companion.geometry import frames
@@ -38,7 +44,7 @@ def started(tmp_path):
         history = history or AttitudeHistory(0.1)
         link = MavlinkLink(LinkParams(connection=f"udpout:127.0.0.1:{port}", heartbeat_interval_s=0.2,
                                       statustext_interval_s=statustext_interval_s),
-                           AttitudeStream(history, RATE_HZ))
+                           attitude=AttitudeStream(history, RATE_HZ))
         link.start()
         opened.append((peer, link))
         return peer, link
@@ -81,8 +87,9 @@ def test_attitude_is_requested_and_put_on_our_clock(started):
 
 
 def test_stopped_attitude_falls_back_once_and_comes_back(started):
-    """The peer streams, pauses 1.5 s, streams again: the pipeline says 'stale' within a second, once,
-    and 'back' when it returns; frames in the gap get no attitude."""
+    """The peer streams, pauses 1.5 s, streams again: the health judge (fed by the pipeline, telling the
+    link as the daemon does) says 'stale' within a second, once, and 'back' when it returns; frames in the
+    gap get no attitude."""
     history = AttitudeHistory(0.1)
     peer, link = started("--attitude-pause", "1.5,1.5", history=history, statustext_interval_s=0.1)
     facility_map = REPO / "maps" / "warehouse.yaml"
@@ -93,6 +100,8 @@ def test_stopped_attitude_falls_back_once_and_comes_back(started):
     fm, camera = load_map(facility_map), CameraModel.from_config(DEFAULT_CAMERA, "default camera")
     pipeline = Pipeline(Detector(camera=camera), PoseSolver(fm, camera), PoseFilter(), link,
                         frames.invert_transform(fm.T_ned_map), attitude=history.lookup)
+    health = Health(lambda text, severity: link.statustext(f"companion: {text}", severity), attitude_expected=True)
+    pipeline.observers.append(health.observe)
     peer.wait_for("ATTITUDE", count=5, kind="sent")
     blank = np.full((camera.height, camera.width), 128, np.uint8)
     records = []
@@ -116,6 +125,66 @@ def test_stopped_attitude_falls_back_once_and_comes_back(started):
     assert in_gap and all(r.attitude is None for r in in_gap)
     assert sum(r.attitude is not None for r in records) > len(records) / 3
     assert len(texts) >= 3
+
+
+def test_a_daemon_records_the_peers_attitude_and_tells_a_pause_once(tmp_path, caplog):
+    """The daemon (attitude.source: link, a looping replay for frames) against a peer that streams ATTITUDE,
+    pauses 1.2 s and streams again, recording with ``record``: the pause is told once (log and STATUSTEXT) and
+    its end once; attitude.csv holds the samples the peer sent, each at the peer's stamp on the frames' time
+    base (0 = the first frame) within 2 ms, and replay reads it back."""
+    port = free_port()
+    peer = PeerProcess(port, tmp_path / "peer.jsonl", "--attitude", "--attitude-jitter-ms", "3",
+                       "--attitude-pause", "1.5,1.2", duration_s=60).wait_listening()
+    hover = REPO / "tests" / "data" / "sequences" / "warehouse_hover"
+    config = config_from_dict({
+        "source": {"kind": "replay", "path": str(hover), "realtime": True, "loop": True},
+        "map": str(REPO / "maps" / "warehouse.yaml"),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "duplicate_listen_s": 0.0,
+                    "statustext_interval_s": 0.05},
+        "attitude": {"source": "link"},
+        "record": str(tmp_path / "flight"),
+    }, tmp_path / "daemon.yaml")
+    daemon = Daemon(config)
+    caplog.set_level(logging.INFO, logger="companion")
+    runner = threading.Thread(target=daemon.run)
+    try:
+        runner.start()
+        peer.wait_for("ATTITUDE", count=int(1.5 * RATE_HZ), kind="sent", timeout_s=20)
+        time.sleep(3.5)   # the pause, and a second of samples after it
+    finally:
+        stopped_ns = time.monotonic_ns()
+        daemon.stop_event.set()
+        runner.join(timeout=20)
+        time.sleep(0.3)
+        peer.stop()
+    said = [r["fields"]["text"] for r in peer.records("STATUSTEXT") if "attitude" in r["fields"]["text"]]
+    if said and said[0] == "companion: no attitude yet: poses without it":   # frames before the first sample
+        said = said[1:]
+    assert said == ["companion: flight controller attitude in use", "companion: attitude stale: poses without it",
+                    "companion: attitude back: poses use it"], said
+    logged = [r.getMessage() for r in caplog.records if "attitude stale" in r.getMessage()]
+    assert logged == ["attitude stale: poses without it"], logged
+
+    recorded = open_recording(tmp_path / "flight").attitude
+    assert recorded is not None and (tmp_path / "flight" / ATTITUDE_FILE).is_file()
+    first_frame_ns = daemon.pipeline.stats.records[0].t_ns
+    sent = sent_attitude(peer)
+    stamps = np.array([r["stamp_ns"] for r in sent])
+    sent_deg = np.degrees([[r["fields"]["roll"], r["fields"]["pitch"]] for r in sent])
+    errors_ms = []
+    for sample in recorded:
+        # the message it came from: the one with its values (the peer's slow sine never repeats in a run)
+        k = int(np.argmin(np.abs(sent_deg - np.degrees([sample.roll_rad, sample.pitch_rad])).sum(axis=1)))
+        assert math.degrees(sample.roll_rad) == pytest.approx(sent_deg[k, 0], abs=1e-3)
+        assert math.degrees(sample.pitch_rad) == pytest.approx(sent_deg[k, 1], abs=1e-3)
+        errors_ms.append((sample.t_ns + first_frame_ns - stamps[k]) / 1e6)
+    settled = np.array(errors_ms[int(RATE_HZ):])   # after the offset filter's first second
+    assert np.abs(settled).max() < 2.0, f"recorded times off by up to {np.abs(settled).max():.2f} ms"
+    # the samples sent while it recorded (but the first and last few ms) are there; the pause too
+    while_recording = stamps[(stamps > first_frame_ns + 5_000_000) & (stamps < stopped_ns - 50_000_000)]
+    assert len(recorded) >= len(while_recording) - 2, (len(recorded), len(while_recording))
+    gaps_s = np.diff([s.t_ns for s in recorded]) * 1e-9
+    assert 1.0 < gaps_s.max() < 1.4
 
 
 def render_far_marker_hover(folder: Path) -> Path:

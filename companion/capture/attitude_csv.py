@@ -61,6 +61,12 @@ def _sample(row: list[str], path: Path, line: int) -> AttitudeSample:
     return AttitudeSample(t_ns, math.radians(roll_deg), math.radians(pitch_deg))
 
 
+def attitude_row(sample: AttitudeSample, t0_ns: int = 0) -> tuple:
+    """One attitude.csv row of a sample, ``t_ns`` counted from ``t0_ns`` (micro-degrees: below a float32
+    angle's resolution, so a recording replays what was used)."""
+    return (int(sample.t_ns - t0_ns), f"{math.degrees(sample.roll_rad):.6f}", f"{math.degrees(sample.pitch_rad):.6f}")
+
+
 class AttitudeCsvWriter:
     """Writes an attitude.csv sample by sample (a recording in progress); ``close()`` when done.
 
@@ -75,8 +81,7 @@ class AttitudeCsvWriter:
         self._writer.writerow(COLUMNS)
 
     def write(self, sample: AttitudeSample) -> None:
-        self._writer.writerow((int(sample.t_ns), f"{math.degrees(sample.roll_rad):.4f}",
-                               f"{math.degrees(sample.pitch_rad):.4f}"))
+        self._writer.writerow(attitude_row(sample))
 
     def close(self) -> None:
         self._handle.close()

@@ -2,8 +2,9 @@
 
 The pose stage gets the flight controller's roll and pitch at the frame's
 capture time (an ``AttitudeLookup``: the link's history, or a replay's
-attitude.csv). When it is stale or missing the pose is solved without it;
-the change is said once (log and STATUSTEXT), and again when it comes back.
+attitude.csv). When it is stale or missing the pose is solved without it
+(``FrameRecord.attitude`` is None); the health judge says so once
+(``companion.daemon.health``), and again when it comes back.
 
 Each frame gives one ``FrameRecord``. Observers (``Pipeline.observers``) get
 every frame with its record right after it was sent; they run on the pipeline
@@ -13,21 +14,18 @@ disk, network) to a thread of its own.
 from __future__ import annotations
 
 import collections
-import logging
 import time
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from companion.fusion import PoseFilter, TrackState
+from companion.fusion import PoseFilter
 from companion.geometry import frames
 from companion.geometry.attitude import AttitudeLookup
 from companion.geometry.pose import PoseSolution
-from companion.mavlink.link import SEVERITY_INFO, SEVERITY_WARNING, MavlinkLink
+from companion.mavlink.link import MavlinkLink
 from companion.types import AttitudeSample, Detection, Estimate, Frame, PoseMeasurement
-
-log = logging.getLogger("companion")
 
 STAGES = ("detect", "pose", "fuse", "send")
 
@@ -83,12 +81,13 @@ class PipelineStats:
         self.frames += 1
         self.sent += record.latency_ns is not None
 
-    def recent(self, window_s: float) -> list[FrameRecord]:
+    def recent(self, window_s: float, now_ns: int | None = None) -> list[FrameRecord]:
+        """The records captured in the ``window_s`` before ``now_ns`` (monotonic; default: the newest record's time)."""
         records = list(self.records)
         if not records:
             return []
-        newest = records[-1].t_ns
-        return [r for r in records if newest - r.t_ns <= window_s * 1e9]
+        newest = records[-1].t_ns if now_ns is None else now_ns
+        return [r for r in records if 0 <= newest - r.t_ns <= window_s * 1e9]
 
     def stage_table(self) -> list[tuple[str, float, float]]:
         """(stage, median ms, p99 ms) for each stage, the total and the capture->send latency."""
@@ -121,8 +120,6 @@ class Pipeline:
         self.attitude = attitude
         self.stats = PipelineStats()
         self.observers: list[FrameObserver] = []
-        self._previous_state = pose_filter.state
-        self._attitude_available: bool | None = None
 
     def process(self, frame: Frame) -> FrameRecord:
         t0 = time.perf_counter_ns()
@@ -139,7 +136,6 @@ class Pipeline:
             sent = self.link.publish(estimate)
         t4 = time.perf_counter_ns()
         latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
-        self._report_state_change()
         record = FrameRecord(frame.index, frame.t_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), latency_ns,
                              tuple(detections), solution, estimate, attitude)
         self.stats.add(record)
@@ -156,39 +152,5 @@ class Pipeline:
         return self.T_map_ned @ frames.make_transform(R, estimate.position_ned_m)
 
     def _attitude_at(self, frame: Frame) -> AttitudeSample | None:
-        """The attitude at the frame's capture time; a change between available and not is said once."""
-        if self.attitude is None:
-            return None
-        sample = self.attitude(frame)
-        available = sample is not None
-        if available is not self._attitude_available:
-            first = self._attitude_available is None
-            self._attitude_available = available
-            if available:
-                self._say("flight controller attitude in use" if first else "attitude back: poses use it", SEVERITY_INFO)
-            else:
-                self._say("no attitude yet: poses without it" if first else "attitude stale: poses without it",
-                          SEVERITY_WARNING)
-        return sample
-
-    def _say(self, text: str, severity: int) -> None:
-        log.log(logging.WARNING if severity == SEVERITY_WARNING else logging.INFO, "%s", text)
-        if self.link is not None:
-            self.link.statustext(f"companion: {text}", severity)
-
-    def _report_state_change(self) -> None:
-        state, previous = self.pose_filter.state, self._previous_state
-        self._previous_state = state
-        if state is previous:
-            return
-        counters = self.pose_filter.counters
-        if previous is TrackState.ACQUIRING and state is TrackState.TRACKING:
-            if counters.acquisitions == 1:
-                text, severity = "tracking markers", SEVERITY_INFO
-            else:
-                text, severity = f"re-acquired (reset {self.pose_filter.reset_counter})", SEVERITY_INFO
-        elif state is TrackState.ACQUIRING:
-            text, severity = "markers lost", SEVERITY_WARNING
-        else:
-            return  # tracking <-> coasting flickers frame to frame: not worth a message
-        self._say(text, severity)
+        """The attitude at the frame's capture time; None without a source or when it is stale or missing."""
+        return None if self.attitude is None else self.attitude(frame)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+from typing import Callable
 
 from companion.geometry import frames
 from companion.geometry.attitude import AttitudeHistory
@@ -85,6 +86,7 @@ class AttitudeStream:
         self.rate_hz = rate_hz
         self.request_retry_s = request_retry_s
         self.clock = BootClock(window_s)
+        self.on_sample: Callable[[AttitudeSample], None] | None = None   # each sample filed (the recording)
         self.received = 0
         self.requests = 0
         self._arrivals_s: collections.deque[float] = collections.deque()
@@ -104,6 +106,8 @@ class AttitudeStream:
         if self.history.add(sample):
             self.received += 1
             self._arrivals_s.append(receive_ns * 1e-9)
+            if self.on_sample is not None:
+                self.on_sample(sample)
         return sample
 
     def requests_due(self, now_s: float, target_system: int, target_component: int) -> list:

@@ -11,16 +11,20 @@ body poses or a built-in pattern) moves the vehicle; the configured camera
 Output: a sequence folder as ``docs/simulator.md`` (and the project
 conventions) describe::
 
-    SEQ/sequence.yaml, frames/NNNNNN.png (or video.avi), timestamps.csv,
+    SEQ/sequence.yaml, map.yaml (a copy of the map: the folder can be copied
+    and still localized), frames/NNNNNN.png (or video.avi), timestamps.csv,
     groundtruth.csv, markers.csv (per-frame marker corners in pixels),
     attitude.csv (the flight controller's roll and pitch: the truth with
     ``AttitudeNoise``; ``companion.capture.attitude_csv``)
+
+Simulating again into the same folder replaces all of that (no stale frame
+of a longer earlier run is left); a folder holding anything else is refused.
 """
 from __future__ import annotations
 
 import csv
 import math
-import os
+import shutil
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,6 +35,7 @@ import yaml
 from tqdm import tqdm
 
 from companion.capture.attitude_csv import ATTITUDE_FILE, write_attitude_csv
+from companion.capture.replay import sequence_map_path
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
@@ -54,6 +59,12 @@ MARKERS_COLUMNS = ("frame", "t_ns", "marker_id", "tl_x", "tl_y", "tr_x", "tr_y",
 PX_PER_CELL = 16
 TILE_M = 1.5
 PROGRESS_MIN_FRAMES = 60  # longer renders show a progress bar unless told otherwise
+MAX_FRAMES = 1_000_000   # 9 hours at 30 fps: more is a typo (a duration in ms, say)
+MAP_COPY = "map.yaml"
+# What a simulation writes into its folder (frames/ holds NNNNNN.png besides).
+GENERATED_FILES = ("sequence.yaml", MAP_COPY, "timestamps.csv", "groundtruth.csv", "markers.csv", "video.avi",
+                   ATTITUDE_FILE)
+GENERATOR = "companion simulate"
 
 
 class SimulationError(ValueError):
@@ -403,7 +414,11 @@ def progress_bar(total: int, progress: bool | None) -> tqdm:
 
 def frame_times_ns(duration_s: float, fps: float) -> list[int]:
     """Capture times from 0 at ``fps`` up to ``duration_s`` inclusive, integer ns."""
+    if not (math.isfinite(duration_s) and duration_s >= 0 and math.isfinite(fps) and fps > 0):
+        raise SimulationError(f"a trajectory of {duration_s} s at {fps} fps has no frames: both must be positive")
     n = int(math.floor(duration_s * fps + 1e-9)) + 1
+    if n > MAX_FRAMES:
+        raise SimulationError(f"{duration_s:g} s at {fps:g} fps is {n} frames, more than {MAX_FRAMES}")
     return [int(round(i * 1e9 / fps)) for i in range(n)]
 
 
@@ -443,6 +458,26 @@ def attitude_samples(traj: trajectories.Trajectory, T_ned_map: np.ndarray, noise
     return samples
 
 
+def prepare_folder(out: Path) -> None:
+    """Make ``out`` ready for a sequence: created, or emptied of an earlier simulation's output.
+    SimulationError for a file, or a folder with other content (nothing is deleted then)."""
+    if out.exists() and not out.is_dir():
+        raise SimulationError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        info = out / "sequence.yaml"
+        earlier = info.is_file() and read_yaml(info, SimulationError, "sequence info").get("generator") == GENERATOR
+        if not earlier:
+            raise SimulationError(f"{out}: not empty and not a sequence written by {GENERATOR}: give a new or "
+                                  "empty folder")
+        for name in GENERATED_FILES:
+            (out / name).unlink(missing_ok=True)
+        frames_dir = out / "frames"
+        if frames_dir.is_dir():
+            for frame in frames_dir.glob("[0-9]*.png"):
+                frame.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+
+
 VIDEO_CODECS = {"mp4v": "small, lossy (MPEG-4 part 2)", "ffv1": "lossless, large"}
 
 
@@ -456,8 +491,9 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     attitude: how attitude.csv departs from the truth; None writes no attitude.csv.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     times = frame_times_ns(simulator.trajectory.duration_s, fps)
+    prepare_folder(out)
+    shutil.copyfile(map_path, out / MAP_COPY)
     cam = simulator.camera
     writer = None
     if video:
@@ -496,8 +532,9 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     if attitude is not None:
         write_attitude_csv(out / ATTITUDE_FILE, attitude_samples(simulator.trajectory, T_ned_map, attitude, simulator.seed))
     info = {
-        "generator": "companion simulate",
-        "map": os.path.relpath(Path(map_path).resolve(), out.resolve()),
+        "generator": GENERATOR,
+        "map": MAP_COPY,
+        "map_source": str(Path(map_path).resolve()),
         "camera": cam.to_config(),
         "fps": fps,
         "frames": len(times),
@@ -575,9 +612,14 @@ class RecordedSequence:
             yield index, image
 
     def map_path(self) -> Path:
-        """The map file, resolved against the sequence folder (or the current directory)."""
-        candidate = self.path / self.info["map"]
-        return candidate if candidate.exists() else Path(self.info["map"])
+        """The map file (``companion.capture.replay.sequence_map_path``)."""
+        try:
+            path = sequence_map_path(self.path, self.info)
+        except ValueError as error:
+            raise SimulationError(str(error)) from None
+        if path is None:
+            raise SimulationError(f"{self.path / 'sequence.yaml'}: names no map")
+        return path
 
 
 def read_sequence(path) -> RecordedSequence:
