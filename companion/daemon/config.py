@@ -21,10 +21,11 @@ from companion.geometry.facility_map import FacilityMap, geodetic_origin, load_m
 from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
 from companion.mavlink.link import LinkParams, Origin
-from companion.capture.replay import SEQUENCE_FILE, read_sequence_info
+from companion.capture.replay import SEQUENCE_FILE, read_sequence_info, sequence_map_path
+from companion.daemon.record import RecordParams
 from companion.yaml_input import Where, read_yaml
 
-TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status"}
+TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status", "record"}
 SOURCE_KINDS = ("replay", "v4l2")
 REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
 V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
@@ -34,7 +35,7 @@ MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
 # mavlink keys that are not LinkParams fields of the same name
 MAVLINK_SPECIAL_KEYS = {"messages", "origin"}
 LINK_FIELDS = {f.name for f in dataclasses.fields(LinkParams)} - {"origin"} - set(MESSAGES.values())
-STATUS_KEYS = {"interval_s"}
+STATUS_KEYS = {"interval_s", "http"}
 DEFAULT_CONFIG = "default.yaml"
 
 
@@ -71,6 +72,8 @@ class Config:
     fusion: FusionParams
     mavlink: LinkParams
     status_interval_s: float = 0.5
+    http: tuple[str, int] | None = None     # status.http: the live view's (host, port); None: off
+    record: RecordParams | None = None      # record: the flight recording; None: off
 
 
 def default_config_path() -> Path:
@@ -79,10 +82,19 @@ def default_config_path() -> Path:
     return Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
 
 
-def load_config(path=None) -> Config:
-    """Read, resolve and validate a config file (the default one when ``path`` is None)."""
+def load_config(path=None, replay=None) -> Config:
+    """Read, resolve and validate a config file (the default one when ``path`` is None).
+
+    replay: a sequence folder, video or image folder to replay in real time instead of the
+    config's source (the rest of the config as it is: try a site's config on a recording).
+    """
     path = Path(path) if path is not None else default_config_path()
-    return config_from_dict(read_yaml(path, ConfigError, "config"), path)
+    data = read_yaml(path, ConfigError, "config")
+    if replay is not None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the config must be a mapping of sections")
+        data = {**data, "source": {"kind": "replay", "path": str(Path(replay).resolve()), "realtime": True}}
+    return config_from_dict(data, path)
 
 
 def config_from_dict(data, path) -> Config:
@@ -96,7 +108,7 @@ def config_from_dict(data, path) -> Config:
     camera = _camera(data, where, path, sequence)
     facility_map = _map(data, where, sequence)
     status_where = where.sub("status")
-    status = status_where.mapping(data.get("status"), "interval_s")
+    status = status_where.mapping(data.get("status"), "interval_s, http")
     status_where.reject_unknown(status, STATUS_KEYS)
     return Config(
         path=path,
@@ -108,7 +120,43 @@ def config_from_dict(data, path) -> Config:
         fusion=_parameters(data.get("fusion"), where.sub("fusion"), FusionParams, "fusion parameters"),
         mavlink=_mavlink(data.get("mavlink"), where.sub("mavlink"), facility_map),
         status_interval_s=status_where.number(status, "interval_s", 0.5, minimum=0.05),
+        http=http_address(status.get("http"), status_where),
+        record=_record(data.get("record"), where.sub("record")),
     )
+
+
+# ------------------------------------------------ live view and recording (issue 12)
+
+RECORD_KEYS = {f.name for f in dataclasses.fields(RecordParams)}
+
+
+def http_address(value, where: Where) -> tuple[str, int] | None:
+    """``status.http``: "HOST:PORT" (or a bare port, on 127.0.0.1) for the live view; None: off."""
+    if value is None or value is False:
+        return None
+    if isinstance(value, int) and not isinstance(value, bool):
+        host, port_text = "127.0.0.1", str(value)
+    elif isinstance(value, str) and value.rpartition(":")[0]:
+        host, _, port_text = value.rpartition(":")
+        host = host.strip("[]")
+    else:
+        raise where.error(f"must be HOST:PORT such as 127.0.0.1:8080 (or false), got {value!r}", "http")
+    if not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
+        raise where.error(f"the port must be 0..65535, got {port_text!r}", "http")
+    return host, int(port_text)
+
+
+def _record(section, where: Where) -> RecordParams | None:
+    """The ``record`` section: a folder path, or a mapping of ``RecordParams`` fields; None: off."""
+    if section is None:
+        return None
+    section = {"path": section} if isinstance(section, str) else where.mapping(section, ", ".join(sorted(RECORD_KEYS)))
+    where.reject_unknown(section, RECORD_KEYS)
+    values = {key: section[key] for key in RECORD_KEYS - {"path"} if key in section}
+    try:
+        return RecordParams(path=where.path(section, "path"), **values)
+    except (TypeError, ValueError) as error:
+        raise where.error(str(error)) from None
 
 
 def _source(section, where: Where) -> ReplayConfig | V4L2Config:
@@ -173,26 +221,15 @@ def _map(data: dict, where: Where, sequence) -> FacilityMap:
     if "map" in data:
         map_path = where.path(data, "map")
     elif sequence is not None and "map" in sequence[0]:
-        map_path = _sequence_map_path(sequence[0]["map"], sequence[1])
+        try:
+            map_path = sequence_map_path(sequence[1].parent, sequence[0])
+        except ValueError as error:
+            raise ConfigError(str(error)) from None
     else:
         raise where.error("missing (a facility map file, unless the replayed sequence names one)", "map")
     if not map_path.is_file():
         raise where.error(f"{map_path} does not exist", "map")
     return load_map(map_path)
-
-
-def _sequence_map_path(name, info_path: Path) -> Path:
-    """A sequence's map: relative to the sequence folder, else to a folder above it (the repository)."""
-    where = Where(str(info_path), ConfigError)
-    if not isinstance(name, str) or not name:
-        raise where.error(f"must be a path, got {name!r}", "map")
-    candidate = Path(name)
-    if candidate.is_absolute():
-        return candidate
-    for folder in [info_path.parent, *info_path.parent.resolve().parents]:
-        if (folder / candidate).is_file():
-            return folder / candidate
-    raise where.error(f"{name} found neither in {info_path.parent} nor in a folder above it", "map")
 
 
 def _parameters(section, where: Where, params_type, what: str):
