@@ -18,7 +18,7 @@ which markers hang on walls, and is then held to the true map:
 
     PYTHONPATH=. python benchmarks/bench_survey.py [--quick]
 
-``--quick`` (CI's smoke run): a short walk at the anchor's end of aisle 1 at 640x480, 2 fps (three anchors: it
+``--quick`` (CI's smoke run): a short walk at the anchor's end of aisle 1 at 640x480 (three anchors: it
 sees three groups of markers never in view together), the hover flight, two check trials.
 """
 from __future__ import annotations
@@ -333,7 +333,7 @@ def main() -> int:
         work = Path(args.work or temporary)
         if args.quick:
             out = work / "quick-640x480"
-            walks = {"640x480": out if (out / "sequence.yaml").exists() else render_walk(out, quick_walk(), (640, 480), 2.0)}
+            walks = {"640x480": out if (out / "sequence.yaml").exists() else render_walk(out, quick_walk(), (640, 480), 4.0)}
             anchor_sets, flights, trials = QUICK_ANCHORS, {"hover": FLIGHTS["hover"]}, 2
         else:
             walks = {}
