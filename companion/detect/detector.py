@@ -34,11 +34,13 @@ import itertools
 import time
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from companion.detect import homography, sampling
-from companion.detect.circles import (CircleCandidate, CircleParams, assemble_candidates, corner_triples,
-                                      find_blobs, missing_corner_cells)
+from companion.detect.circles import (CircleCandidate, CircleParams, assemble_candidates, blob_level,
+                                      corner_triples, find_blobs, missing_corner_cells,
+                                      refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -180,13 +182,17 @@ class Detector:
     def _circles_path(self, gray: np.ndarray, found: list[Detection], clock: "_StageClock") -> list[Detection]:
         """Markers found by their corner circles, away from markers already found."""
         params = self.params.circles
-        blobs = find_blobs(gray, params)
+        level = blob_level(params)
+        scale = 2 ** level
+        reduced = gray if level == 0 else cv2.resize(gray, (gray.shape[1] // scale, gray.shape[0] // scale),
+                                                     interpolation=cv2.INTER_AREA)
+        blobs = find_blobs(reduced, params, scale)
         if found and len(blobs):
             blobs = blobs.subset(~self._inside_found(blobs.centres_px, found))
         clock.lap("circles_blobs")
         candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout, params), self.layout, params)
         clock.lap("circles_group")
-        detections = self._decode_circle_candidates(gray, candidates)
+        detections = self._decode_circle_candidates(gray, candidates, refine=level > 0)
         clock.lap("circles_decode")
         return _unique(detections, self.params.duplicate_offset_fraction)
 
@@ -196,13 +202,23 @@ class Detector:
         H = homography.from_quads(self.layout.inner_corners_cells, corners)
         return sampling.inside_grids(points_px, H, self.layout.n_cells)
 
-    def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate]) -> list[Detection]:
-        """Fit, refine on the edges, sample and decode circle candidates, all batched."""
+    def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate],
+                                  refine: bool) -> list[Detection]:
+        """Fit, refine on the edges, sample and decode circle candidates, all batched.
+
+        refine: the circle centres came from a pyramid level: read them again in the frame first.
+        """
         params, min_contrast_gray = self.params.circles, self.params.sampling.min_contrast_gray
         fitted = []
         for candidate in candidates:
-            grid_points = self.layout.circles[candidate.circle_ids, :2]
+            circles = self.layout.circles[candidate.circle_ids]
+            grid_points = circles[:, :2]
             H = homography.fit(grid_points, candidate.circles_px)
+            if refine and np.isfinite(H[2, 2]):
+                centres = refine_centres(gray, H, circles)
+                if np.isfinite(centres).all():
+                    candidate = replace(candidate, circles_px=centres)
+                    H = homography.fit(grid_points, centres)
             if homography.fit_error_cells(H, grid_points, candidate.circles_px) <= params.max_fit_error_cells:
                 fitted.append((candidate, H, (grid_points, candidate.circles_px)))
         if fitted:  # a first look at one sample per cell: a wrong pairing of corners reads as no marker
