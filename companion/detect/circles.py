@@ -39,6 +39,8 @@ RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
 RING_DIRECTIONS = np.stack([np.cos(RING_ANGLES), np.sin(RING_ANGLES)], axis=1)
 PIXEL_VARIANCE_PX2 = 1.0 / 12.0  # of a uniform unit square along each axis
 CENTROID_GRID = np.linspace(-1.0, 1.0, 9)
+FIXED_POINT_BITS = 4  # sub-pixel vertices for cv2.fillConvexPoly
+FIXED_POINT = 1 << FIXED_POINT_BITS
 MAX_LENGTH_PER_SQRT_AREA = 6.0  # boundary pixels of a compact blob over the root of its area (with a margin)
 
 
@@ -55,7 +57,7 @@ class CircleParams:
         square path found nothing), or "never".
 
     Blobs (looked for at a pyramid level, see ``blob_level``; sizes are in frame pixels):
-    min_marker_side_px: the smallest marker (inner-square side, pixels) the
+    min_side_px: the smallest marker (inner-square side, pixels) the
         path looks for: circles are searched at the coarsest pyramid level at
         which it keeps ``min_level_side_px`` (40 and 20: half resolution, a
         quarter of the pixels; a 40 px marker's small circles there are 2 px across).
@@ -122,7 +124,7 @@ class CircleParams:
     """
 
     run: str = "always"
-    min_marker_side_px: float = 40.0
+    min_side_px: float = 40.0
     min_level_side_px: float = 20.0
     threshold_block_px: int = 31
     threshold_offset_gray: float = 7.0
@@ -172,8 +174,8 @@ class CircleParams:
         require(self.min_corners in (2, 3, 4), "min_corners", "2, 3 or 4", self.min_corners)
         require(4 <= self.min_circles_for_homography <= 12, "min_circles_for_homography", "in [4, 12]",
                 self.min_circles_for_homography)
-        require(self.min_marker_side_px >= self.min_level_side_px > 0, "min_marker_side_px",
-                f">= min_level_side_px ({self.min_level_side_px}) > 0", self.min_marker_side_px)
+        require(self.min_side_px >= self.min_level_side_px > 0, "min_side_px",
+                f">= min_level_side_px ({self.min_level_side_px}) > 0", self.min_side_px)
         for key in ("threshold_offset_gray", "min_area_px", "ring_margin_px", "min_ring_contrast_gray"):
             require(getattr(self, key) >= 0, key, ">= 0", getattr(self, key))
         for key in ("threshold_ratio", "max_speck_fraction", "max_area_fraction", "min_fill",
@@ -223,19 +225,24 @@ class _BlobTable:
 
 def blob_level(params: CircleParams) -> int:
     """The pyramid level (0: full resolution, k: 2^k smaller) blobs are looked for at: the coarsest at which
-    the smallest marker of ``min_marker_side_px`` keeps ``min_level_side_px``."""
-    return max(int(np.floor(np.log2(params.min_marker_side_px / params.min_level_side_px))), 0)
+    the smallest marker of ``min_side_px`` keeps ``min_level_side_px``."""
+    return max(int(np.floor(np.log2(params.min_side_px / params.min_level_side_px))), 0)
 
 
-def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1) -> Blobs:
+def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1,
+               excluded_px: np.ndarray | None = None) -> Blobs:
     """Dark, compact blobs on bright surroundings.
 
-    level_image: (h, w) uint8, the frame reduced ``scale`` times (``cv2.pyrDown`` steps: its pixel (i, j)
-    is centred on the frame's (scale i, scale j)); the parameters are in frame pixels. Returns the blobs
-    in frame pixels (centres to about a quarter of a level pixel; ``refine_centres`` reads the frame).
+    level_image: (h, w) uint8, the frame reduced ``scale`` times (``reduce``); the parameters are in
+    frame pixels. excluded_px: optional (M, 4, 2) convex quads in frame pixels where nothing is looked
+    for (markers already found). Returns the blobs in frame pixels (centres to a few tenths of a
+    level pixel; ``refine_centres`` reads the frame).
     """
     smooth = cv2.blur(level_image, (3, 3)) if params.pre_blur else level_image
     binary = dark_pixels(smooth, params, scale)
+    for quad in () if excluded_px is None else excluded_px:
+        cv2.fillConvexPoly(binary, np.round(to_level_px(quad, scale) * FIXED_POINT).astype(np.int32), 0,
+                           shift=FIXED_POINT_BITS)
     max_area_px = params.max_area_fraction * level_image.size
     table = (_contour_table if _use_contours(binary, params) else _component_table)(binary, max_area_px)
     var_x, var_y, cov = table.moments.T
@@ -254,8 +261,27 @@ def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1) ->
     if len(keep) > params.max_blobs:
         # a speckled texture: keep the darkest spots (relative to their rings), a bound on later work
         keep = np.sort(keep[np.argsort(darkness[keep], kind="stable")[:params.max_blobs]])
-    # level pixel i averages frame pixels scale i .. scale i + scale - 1
-    return Blobs(table.centres[keep] * scale + (scale - 1) / 2, table.areas[keep] * scale ** 2)
+    return Blobs(to_frame_px(table.centres[keep], scale), table.areas[keep] * scale ** 2)
+
+
+def reduce(gray: np.ndarray, scale: int) -> np.ndarray:
+    """The frame averaged over scale x scale blocks (``cv2.INTER_AREA``; a copy a scale^2-th of its size).
+
+    Averaging keeps a small circle's contrast better than a Gaussian pyramid step."""
+    if scale == 1:
+        return gray
+    return cv2.resize(gray, (gray.shape[1] // scale, gray.shape[0] // scale), interpolation=cv2.INTER_AREA)
+
+
+def to_frame_px(level_px: np.ndarray, scale: int) -> np.ndarray:
+    """(..., 2) positions in a ``reduce``d image -> frame pixels (level pixel i averages frame pixels
+    scale i .. scale i + scale - 1)."""
+    return level_px * scale + (scale - 1) / 2
+
+
+def to_level_px(frame_px: np.ndarray, scale: int) -> np.ndarray:
+    """The inverse of ``to_frame_px``."""
+    return (frame_px - (scale - 1) / 2) / scale
 
 
 def dark_pixels(gray: np.ndarray, params: CircleParams, scale: int = 1) -> np.ndarray:
@@ -283,20 +309,22 @@ def _use_contours(binary: np.ndarray, params: CircleParams) -> bool:
 def _contour_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
     """The blobs of the binary image from their outer contours, vectorised.
 
-    Contours longer than a blob of ``max_area_px`` can be (a 1:4 ellipse of
-    that area has a perimeter of 5.2 sqrt(area); edges and large regions of
-    clutter are most of the points) are dropped first; the others are concatenated once and reduced segment-wise (np.*.reduceat),
-    so the cost per contour is one array in a list, not a Python loop of
-    OpenCV calls. Area: the pixel count of the region, from the polygon
-    through its boundary pixels by Pick's theorem (A + B / 2 + 1); centre and
-    second moments: the polygon's (Green's theorem), the boundary's for a
-    polygon of no area.
+    Contours (OpenCV's, straight runs of boundary pixels compressed to their
+    ends) longer than a blob of ``max_area_px`` can be (a 1:4 ellipse of that
+    area has a perimeter of 5.2 sqrt(area); edges and large regions of
+    clutter are most of the points) are dropped first; the others are
+    concatenated once and reduced segment-wise (one ``np.add.reduceat``), so
+    the cost per contour is one array in a list, not a Python loop of OpenCV
+    calls. Area: the pixel count of the region, from the polygon through its
+    boundary pixels by Pick's theorem (A + B / 2 + 1, B the boundary pixels:
+    the longer coordinate step of each run); centre and second moments: the
+    polygon's (Green's theorem), its vertices' for a polygon of no area.
     """
     # two levels: every blob's outer boundary (even a blob inside another's hole), and the holes
-    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         return _BlobTable(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)))
-    lengths = np.fromiter((len(c) for c in contours), np.intp, len(contours))
+    lengths = np.fromiter(map(len, contours), np.intp, len(contours))
     kept = np.flatnonzero((hierarchy[0, :, 3] < 0) & (lengths <= MAX_LENGTH_PER_SQRT_AREA * np.sqrt(max_area_px)))
     if len(kept) == 0:
         return _BlobTable(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)))
@@ -309,30 +337,25 @@ def _contour_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
     x, y = points[:, 0], points[:, 1]
     xn, yn = x[following], y[following]
     cross = x * yn - xn * y
-
-    def polygon_sum(values):
-        return np.add.reduceat(values * cross, starts)
-
     # polygon moments (Green): m00 = sum(c) / 2, m10 = sum((x + x') c) / 6,
-    # m20 = sum((x^2 + x x' + x'^2) c) / 12, m11 = sum((2 x y + x y' + x' y + 2 x' y') c) / 24
-    polygon_area = np.add.reduceat(cross, starts) / 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cx = polygon_sum(x + xn) / (6 * polygon_area)
-        cy = polygon_sum(y + yn) / (6 * polygon_area)
-        var_x = polygon_sum(x * x + x * xn + xn * xn) / (12 * polygon_area) - cx * cx
-        var_y = polygon_sum(y * y + y * yn + yn * yn) / (12 * polygon_area) - cy * cy
-        cov = polygon_sum(2 * x * y + x * yn + xn * y + 2 * xn * yn) / (24 * polygon_area) - cx * cy
-    flat = np.abs(polygon_area) < 0.5
-    if flat.any():  # a line or a single pixel: the boundary points' mean and spread
-        mean_x = np.add.reduceat(x, starts) / lengths
-        mean_y = np.add.reduceat(y, starts) / lengths
-        cx, cy = np.where(flat, mean_x, cx), np.where(flat, mean_y, cy)
-        var_x = np.where(flat, np.add.reduceat(x * x, starts) / lengths - mean_x ** 2, var_x)
-        var_y = np.where(flat, np.add.reduceat(y * y, starts) / lengths - mean_y ** 2, var_y)
-        cov = np.where(flat, np.add.reduceat(x * y, starts) / lengths - mean_x * mean_y, cov)
+    # m20 = sum((x^2 + x x' + x'^2) c) / 12, m11 = sum((2 x y + x y' + x' y + 2 x' y') c) / 24;
+    # the boundary pixels of each run, max(|x' - x|, |y' - y|); and the vertices' sums (for flat ones)
+    terms = np.column_stack([cross, (x + xn) * cross, (y + yn) * cross, (x * x + x * xn + xn * xn) * cross,
+                             (y * y + y * yn + yn * yn) * cross, (2 * x * y + x * yn + xn * y + 2 * xn * yn) * cross,
+                             np.maximum(np.abs(xn - x), np.abs(yn - y)), x, y, x * x, y * y, x * y])
+    m00, m10, m01, m20, m02, m11, boundary, sx, sy, sxx, syy, sxy = np.add.reduceat(terms, starts, axis=0).T
+    polygon_area = m00 / 2
+    flat = np.abs(polygon_area) < 0.5  # a line or a single pixel: its vertices' mean and spread
+    polygon_area[flat] = np.nan
+    cx = np.where(flat, sx / lengths, m10 / (6 * polygon_area))
+    cy = np.where(flat, sy / lengths, m01 / (6 * polygon_area))
+    var_x = np.where(flat, sxx / lengths, m20 / (12 * polygon_area)) - cx * cx
+    var_y = np.where(flat, syy / lengths, m02 / (12 * polygon_area)) - cy * cy
+    cov = np.where(flat, sxy / lengths, m11 / (24 * polygon_area)) - cx * cy
+    polygon_area[flat] = 0.0
     # the polygon runs through the boundary pixels' centres: each pixel's own spread (1/12 px^2) on top
     moments = np.column_stack([var_x + PIXEL_VARIANCE_PX2, var_y + PIXEL_VARIANCE_PX2, cov])
-    area = np.abs(polygon_area) + lengths / 2 + 1
+    area = np.abs(polygon_area) + boundary / 2 + 1
     return _BlobTable(np.column_stack([cx, cy]), area, moments)
 
 

@@ -34,13 +34,12 @@ import itertools
 import time
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 
 from companion.detect import homography, sampling
 from companion.detect.circles import (CircleCandidate, CircleParams, assemble_candidates, blob_level,
                                       corner_triples, find_blobs, missing_corner_cells,
-                                      refine_centres)
+                                      reduce, refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -118,6 +117,8 @@ class Detector:
         self._border = self.layout.border_mask
         self._gap = sampling.gap_ring_mask(self.layout)
         self._codeword = self.layout.codeword_mask
+        n = self.layout.n_cells
+        self._grid_outline_cells = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
         # (N, N) cells likely hidden for each set of corners whose circles were found
         self._hidden_by_corners = {corners: missing_corner_cells(self.layout, np.array(corners, int))
                                    for k in range(5) for corners in itertools.combinations(range(4), k)}
@@ -140,9 +141,11 @@ class Detector:
         return detections
 
     def _aligned(self, gray: np.ndarray, detection: Detection) -> Detection:
-        """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``)."""
+        """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``); where that
+        does not hold, the corners of the inner square's edge lines."""
         fit = self.refiner.refine(gray, detection.id, detection.corners_px)
-        return replace(detection, corners_px=fit.corners_px) if fit.refined else detection
+        corners = fit.corners_px if fit.refined else self._edge_corners(gray, detection.corners_px[None])[0]
+        return replace(detection, corners_px=corners)
 
     def _read_grids(self, gray: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, sampling.GridLevels]:
         """(M, N, N) int8 classified grids of M homographies, and their levels."""
@@ -150,32 +153,44 @@ class Detector:
         levels = sampling.grid_levels(cells, self._border, self._gap)
         return sampling.classify_cells(cells, levels, self.params.sampling.ambiguity_fraction), levels
 
+    def _edge_corners(self, gray: np.ndarray, quads: np.ndarray, rough: bool = False) -> np.ndarray:
+        """(M, 4, 2) inner-square corners where the edge lines of M quads (M, 4, 2) meet (see ``edges``)."""
+        H = homography.from_quads(self.layout.inner_corners_cells, quads)
+        return self.edges.refine_square_corners(gray, H, quads, rough=rough)
+
     def _decode_quads(self, gray: np.ndarray, quads: np.ndarray, from_aruco: np.ndarray) -> list[Detection]:
-        """Sample, classify and decode M candidate inner squares (M, 4, 2) (clockwise corners)."""
+        """Sample, classify and decode M candidate inner squares (M, 4, 2) (clockwise corners).
+
+        Rejected quads come with whole-pixel corners, off by up to a few pixels on small markers:
+        their corners are taken from the edges first (a wide pass, then a fine one). ArUco's
+        sub-pixel corners read almost every identified grid as they are; a thin, oblique marker
+        that does not decode is read again from its edges' corners.
+        """
         if len(quads) == 0:
             return []
-        inner = self.layout.inner_corners_cells
-        # sub-pixel corners first: a thin, oblique marker needs good ones to be sampled right.
-        # Rejected quads come with whole-pixel corners, off by up to a few pixels on small
-        # markers: look wider across their edges first.
+        quads = quads.copy()
         rough = ~from_aruco
         if rough.any():
-            quads = quads.copy()
-            quads[rough] = self.edges.refine_square_corners(
-                gray, homography.from_quads(inner, quads[rough]), quads[rough], rough=True)
-        quads = self.edges.refine_square_corners(gray, homography.from_quads(inner, quads), quads)
-        grids, levels = self._read_grids(gray, homography.from_quads(inner, quads))
-        usable = levels.contrast >= self.params.sampling.min_contrast_gray
-        index = np.flatnonzero(usable)
-        results = self.decoder.decode(grids[usable])
-        found = np.array([r is not None for r in results], bool)
-        if not found.any():
-            return []
-        index, results = index[found], [r for r in results if r is not None]
-        corners = quads[index]
-        detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(c, -r.rotation, axis=0), path="square",
-                                corrected=r.corrected, quality=r.quality) for r, c in zip(results, corners)]
+            quads[rough] = self._edge_corners(gray, self._edge_corners(gray, quads[rough], rough=True))
+        results = self._decode_grids(gray, quads)
+        again = np.flatnonzero(from_aruco & np.array([r is None for r in results]))
+        if len(again):
+            quads[again] = self._edge_corners(gray, quads[again])
+            for i, result in zip(again, self._decode_grids(gray, quads[again])):
+                results[i] = result
+        detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(q, -r.rotation, axis=0), path="square",
+                                corrected=r.corrected, quality=r.quality)
+                      for r, q in zip(results, quads) if r is not None]
         return _unique(detections, self.params.duplicate_offset_fraction)
+
+    def _decode_grids(self, gray: np.ndarray, quads: np.ndarray) -> list:
+        """The decoder's result (or None) for the grid of each of M quads (M, 4, 2); None below the contrast floor."""
+        grids, levels = self._read_grids(gray, homography.from_quads(self.layout.inner_corners_cells, quads))
+        usable = levels.contrast >= self.params.sampling.min_contrast_gray
+        results: list = [None] * len(quads)
+        for i, result in zip(np.flatnonzero(usable), self.decoder.decode(grids[usable])):
+            results[i] = result
+        return results
 
     # ------------------------------------------------------------------ circles path
 
@@ -184,23 +199,18 @@ class Detector:
         params = self.params.circles
         level = blob_level(params)
         scale = 2 ** level
-        reduced = gray if level == 0 else cv2.resize(gray, (gray.shape[1] // scale, gray.shape[0] // scale),
-                                                     interpolation=cv2.INTER_AREA)
-        blobs = find_blobs(reduced, params, scale)
-        if found and len(blobs):
-            blobs = blobs.subset(~self._inside_found(blobs.centres_px, found))
+        # only where no marker found already explains the blobs: its whole grid is left out
+        outlines = None
+        if found:
+            H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
+            outlines = homography.project(H, self._grid_outline_cells)
+        blobs = find_blobs(reduce(gray, scale), params, scale, outlines)
         clock.lap("circles_blobs")
         candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout, params), self.layout, params)
         clock.lap("circles_group")
         detections = self._decode_circle_candidates(gray, candidates, refine=level > 0)
         clock.lap("circles_decode")
         return _unique(detections, self.params.duplicate_offset_fraction)
-
-    def _inside_found(self, points_px: np.ndarray, found: list[Detection]) -> np.ndarray:
-        """(K,) bool: points inside the full grid outline of an already found marker."""
-        corners = np.stack([d.corners_px for d in found])
-        H = homography.from_quads(self.layout.inner_corners_cells, corners)
-        return sampling.inside_grids(points_px, H, self.layout.n_cells)
 
     def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate],
                                   refine: bool) -> list[Detection]:
