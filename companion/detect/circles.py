@@ -38,9 +38,7 @@ from companion.params import require
 RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
 RING_DIRECTIONS = np.stack([np.cos(RING_ANGLES), np.sin(RING_ANGLES)], axis=1)
 PIXEL_VARIANCE_PX2 = 1.0 / 12.0  # of a uniform unit square along each axis
-CENTROID_GRID = np.linspace(-1.0, 1.0, 9)
-FIXED_POINT_BITS = 4  # sub-pixel vertices for cv2.fillConvexPoly
-FIXED_POINT = 1 << FIXED_POINT_BITS
+CENTROID_OFFSETS = np.stack(np.meshgrid(np.linspace(-1, 1, 9), np.linspace(-1, 1, 9)), axis=-1).reshape(-1, 2)
 MAX_LENGTH_PER_SQRT_AREA = 6.0  # boundary pixels of a compact blob over the root of its area (with a margin)
 
 
@@ -229,20 +227,21 @@ def blob_level(params: CircleParams) -> int:
     return max(int(np.floor(np.log2(params.min_side_px / params.min_level_side_px))), 0)
 
 
-def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1,
-               excluded_px: np.ndarray | None = None) -> Blobs:
+def find_frame_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
+    """The blobs of an (H, W) uint8 frame, looked for at the pyramid level ``blob_level`` (in frame pixels)."""
+    scale = 2 ** blob_level(params)
+    return find_blobs(reduce(gray, scale), params, scale)
+
+
+def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1) -> Blobs:
     """Dark, compact blobs on bright surroundings.
 
     level_image: (h, w) uint8, the frame reduced ``scale`` times (``reduce``); the parameters are in
-    frame pixels. excluded_px: optional (M, 4, 2) convex quads in frame pixels where nothing is looked
-    for (markers already found). Returns the blobs in frame pixels (centres to a few tenths of a
-    level pixel; ``refine_centres`` reads the frame).
+    frame pixels. Returns the blobs in frame pixels (centres to a few tenths of a level pixel;
+    ``refine_centres`` reads the frame).
     """
     smooth = cv2.blur(level_image, (3, 3)) if params.pre_blur else level_image
     binary = dark_pixels(smooth, params, scale)
-    for quad in () if excluded_px is None else excluded_px:
-        cv2.fillConvexPoly(binary, np.round(to_level_px(quad, scale) * FIXED_POINT).astype(np.int32), 0,
-                           shift=FIXED_POINT_BITS)
     max_area_px = params.max_area_fraction * level_image.size
     table = (_contour_table if _use_contours(binary, params) else _component_table)(binary, max_area_px)
     var_x, var_y, cov = table.moments.T
@@ -278,10 +277,6 @@ def to_frame_px(level_px: np.ndarray, scale: int) -> np.ndarray:
     scale i .. scale i + scale - 1)."""
     return level_px * scale + (scale - 1) / 2
 
-
-def to_level_px(frame_px: np.ndarray, scale: int) -> np.ndarray:
-    """The inverse of ``to_frame_px``."""
-    return (frame_px - (scale - 1) / 2) / scale
 
 
 def dark_pixels(gray: np.ndarray, params: CircleParams, scale: int = 1) -> np.ndarray:
@@ -416,8 +411,7 @@ def refine_centres(gray: np.ndarray, H: np.ndarray, circles_cells: np.ndarray) -
     the window's median by a fifth of its contrast count, so the paper around a circle adds no pull
     toward the window's centre.
     """
-    offsets = np.stack(np.meshgrid(CENTROID_GRID, CENTROID_GRID), axis=-1).reshape(-1, 2)  # (S, 2)
-    window_cells = circles_cells[:, None, :2] + 1.5 * circles_cells[:, None, 2:3] * offsets[None]  # (K, S, 2)
+    window_cells = circles_cells[:, None, :2] + 1.5 * circles_cells[:, None, 2:3] * CENTROID_OFFSETS[None]  # (K, S, 2)
     points = homography.project(H, window_cells.reshape(-1, 2)).reshape(window_cells.shape)
     values, inside = sampling.sample_image(gray, points)  # (K, S), NaN outside the frame
     darkness = sampling.nan_median_rows(values)[:, None] - values

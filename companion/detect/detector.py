@@ -32,14 +32,15 @@ from __future__ import annotations
 
 import itertools
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from companion.detect import homography, sampling
-from companion.detect.circles import (CircleCandidate, CircleParams, assemble_candidates, blob_level,
-                                      corner_triples, find_blobs, missing_corner_cells,
-                                      reduce, refine_centres)
+from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, blob_level,
+                                      corner_triples, find_frame_blobs, missing_corner_cells, refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -117,28 +118,45 @@ class Detector:
         self._border = self.layout.border_mask
         self._gap = sampling.gap_ring_mask(self.layout)
         self._codeword = self.layout.codeword_mask
-        n = self.layout.n_cells
-        self._grid_outline_cells = np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]])
         # (N, N) cells likely hidden for each set of corners whose circles were found
         self._hidden_by_corners = {corners: missing_corner_cells(self.layout, np.array(corners, int))
                                    for k in range(5) for corners in itertools.combinations(range(4), k)}
         self.last_stage_ms: dict[str, float] = {}
+        self._blob_worker: ThreadPoolExecutor | None = None
 
     def detect(self, gray: np.ndarray) -> list[Detection]:
         """All RS markers in an (H, W) uint8 frame, each once."""
         gray = _as_gray(gray)
         clock = _StageClock()
+        run = self.params.circles.run
+        blobs_pending = self._blob_search_beside(gray) if run == "always" else None
         candidates = self.square.find(gray)
         clock.lap("square")
         detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
         clock.lap("square_decode")
         detections = [self._aligned(gray, d) for d in detections]
         clock.lap("square_align")
-        run = self.params.circles.run
         if run == "always" or (run == "when_square_empty" and not detections):
-            detections += self._circles_path(gray, detections, clock)
+            blobs = find_frame_blobs(gray, self.params.circles) if blobs_pending is None else blobs_pending.result()
+            detections += self._circles_path(gray, blobs, detections, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
+
+    def close(self) -> None:
+        """Stop the blob-search thread, if one was started (it also stops when the detector is dropped)."""
+        if self._blob_worker is not None:
+            self._blob_worker.shutdown()
+            self._blob_worker = None
+
+    def _blob_search_beside(self, gray: np.ndarray) -> Future | None:
+        """The circles path's blob search started on a second thread, to run while ArUco runs on this one,
+        when OpenCV may use more than one thread (``cv2.setNumThreads``); None otherwise. It needs nothing
+        from the square path (blobs inside the markers it finds are dropped after)."""
+        if cv2.getNumThreads() < 2:
+            return None
+        if self._blob_worker is None:
+            self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
+        return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
 
     def _aligned(self, gray: np.ndarray, detection: Detection) -> Detection:
         """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``); where that
@@ -194,21 +212,18 @@ class Detector:
 
     # ------------------------------------------------------------------ circles path
 
-    def _circles_path(self, gray: np.ndarray, found: list[Detection], clock: "_StageClock") -> list[Detection]:
-        """Markers found by their corner circles, away from markers already found."""
+    def _circles_path(self, gray: np.ndarray, blobs: Blobs, found: list[Detection],
+                      clock: "_StageClock") -> list[Detection]:
+        """Markers found by their corner circles among the frame's blobs, where no marker found already
+        explains them (blobs inside a found marker's whole grid are left out)."""
         params = self.params.circles
-        level = blob_level(params)
-        scale = 2 ** level
-        # only where no marker found already explains the blobs: its whole grid is left out
-        outlines = None
-        if found:
+        if found and len(blobs):
             H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
-            outlines = homography.project(H, self._grid_outline_cells)
-        blobs = find_blobs(reduce(gray, scale), params, scale, outlines)
+            blobs = blobs.subset(~sampling.inside_grids(blobs.centres_px, H, self.layout.n_cells))
         clock.lap("circles_blobs")
         candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout, params), self.layout, params)
         clock.lap("circles_group")
-        detections = self._decode_circle_candidates(gray, candidates, refine=level > 0)
+        detections = self._decode_circle_candidates(gray, candidates, refine=blob_level(params) > 0)
         clock.lap("circles_decode")
         return _unique(detections, self.params.duplicate_offset_fraction)
 
