@@ -28,6 +28,7 @@ from companion.params import require
 
 
 ARUCO_DETECTORS_KEPT = 4
+NEXT_CORNER = [1, 2, 3, 0]
 
 
 @dataclass(frozen=True)
@@ -173,4 +174,5 @@ class SquareFinder:
 
 def _mean_side(quads: np.ndarray) -> np.ndarray:
     """(M,) mean side of M quads (M, 4, 2)."""
-    return np.linalg.norm(quads - np.roll(quads, -1, axis=1), axis=2).mean(axis=1)
+    sides = quads[:, NEXT_CORNER] - quads
+    return np.sqrt((sides * sides).sum(axis=2)).mean(axis=1)
