@@ -14,6 +14,7 @@ from companion.sim import degrade
 from companion.sim import simulate
 from companion.sim import trajectory as tj
 from companion.geometry.camera import CameraModel, load_camera
+from companion.detect.detector import Detector, DetectorParams
 from companion.markers.dictionary import load_dictionary
 from companion.geometry.facility_map import load_map
 
@@ -91,6 +92,25 @@ def test_ground_truth_pose_reprojects_onto_detected_corners(tmp_path, world, cam
     assert np.median(errors) < 0.5, np.median(errors)
     assert errors.max() < 1.5, errors.max()
     assert np.median(centres) < 0.2, np.median(centres)
+
+
+@pytest.mark.parametrize("dictionary", ["5x5", "8x8"])
+def test_markers_are_drawn_in_the_maps_dictionary(tmp_path, camera, dictionary):
+    site = tmp_path / f"site-{dictionary}.yaml"
+    site.write_text(MAP.read_text().replace("dictionary: 6x6", f"dictionary: {dictionary}"))
+    facility_map = load_map(site)
+    simulator = simulate.Simulator(simulate.build_world(facility_map, seed=0), camera, short_flight(),
+                                   degrade.Degradations(), seed=1)
+    frame = simulator.render_frame(0, 0)
+    in_view = {t.marker_id for t in frame.truths if t.corners_visible.all() and t.inner_px > 30}
+    assert in_view
+
+    def seen(dictionary_name):
+        detector = Detector(DetectorParams(dictionary=dictionary_name, parity=facility_map.parity), camera=camera)
+        return {d.id for d in detector.detect(frame.image)}
+
+    assert seen(dictionary) == in_view
+    assert not seen("6x6")  # a 6x6 detector reads none of them: they are not drawn as 6x6 markers
 
 
 def test_markers_csv_matches_projection_and_flags_what_is_out_of_view(tmp_path, world, camera, facility_map):

@@ -17,7 +17,7 @@ from companion.yaml_input import read_yaml
 
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".tif", ".tiff"}
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm", ".webp"}
 
 
 VIDEO_SUFFIXES = {".avi", ".mp4", ".mkv", ".mov", ".webm"}
@@ -49,6 +49,11 @@ class Recording:
         return int(np.median(np.diff(self.t_ns))) if len(self.t_ns) > 1 else 33_333_333
 
 
+def image_files(folder: Path) -> list[Path]:
+    """The image files directly inside ``folder`` (by suffix, the ones OpenCV reads), sorted by name."""
+    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
 def open_recording(path, fps: float | None = None) -> Recording:
     """A sequence folder (timestamps.csv), a video file, or a folder of images.
 
@@ -59,7 +64,7 @@ def open_recording(path, fps: float | None = None) -> Recording:
     if path.is_dir() and (path / TIMESTAMPS_FILE).exists():
         return _read_sequence_folder(path)
     if path.is_dir():
-        files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        files = image_files(path)
         if not files:
             raise SourceError(f"{path}: no {TIMESTAMPS_FILE} and no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
         if not fps:

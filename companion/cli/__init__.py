@@ -20,6 +20,8 @@ COMMANDS = {
     "localize": ("companion.cli.localize", "print the per-frame camera pose of a sequence (no filtering)"),
     "simulate": ("companion.cli.simulate", "render a synthetic camera sequence with ground truth"),
     "calibrate": ("companion.cli.calibrate", "calibrate a camera from chessboard images"),
+    "survey": ("companion.cli.survey", "build a facility map from walk-through footage and a few measured anchors"),
+    "map": ("companion.cli.map", "check a facility map against a walk-through (markers that moved)"),
 }
 
 

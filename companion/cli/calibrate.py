@@ -7,7 +7,8 @@ from pathlib import Path
 
 import cv2
 
-from companion.geometry.calibration import (IMAGE_SUFFIXES, Board, CalibrationError, calibrate,
+from companion.capture.replay import image_files
+from companion.geometry.calibration import (Board, CalibrationError, calibrate,
                                             write_calibration)
 
 
@@ -15,7 +16,7 @@ def image_paths(inputs: list[str]) -> list[Path]:
     paths = []
     for item in map(Path, inputs):
         if item.is_dir():
-            paths += sorted(p for p in item.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            paths += image_files(item)
         elif item.is_file():
             paths.append(item)
         else:

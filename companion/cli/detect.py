@@ -26,11 +26,11 @@ import cv2
 import numpy as np
 
 from companion.detect.circles import CIRCLES_RUN_MODES, CircleParams
+from companion.capture.replay import image_files
 from companion.detect.detector import DICTIONARIES, Detector, DetectorParams
 from companion.params import ParamsError
 from companion.types import Detection
 
-IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm", ".webp"}
 PATH_COLOURS = {"square": (40, 200, 40), "circles": (0, 140, 255)}  # BGR
 
 
@@ -88,7 +88,7 @@ def expand_images(inputs: list[Path]) -> tuple[list[Path], list[Path]]:
     images, missing = [], []
     for path in inputs:
         if path.is_dir():
-            images.extend(sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES))
+            images.extend(image_files(path))
         elif path.exists():
             images.append(path)
         else:

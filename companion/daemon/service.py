@@ -34,6 +34,7 @@ from companion.detect.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter
 from companion.mavlink.link import MavlinkLink
 from companion.daemon.notify import Notifier
+from companion.daemon.map_watch import MapWatch
 from companion.daemon.pipeline import Pipeline
 from companion.daemon.status import DaemonStatus, recent_activity
 from companion.geometry.pose import PoseSolver
@@ -87,6 +88,8 @@ class Daemon:
             T_map_ned=frames.invert_transform(config.facility_map.T_ned_map),
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
+        # a marker the pose stage keeps leaving out is said once (docs/survey.md)
+        self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
         self.notifier = Notifier()
         self.stop_event = threading.Event()
         self.failed = False

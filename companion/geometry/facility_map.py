@@ -1,22 +1,26 @@
 """The facility map: where each RS marker is, as a person measured it on site.
 
 ``load_map(path)`` reads and validates a ``maps/*.yaml`` file (format in
-``docs/map-format.md``) into a ``FacilityMap``. Every error names the file,
-the marker and the key. Marker orientations are turned into rotations by
-``companion.geometry.frames``; this module holds no axis convention of its own.
+``docs/map-format.md``) into a ``FacilityMap``; ``write_map(facility_map, path)``
+writes one that ``load_map`` reads back to the same poses (``companion survey``
+writes its maps with it). Every error names the file, the marker and the key.
+Marker orientations are turned into rotations by ``companion.geometry.frames``;
+this module holds no axis convention of its own.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from companion.geometry import frames
 from companion.yaml_input import REQUIRED, Where, read_yaml
 
-TOP_KEYS = {"name", "frame", "dictionary", "parity", "default_size_m", "markers"}
+TOP_KEYS = {"name", "frame", "dictionary", "parity", "default_size_m", "markers", "survey"}
+SURVEY_KEYS = {"on_vertical_wall", "sizes_m", "anchor_sd_m", "anchor_sd_deg", "wall_sd_deg"}
 FRAME_KEYS = {"origin", "x_bearing_deg", "geodetic_origin"}
 GEODETIC_KEYS = {"latitude_deg", "longitude_deg", "altitude_m"}
 MARKER_KEYS = {"symbol", "id", "size_m", "position_m", "facing", "rotation_deg", "rpy_deg", "quaternion_wxyz", "note"}
@@ -89,12 +93,37 @@ class MapMarker:
 
 
 @dataclass(frozen=True)
+class SurveyHints:
+    """What ``companion survey`` is told beyond the listed markers' poses (the map's ``survey`` section).
+
+    on_vertical_wall: symbols of markers hanging on a vertical wall (their y axis
+        vertical), or "all".
+    sizes_m: inner-square side (m) by symbol, for markers not listed under ``markers``.
+    anchor_sd_m, anchor_sd_deg: how well the listed markers' positions and
+        orientations were measured (one standard deviation).
+    wall_sd_deg: how far from vertical a wall marker hangs (one standard deviation).
+    """
+
+    on_vertical_wall: frozenset[str] | str = frozenset()
+    sizes_m: dict[str, float] = field(default_factory=dict)
+    anchor_sd_m: float = 0.01
+    anchor_sd_deg: float = 1.0
+    wall_sd_deg: float = 0.2
+
+    def on_wall(self, symbol: str) -> bool:
+        """Whether the marker printed with ``symbol`` is stated to hang on a vertical wall."""
+        return self.on_vertical_wall == "all" or symbol in self.on_vertical_wall
+
+
+@dataclass(frozen=True)
 class FacilityMap:
     """A validated facility map.
 
     markers: by marker id.
     dictionary: dictionary name ("6x6"); parity: RS parity symbols per code
     (2 or 4), which fixes the marker layout (grid size, circles).
+    default_size_m: the size of markers that do not give one, if the file states it.
+    survey: the optional hints for ``companion survey`` (unused by the pose stage).
     """
 
     name: str
@@ -103,6 +132,8 @@ class FacilityMap:
     dictionary: str
     parity: int
     markers: dict[int, MapMarker]
+    default_size_m: float | None = None
+    survey: SurveyHints = field(default_factory=SurveyHints)
 
     @property
     def T_ned_map(self) -> np.ndarray:
@@ -136,6 +167,7 @@ def map_from_dict(data, path: str) -> FacilityMap:
     default_size_m = where.positive(data, "default_size_m", None)
     frame = _frame(where.value(data, "frame"), where.sub("frame"))
     markers = _markers(where.value(data, "markers"), where, dictionary, default_size_m)
+    survey = _survey(data.get("survey"), where.sub("survey"), dictionary)
     return FacilityMap(
         name=str(data.get("name", Path(path).stem)),
         path=path,
@@ -143,6 +175,8 @@ def map_from_dict(data, path: str) -> FacilityMap:
         dictionary=str(data.get("dictionary", "6x6")),
         parity=int(parity),
         markers=markers,
+        default_size_m=default_size_m,
+        survey=survey,
     )
 
 
@@ -179,6 +213,37 @@ def _frame(section, where: Where) -> MapFrame:
     if geodetic is not None:
         geodetic = geodetic_origin(geodetic, where.sub("geodetic_origin"))
     return MapFrame(origin=origin.strip(), x_bearing_deg=bearing, geodetic_origin=geodetic)
+
+
+def _survey(section, where: Where, dictionary) -> SurveyHints:
+    """The optional ``survey`` section; every symbol it names must be in the dictionary."""
+    section = where.mapping(section, ", ".join(sorted(SURVEY_KEYS)))
+    where.reject_unknown(section, SURVEY_KEYS)
+    symbols = set(dictionary.symbols)
+
+    def known(symbol, key: str) -> str:
+        name = str(symbol).upper()
+        if name not in symbols:
+            raise where.error(f"unknown symbol {symbol!r} (dictionary has {', '.join(dictionary.symbols)})", key)
+        return name
+
+    walls = section.get("on_vertical_wall", [])
+    if isinstance(walls, str) and walls.strip().lower() == "all":
+        on_vertical_wall: frozenset[str] | str = "all"
+    elif isinstance(walls, list):
+        on_vertical_wall = frozenset(known(symbol, "on_vertical_wall") for symbol in walls)
+    else:
+        raise where.error(f"must be 'all' or a list of symbols, got {walls!r}", "on_vertical_wall")
+    sizes = where.mapping(section.get("sizes_m"), "symbol: size_m")
+    sizes_m = {known(symbol, "sizes_m"): where.sub("sizes_m").positive(sizes, symbol) for symbol in sizes}
+    defaults = SurveyHints()
+    return SurveyHints(
+        on_vertical_wall=on_vertical_wall,
+        sizes_m=sizes_m,
+        anchor_sd_m=where.positive(section, "anchor_sd_m", defaults.anchor_sd_m),
+        anchor_sd_deg=where.positive(section, "anchor_sd_deg", defaults.anchor_sd_deg),
+        wall_sd_deg=where.positive(section, "wall_sd_deg", defaults.wall_sd_deg),
+    )
 
 
 def _markers(section, where: Where, dictionary, default_size_m) -> dict[int, MapMarker]:
@@ -278,3 +343,86 @@ def _facing(entry: dict, where: Where) -> np.ndarray:
     rotation_deg = where.number(entry, "rotation_deg", 0.0)
     # In-plane rotation about the marker's own face normal (counter-clockwise as its viewer sees it).
     return R_base @ frames.rot_z(math.radians(rotation_deg))
+
+
+# ----------------------------------------------------------------- writing
+
+POSITION_DECIMALS = 5   # 10 micrometres
+ANGLE_DECIMALS = 5      # 1e-5 degrees
+EXACT_AXIS = 1e-9       # an axis this close to map up/down is exactly vertical (a pose built from ``facing``)
+
+
+def write_map(facility_map: FacilityMap, path, header: str = "") -> None:
+    """Write ``facility_map`` as a map file that ``load_map`` reads back to the same poses.
+
+    ``header``: comment lines put above the map (without the ``#``).
+    """
+    comments = "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines())
+    text = yaml.safe_dump(map_to_dict(facility_map), sort_keys=False, default_flow_style=None, width=120,
+                          allow_unicode=True)
+    Path(path).write_text(comments + text)
+
+
+def map_to_dict(facility_map: FacilityMap) -> dict:
+    """The map as a plain document in the format ``map_from_dict`` reads.
+
+    ``default_size_m`` is the map's, else the most common marker size; a marker upright
+    on a wall is written with ``facing`` (its heading), one on the floor or
+    ceiling with ``facing: up``/``down`` and ``rotation_deg``, any other with ``rpy_deg``.
+    """
+    sizes = [m.size_m for m in facility_map.markers.values()]
+    default_size_m = facility_map.default_size_m or max(set(sizes), key=sizes.count)
+    frame: dict = {"origin": facility_map.frame.origin, "x_bearing_deg": float(facility_map.frame.x_bearing_deg)}
+    if facility_map.frame.geodetic_origin is not None:
+        g = facility_map.frame.geodetic_origin
+        frame["geodetic_origin"] = {"latitude_deg": g.latitude_deg, "longitude_deg": g.longitude_deg,
+                                    "altitude_m": g.altitude_m}
+    document = {"name": facility_map.name, "frame": frame, "dictionary": facility_map.dictionary,
+                "parity": facility_map.parity, "default_size_m": float(default_size_m), "markers": []}
+    for marker in sorted(facility_map.markers.values(), key=lambda m: m.id):
+        entry = {"symbol": marker.symbol, "position_m": _rounded(marker.T_map_marker[:3, 3], POSITION_DECIMALS)}
+        if marker.size_m != default_size_m:
+            entry["size_m"] = float(marker.size_m)
+        entry.update(_orientation_entry(marker.T_map_marker[:3, :3]))
+        if marker.note:
+            entry["note"] = marker.note
+        document["markers"].append(entry)
+    survey = _survey_entry(facility_map.survey)
+    if survey:
+        document["survey"] = survey
+    return document
+
+
+def _orientation_entry(R_map_marker: np.ndarray) -> dict:
+    """``facing`` (+ ``rotation_deg``) when the marker is upright on a wall or flat on the floor or ceiling,
+    else ``rpy_deg``."""
+    x_axis, y_axis, z_axis = R_map_marker.T
+    if abs(y_axis[2] - 1.0) < EXACT_AXIS:
+        heading_deg = math.degrees(math.atan2(z_axis[1], z_axis[0]))
+        return {"facing": round(heading_deg, ANGLE_DECIMALS)}
+    for word, R_base in (("up", frames.R_map_marker_facing_up()), ("down", frames.R_map_marker_facing_down())):
+        if abs(float(z_axis @ R_base[:, 2]) - 1.0) < EXACT_AXIS:
+            # R = R_base Rz(rotation): the in-plane angle of the marker's x axis on the base's axes
+            x_in_base = R_base.T @ x_axis
+            return {"facing": word, "rotation_deg": round(math.degrees(math.atan2(x_in_base[1], x_in_base[0])),
+                                                          ANGLE_DECIMALS)}
+    roll, pitch, yaw = frames.euler_321_from_rotation(R_map_marker)
+    return {"rpy_deg": _rounded(np.degrees([roll, pitch, yaw]), ANGLE_DECIMALS)}
+
+
+def _survey_entry(hints: SurveyHints) -> dict:
+    """The non-default fields of a ``survey`` section."""
+    defaults, entry = SurveyHints(), {}
+    if hints.on_vertical_wall:
+        entry["on_vertical_wall"] = "all" if hints.on_vertical_wall == "all" else sorted(hints.on_vertical_wall)
+    if hints.sizes_m:
+        entry["sizes_m"] = {symbol: float(size) for symbol, size in sorted(hints.sizes_m.items())}
+    for key in ("anchor_sd_m", "anchor_sd_deg", "wall_sd_deg"):
+        if getattr(hints, key) != getattr(defaults, key):
+            entry[key] = float(getattr(hints, key))
+    return entry
+
+
+def _rounded(values, decimals: int) -> list[float]:
+    # + 0.0 turns -0.0 into 0.0
+    return [round(float(v), decimals) + 0.0 for v in np.asarray(values).reshape(-1)]

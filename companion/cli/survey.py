@@ -1,0 +1,105 @@
+"""``companion survey SEQUENCE... --camera C --anchors A --out MAP``: a facility map from walk-throughs
+(``companion.survey``)."""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from companion.capture.source import SourceError
+from companion.geometry.camera import CameraError, load_camera
+from companion.geometry.facility_map import MapError, load_map, write_map
+from companion.survey.observations import SurveyError
+from companion.survey.survey import SurveyOptions, SurveyResult, survey
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("sequences", nargs="+", metavar="SEQUENCE",
+                        help="walk-through: sequence folder, video file or image folder (several: walks of one site)")
+    parser.add_argument("--camera", required=True,
+                        help="camera file: OpenCV calibration YAML or a config with a camera section")
+    frame = parser.add_mutually_exclusive_group(required=True)
+    frame.add_argument("--anchors", help="map file with the frame and at least one measured marker (anchors)")
+    frame.add_argument("--map", dest="existing", help="existing map to extend: its markers are the anchors")
+    parser.add_argument("--out", required=True, help="the map to write (YAML, docs/map-format.md)")
+    parser.add_argument("--size-m", type=float, help="inner-square side of the markers to survey (default: the "
+                                                     "anchors file's survey.sizes_m, then its default_size_m)")
+    parser.add_argument("--report", metavar="DIR", help="write survey.json and survey.png into DIR")
+    parser.add_argument("--fps", type=float, help="frame rate of a video or image folder without timestamps")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bars on stderr (default: when stderr is a terminal)")
+
+
+def main(args) -> int:
+    """0: map written; 2: the input cannot make a map (nothing written)."""
+    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    try:
+        if args.size_m is not None and not (math.isfinite(args.size_m) and args.size_m > 0):
+            raise SurveyError(f"--size-m must be a positive number of metres, got {args.size_m:g}")
+        anchors = load_map(args.anchors or args.existing)
+        camera = load_camera(args.camera)
+        options = SurveyOptions(size_m=args.size_m, fps=args.fps, progress=progress)
+        result = survey([Path(s) for s in args.sequences], camera, anchors, options, extend=args.existing is not None)
+        _write_atomically(result, args)
+        if args.report:
+            from companion.survey.report import write_report
+
+            write_report(result, args.report)
+    except (SurveyError, MapError, CameraError, SourceError) as error:
+        print(f"companion survey: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        print(f"companion survey: cannot write {error.filename}: {error.strerror}", file=sys.stderr)
+        return 2
+    print(summary(result))
+    _notes(result)
+    return 0
+
+
+def _write_atomically(result: SurveyResult, args) -> None:
+    """The map appears whole or not at all."""
+    out = Path(args.out)
+    header = (f"Surveyed by companion survey from {', '.join(args.sequences)}\n"
+              f"with {'the map ' + args.existing if args.existing else 'the anchors ' + args.anchors}: "
+              f"{sum(not s.anchor for s in result.markers)} markers surveyed.\n"
+              "Each surveyed marker's note: one standard deviation of its position and angle, frames seen in.")
+    handle, temporary = tempfile.mkstemp(dir=out.parent if str(out.parent) else ".", prefix=f".{out.name}.")
+    os.close(handle)
+    try:
+        write_map(result.facility_map, temporary, header)
+        os.replace(temporary, out)
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+
+
+def summary(result: SurveyResult) -> str:
+    """A table of the markers (anchors first) and one line on the frames."""
+    lines = [f"{'marker':<7} {'kind':<9} {'frames':>6} {'sd_mm':>6} {'sd_deg':>6} {'rms_px':>6}"]
+    for s in sorted(result.markers, key=lambda s: (not s.anchor, s.marker.id)):
+        kind = "anchor" if s.anchor else "surveyed"
+        sd = "     -      -" if s.anchor else f"{s.sd_position_m * 1000:>6.1f} {s.sd_angle_deg:>6.2f}"
+        rms = f"{s.rms_px:>6.2f}" if math.isfinite(s.rms_px) else "     -"
+        lines.append(f"{s.marker.symbol:<7} {kind:<9} {s.frames:>6} {sd} {rms}")
+    lines.append(f"{result.frames_read} frames read, {result.frames_adjusted} adjusted, "
+                 f"point noise {result.sigma_px:.3f} px")
+    return "\n".join(lines)
+
+
+def _notes(result: SurveyResult) -> None:
+    """What the operator should know besides the table, on stderr."""
+    if result.frames_skipped:
+        print(f"companion survey: {result.frames_skipped} unreadable frames were skipped", file=sys.stderr)
+    if result.dropped:
+        names = ", ".join(f"{symbol} ({frames} frame{'s' if frames > 1 else ''})"
+                          for symbol, frames in result.dropped.items())
+        print(f"companion survey: not mapped, seen in fewer than 3 frames: {names}", file=sys.stderr)
+    for a in result.anchors:
+        print(f"companion survey: anchor {a.symbol}: the images move it by {a.position_m * 1000:.1f} mm, "
+              f"{a.angle_deg:.2f} deg", file=sys.stderr)
+    for check in result.moved:
+        print(f"companion survey: marker {check.symbol} disagrees with the map by {check.position_error_m * 100:.1f} cm, "
+              f"{check.angle_error_deg:.1f} deg: surveyed again", file=sys.stderr)

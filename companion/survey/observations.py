@@ -1,0 +1,183 @@
+"""The detection phase of a survey: every frame of every walk, its markers as point correspondences.
+
+``collect(sequences, camera, detector, ...)`` replays each sequence (anything
+``companion.capture.replay`` reads), detects markers in every frame and keeps
+each marker's inner-square corners and, for the circles path, its corner
+circles' centres: ``Sighting``\\s of marker-frame points against pixels.
+``keyframes`` then drops frames where the camera barely moved (the same
+markers at nearly the same pixels): such frames add the same view again,
+so they would cost time and make the uncertainty look smaller than it is.
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from tqdm import tqdm
+
+from companion.capture.replay import ReplaySource, open_recording
+from companion.capture.source import SourceError
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.markers.layout import MarkerLayout
+from companion.types import Detection
+
+GET_TIMEOUT_S = 1.0
+
+
+class SurveyError(ValueError):
+    """The survey cannot be made from this input; the message says what is wrong and what to do."""
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """One marker seen in one frame.
+
+    points_marker_m: (K, 3) its points in the marker frame (4 corners TL, TR, BR, BL, then circle centres).
+    points_px: (K, 2) where they are in the image.
+    """
+
+    marker_id: int
+    points_marker_m: np.ndarray
+    points_px: np.ndarray
+
+    @property
+    def corners_px(self) -> np.ndarray:
+        """(4, 2) the inner-square corners in the image."""
+        return self.points_px[:4]
+
+
+@dataclass(frozen=True)
+class SurveyFrame:
+    """A frame of a walk with the markers decoded in it (each marker at most once).
+
+    walk: index of the sequence it came from; index: its frame number there; t_ns: recorded time.
+    """
+
+    walk: int
+    index: int
+    t_ns: int
+    sightings: tuple[Sighting, ...]
+
+    @property
+    def marker_ids(self) -> tuple[int, ...]:
+        return tuple(s.marker_id for s in self.sightings)
+
+
+@dataclass(frozen=True)
+class Footage:
+    """Everything the detection phase found.
+
+    frames: every frame with at least one marker, in walk and time order.
+    frame_count: frames read (with or without markers).
+    skipped: frames that could not be read.
+    """
+
+    frames: tuple[SurveyFrame, ...]
+    frame_count: int
+    skipped: int
+
+    def frames_seen(self) -> dict[int, int]:
+        """Number of frames each marker id was decoded in."""
+        counts: dict[int, int] = {}
+        for frame in self.frames:
+            for marker_id in frame.marker_ids:
+                counts[marker_id] = counts.get(marker_id, 0) + 1
+        return counts
+
+
+def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callable[[int], float | None],
+            layout: MarkerLayout, fps: float | None = None, progress: bool = True) -> Footage:
+    """Detect markers in every frame of every sequence; raises SurveyError for unusable footage.
+
+    size_m: the inner-square side of a marker id (fixes its points in the marker frame); None leaves it out.
+    """
+    found: list[SurveyFrame] = []
+    frame_count = skipped = 0
+    for walk, sequence in enumerate(sequences):
+        try:
+            recording = open_recording(sequence, fps)
+        except SourceError as error:
+            raise SurveyError(str(error)) from None
+        recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
+        source = ReplaySource(recording, realtime=False)
+        source.start()
+        bar = tqdm(total=len(recording.frames), unit="frame", desc=f"detecting {Path(sequence).name}",
+                   disable=not progress, file=sys.stderr)
+        first = True
+        try:
+            while True:
+                frame = source.get(GET_TIMEOUT_S)
+                if frame is None:
+                    if source.finished:
+                        break
+                    continue
+                if first:
+                    check_frame_size(frame.image, camera, sequence)
+                    first = False
+                frame_count += 1
+                bar.update(1)
+                sightings = sightings_of(detector.detect(frame.image), size_m, layout)
+                if sightings:
+                    found.append(SurveyFrame(walk, int(frame.index), int(recorded_t_ns[frame.index]), sightings))
+        finally:
+            bar.close()
+            source.close()
+        if source.error is not None:
+            raise SurveyError(f"{sequence}: the replay failed: {source.error}")
+        skipped += source.counters.corrupt
+    return Footage(tuple(found), frame_count, skipped)
+
+
+def check_frame_size(image: np.ndarray, camera: CameraModel, sequence) -> None:
+    height, width = image.shape[:2]
+    if (width, height) != (camera.width, camera.height):
+        raise SurveyError(f"{sequence}: the frames are {width}x{height} but the camera file describes a "
+                          f"{camera.width}x{camera.height} camera; calibrate this camera at this resolution")
+
+
+def sightings_of(detections: list[Detection], size_m: Callable[[int], float | None],
+                 layout: MarkerLayout) -> tuple[Sighting, ...]:
+    """Each marker decoded once in the frame as points; a marker decoded twice is left out (it cannot be
+    both), and so is one whose size is None."""
+    ids = [d.id for d in detections]
+    circles_uv = np.asarray(layout.circles, dtype=float)[:, :2]
+    sightings = []
+    for detection in detections:
+        size = size_m(detection.id)
+        if ids.count(detection.id) > 1 or size is None:
+            continue
+        points_marker = [frames.marker_inner_corners_m(size)]
+        points_px = [np.asarray(detection.corners_px, dtype=float).reshape(4, 2)]
+        circle_ids = np.asarray(detection.circle_ids, dtype=int).reshape(-1)
+        if len(circle_ids):
+            valid = (circle_ids >= 0) & (circle_ids < len(circles_uv))
+            points_marker.append(frames.grid_to_marker_m(circles_uv[circle_ids[valid]], layout.inner_origin,
+                                                         layout.inner_cells, size))
+            points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid])
+        sightings.append(Sighting(detection.id, np.vstack(points_marker), np.vstack(points_px)))
+    return tuple(sightings)
+
+
+def keyframes(survey_frames, min_motion_px: float) -> list[SurveyFrame]:
+    """The frames that show something new: a different set of markers than the last kept frame of the
+    walk, or the shared markers' corners moved by at least ``min_motion_px`` (median) since then."""
+    kept: list[SurveyFrame] = []
+    last: SurveyFrame | None = None
+    for frame in survey_frames:
+        if last is None or last.walk != frame.walk or _moved_px(last, frame) >= min_motion_px:
+            kept.append(frame)
+            last = frame
+    return kept
+
+
+def _moved_px(a: SurveyFrame, b: SurveyFrame) -> float:
+    """Median corner displacement (px) of the markers both frames see; inf if they see different markers."""
+    if set(a.marker_ids) != set(b.marker_ids):
+        return np.inf
+    corners_a = {s.marker_id: s.corners_px for s in a.sightings}
+    shifts = [np.linalg.norm(s.corners_px - corners_a[s.marker_id], axis=1) for s in b.sightings]
+    return float(np.median(np.concatenate(shifts)))

@@ -1,0 +1,354 @@
+"""``survey(...)``: a facility map from walk-through footage and a few anchors.
+
+    detections (companion.survey.observations) -> keyframes -> marker groups and first poses
+    (companion.survey.graph) -> bundle adjustment (companion.survey.adjust), bad sightings out,
+    adjusted again -> a FacilityMap with each marker's uncertainty
+
+Anchors are markers whose poses were measured (the anchors file, or every
+marker of an existing map with ``extend``); they keep their poses and fix the
+map frame. With several anchors they are first held softly (to within their
+stated ``anchor_sd_m`` / ``anchor_sd_deg``) to test that they agree with each
+other; then they are held exactly. Markers seen in fewer than ``min_frames``
+frames are not mapped. Bad input raises ``SurveyError``, never a partial map.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import FacilityMap, MapMarker
+from companion.markers.layout import MarkerLayout
+from companion.survey import graph
+from companion.survey.adjust import Adjustment, BundleAdjustment, Priors
+from companion.survey.check import CheckParams, MarkerCheck, check_markers
+from companion.survey.observations import Footage, SurveyError, SurveyFrame, collect, keyframes
+
+GATE_PROBABILITY = 0.999   # a sighting whose errors fail this chi-square test at the fitted noise is left out
+
+
+@dataclass(frozen=True)
+class SurveyOptions:
+    """How to survey.
+
+    size_m: inner-square side of markers with no other stated size.
+    fps: frame rate of a video or image folder without timestamps.
+    min_motion_px: a frame is kept when its markers moved this much (median corner) since the last kept one.
+    min_frames: markers seen in fewer frames are not mapped.
+    sigma_px: expected detector noise of a point (x and y), the unit of the residuals.
+    max_iterations: of each bundle adjustment.
+    """
+
+    size_m: float | None = None
+    fps: float | None = None
+    min_motion_px: float = 3.0
+    min_frames: int = 3
+    sigma_px: float = 0.5
+    max_iterations: int = 60
+    progress: bool = False
+
+
+@dataclass(frozen=True)
+class SurveyedMarker:
+    """One marker of the result.
+
+    anchor: held at its given pose (no uncertainty then); frames: frames it was decoded in;
+    sd_position_m, sd_angle_deg: one standard deviation along the worst axis;
+    covariance: (6, 6) [position m, small rotation rad] on map axes (None for an anchor);
+    rms_px: RMS point reprojection error over its sightings.
+    """
+
+    marker: MapMarker
+    anchor: bool
+    frames: int
+    sd_position_m: float
+    sd_angle_deg: float
+    rms_px: float
+    covariance: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class AnchorAgreement:
+    """How far the images move an anchor from its stated pose when all anchors are held only softly."""
+
+    symbol: str
+    position_m: float
+    angle_deg: float
+    chi2: float
+
+
+@dataclass(frozen=True)
+class SurveyResult:
+    """The map and how it was made.
+
+    markers: every marker of ``facility_map`` with its statistics; dropped: symbol -> frames for markers
+    seen too rarely; anchors: agreement of several anchors (empty for one); moved: markers of an existing
+    map that disagreed with it (``extend``); camera_path_m: (N, 3) camera positions of the adjusted frames.
+    """
+
+    facility_map: FacilityMap
+    markers: list[SurveyedMarker]
+    dropped: dict[str, int]
+    anchors: list[AnchorAgreement]
+    moved: list[MarkerCheck]
+    camera_path_m: np.ndarray
+    frames_read: int
+    frames_skipped: int
+    frames_adjusted: int
+    sigma_px: float
+
+
+def survey(sequences: list[Path], camera: CameraModel, anchors: FacilityMap, options: SurveyOptions = SurveyOptions(),
+           extend: bool = False, detector=None) -> SurveyResult:
+    """Map every marker seen in the footage; ``anchors`` is the anchors file, or the existing map with ``extend``."""
+    layout = MarkerLayout(parity=anchors.parity, dictionary=anchors.dictionary)
+    if detector is None:
+        from companion.detect.detector import Detector, DetectorParams
+
+        detector = Detector(DetectorParams(parity=anchors.parity, dictionary=anchors.dictionary), camera=camera)
+    sizes = _Sizes(anchors, options.size_m, layout)
+    footage = collect(sequences, camera, detector, sizes, layout, options.fps, options.progress)
+    return survey_footage(footage, camera, anchors, options, extend, sizes)
+
+
+def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, options: SurveyOptions,
+                   extend: bool = False, sizes=None) -> SurveyResult:
+    """The survey from already detected footage (see ``survey``)."""
+    sizes = sizes or _Sizes(anchors, options.size_m, MarkerLayout(parity=anchors.parity, dictionary=anchors.dictionary))
+    symbols = sizes.symbols
+    counts = footage.frames_seen()
+    if not counts:
+        raise SurveyError(f"no markers in the footage ({footage.frame_count} frames read): check the dictionary "
+                          f"({anchors.dictionary}) and parity ({anchors.parity}) of {anchors.path}, the focus and the light")
+    if not set(counts) & set(anchors.markers):
+        raise SurveyError(f"no anchor of {anchors.path} ({_names(anchors.markers, symbols)}) is seen in the footage; "
+                          f"markers seen: {_names(counts, symbols)}")
+    dropped = {m: n for m, n in counts.items() if n < options.min_frames and m not in anchors.markers}
+    mapped_ids = set(counts) - set(dropped)
+    kept = [_without(f, set(dropped)) for f in keyframes(footage.frames, options.min_motion_px)]
+    shared = [f for f in kept if len(f.sightings) >= 2]
+    groups = _check_groups(shared, mapped_ids, anchors, symbols, footage)
+
+    moved: list[MarkerCheck] = []
+    fixed = {m: marker.T_map_marker for m, marker in anchors.markers.items() if m in mapped_ids}
+    if extend:
+        moved = [c for c in check_markers(shared, anchors, camera, counts, CheckParams(sigma_px=options.sigma_px))
+                 if c.verdict == "moved"]
+        for check in moved:
+            del fixed[check.marker_id]
+    agreement: list[AnchorAgreement] = []
+    if len(fixed) >= 2 and not extend:
+        agreement = _anchor_agreement(shared, camera, fixed, groups, counts, anchors, symbols, options)
+    initial = graph.initial_poses(shared, fixed, camera)
+    for check in moved:  # start from where the check found it
+        initial[check.marker_id] = check.T_map_marker
+    posed_frames, cameras = _posed(shared, initial, camera)
+    free_ids = sorted(m for m in initial if m not in fixed)
+    priors = _priors(free_ids, anchors, symbols)
+    adjustment, posed_frames = _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options)
+    markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall)
+    facility_map = replace(anchors, path="", markers={s.marker.id: s.marker for s in markers})
+    if extend:  # the existing map's markers not seen this time stay as they were
+        facility_map = replace(facility_map, markers={**anchors.markers, **facility_map.markers})
+        markers += [SurveyedMarker(m, True, 0, 0.0, 0.0, math.nan, None) for i, m in anchors.markers.items()
+                    if i not in initial]
+    camera_path = np.array([frames.invert_transform(T)[:3, 3] for T in adjustment.cameras])
+    return SurveyResult(facility_map, sorted(markers, key=lambda s: s.marker.id),
+                        {symbols[m]: n for m, n in sorted(dropped.items())}, agreement, moved, camera_path,
+                        footage.frame_count, footage.skipped, len(posed_frames), adjustment.sigma_px)
+
+
+# ------------------------------------------------------------------ sizes
+
+class _Sizes:
+    """The inner-square side of every marker id: the map's entry, the survey section's sizes_m,
+    --size-m, the map's default_size_m, in that order; symbols by id."""
+
+    def __init__(self, anchors: FacilityMap, size_m: float | None, layout: MarkerLayout):
+        self.anchors, self.size_m = anchors, size_m
+        self.symbols = list(layout.dictionary.symbols)
+
+    def __call__(self, marker_id: int) -> float:
+        if marker_id in self.anchors.markers:
+            return self.anchors.markers[marker_id].size_m
+        symbol = self.symbols[marker_id]
+        size = self.anchors.survey.sizes_m.get(symbol, self.size_m or self.anchors.default_size_m)
+        if size is None:
+            raise SurveyError(f"marker {symbol} is seen but its size is unknown: give --size-m, default_size_m or "
+                              f"survey.sizes_m in {self.anchors.path}")
+        return size
+
+
+# ------------------------------------------------------------------ steps
+
+def _names(ids, symbols) -> str:
+    return ", ".join(symbols[m] for m in sorted(ids))
+
+
+def _without(frame: SurveyFrame, ids: set[int]) -> SurveyFrame:
+    return SurveyFrame(frame.walk, frame.index, frame.t_ns, tuple(s for s in frame.sightings if s.marker_id not in ids))
+
+
+def _check_groups(shared, mapped_ids: set[int], anchors: FacilityMap, symbols, footage: Footage) -> list[set[int]]:
+    """The groups of markers seen together; each must hold an anchor, else SurveyError names the groups and the
+    markers that need a shared view (those seen closest in time across the gap)."""
+    groups = graph.marker_groups(shared, mapped_ids)
+    anchored = [g for g in groups if g & set(anchors.markers)]
+    loose = [g for g in groups if not g & set(anchors.markers)]
+    if not loose:
+        return groups
+    text = "; ".join("{" + _names(g, symbols) + "}" for g in groups)
+    hints = [_bridge(footage, set().union(*anchored), g, symbols) for g in loose]
+    raise SurveyError(f"the markers fall into {len(groups)} groups never seen together: {text}. No anchor is in "
+                      f"{', '.join('{' + _names(g, symbols) + '}' for g in loose)}: walk so that these markers share a "
+                      f"view with the anchored ones, e.g. {'; '.join(hints)}")
+
+
+def _bridge(footage: Footage, anchored: set[int], group: set[int], symbols) -> str:
+    """The anchored marker and the group's marker seen closest in time in one walk, as advice."""
+    best = None
+    last_seen: dict[int, tuple[int, int]] = {}  # walk -> (t_ns, marker) of the latest anchored sighting
+    last_group: dict[int, tuple[int, int]] = {}
+    for frame in footage.frames:
+        for m in frame.marker_ids:
+            mine, other = (last_seen, last_group) if m in anchored else (last_group, last_seen) if m in group else (None, None)
+            if mine is None:
+                continue
+            mine[frame.walk] = (frame.t_ns, m)
+            if frame.walk in other:
+                gap = frame.t_ns - other[frame.walk][0]
+                pair = (m, other[frame.walk][1])
+                if best is None or gap < best[0]:
+                    best = (gap, pair)
+    if best is None:
+        return f"{symbols[min(group)]} together with an anchored marker"
+    a, b = best[1]
+    return f"{symbols[a]} and {symbols[b]} (seen {best[0] / 1e9:.1f} s apart)"
+
+
+def _posed(shared, known: dict[int, np.ndarray], camera: CameraModel) -> tuple[list[SurveyFrame], np.ndarray]:
+    """The frames whose camera pose two or more known markers agree on, with only those markers, and the poses."""
+    ippe = graph.IppeCache(camera)
+    posed, cameras = [], []
+    for frame in shared:
+        found = graph.frame_pose(frame, known, camera, ippe)
+        if found is None:
+            continue
+        T_camera_map, agreeing = found
+        posed.append(SurveyFrame(frame.walk, frame.index, frame.t_ns,
+                                 tuple(s for s in frame.sightings if s.marker_id in agreeing)))
+        cameras.append(T_camera_map)
+    if not posed:
+        raise SurveyError("no frame shows two markers whose poses agree: walk so that two or more markers are in view")
+    return posed, np.array(cameras)
+
+
+def _priors(free_ids, anchors: FacilityMap, symbols) -> Priors:
+    on_wall = frozenset(m for m in free_ids if anchors.survey.on_wall(symbols[m]))
+    return Priors(on_wall=on_wall, wall_sd_rad=math.radians(anchors.survey.wall_sd_deg))
+
+
+def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, counts, anchors: FacilityMap, symbols,
+                      options: SurveyOptions) -> list[AnchorAgreement]:
+    """How far the images move each anchor when all are held softly (to within their stated uncertainty);
+    SurveyError when they disagree beyond it (a chi-square test over all of them).
+
+    The map is first grown from one anchor per group (the most seen), so that the images, not the other
+    anchors, place each anchor to begin with: a badly measured anchor then pulls against the images.
+    """
+    references = {}
+    for group in groups:
+        in_group = [m for m in fixed if m in group]
+        if in_group:
+            best = max(in_group, key=lambda m: counts.get(m, 0))
+            references[best] = fixed[best]
+    start = graph.initial_poses(shared, references, camera)
+    posed_frames, cameras = _posed(shared, start, camera)
+    hints = anchors.survey
+    free_ids = sorted(start)
+    soft = replace(_priors(free_ids, anchors, symbols), soft_anchors=dict(fixed), anchor_sd_m=hints.anchor_sd_m,
+                   anchor_sd_rad=math.radians(hints.anchor_sd_deg))
+    problem = BundleAdjustment(posed_frames, camera, start, cameras, free_ids, soft, options.sigma_px)
+    adjustment = problem.solve(options.max_iterations, options.progress, "checking the anchors")
+    agreement = []
+    for m, T_stated in sorted(fixed.items()):
+        T = adjustment.markers[m]
+        position_m = float(np.linalg.norm(T[:3, 3] - T_stated[:3, 3]))
+        angle_rad = frames.rotation_angle_rad(T[:3, :3], T_stated[:3, :3])
+        chi2_value = (position_m / hints.anchor_sd_m) ** 2 + (angle_rad / math.radians(hints.anchor_sd_deg)) ** 2
+        agreement.append(AnchorAgreement(symbols[m], position_m, math.degrees(angle_rad), chi2_value))
+    total = sum(a.chi2 for a in agreement)
+    limit = float(chi2.ppf(GATE_PROBABILITY, 6 * (len(fixed) - len(references))))
+    if total > limit:
+        worst = max(agreement, key=lambda a: a.chi2)
+        detail = ", ".join(f"{a.symbol} {a.position_m * 1000:.0f} mm {a.angle_deg:.1f} deg" for a in agreement)
+        raise SurveyError(f"the anchors of {anchors.path} disagree beyond their stated uncertainty "
+                          f"({hints.anchor_sd_m * 1000:g} mm, {hints.anchor_sd_deg:g} deg): the images move them by "
+                          f"{detail}; measure {worst.symbol} again (or state a larger survey.anchor_sd_m/anchor_sd_deg)")
+    return agreement
+
+
+def _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options: SurveyOptions):
+    """Adjust, leave out the sightings whose errors the fitted noise cannot explain, adjust again."""
+    problem = BundleAdjustment(posed_frames, camera, initial, cameras, free_ids, priors, options.sigma_px)
+    adjustment = problem.solve(options.max_iterations, options.progress, "adjusting")
+    sigma_px = max(adjustment.sigma_px, 0.05)
+    bad = set()
+    for (k, m), rms_px, count in zip(adjustment.sightings, adjustment.sighting_rms_px, np.diff(problem.sighting_starts)):
+        dof = 2 * int(count)
+        if rms_px ** 2 * count / sigma_px ** 2 > chi2.ppf(GATE_PROBABILITY, dof):
+            bad.add((k, m))
+    if not bad:
+        return adjustment, posed_frames
+    frames_left, cameras_left = [], []
+    for k, frame in enumerate(posed_frames):
+        sightings = tuple(s for s in frame.sightings if (k, s.marker_id) not in bad)
+        if len(sightings) >= 2:
+            frames_left.append(SurveyFrame(frame.walk, frame.index, frame.t_ns, sightings))
+            cameras_left.append(adjustment.cameras[k])
+    markers_left = {m for f in frames_left for m in f.marker_ids}
+    start = {m: T for m, T in adjustment.markers.items() if m in markers_left}
+    problem = BundleAdjustment(frames_left, camera, start, np.array(cameras_left),
+                               [m for m in free_ids if m in markers_left], priors, options.sigma_px)
+    return problem.solve(options.max_iterations, options.progress, "adjusting again"), frames_left
+
+
+def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: FacilityMap, counts, sizes,
+                    on_wall: frozenset[int]) -> list[SurveyedMarker]:
+    rms = _marker_rms(adjustment)
+    result = []
+    for m, T in adjustment.markers.items():
+        symbol = sizes.symbols[m]
+        if m in fixed:
+            marker = anchors.markers[m]
+            result.append(SurveyedMarker(marker, True, counts.get(m, 0), 0.0, 0.0, rms.get(m, math.nan), None))
+            continue
+        covariance = adjustment.covariance[m]
+        if m in on_wall:
+            T = _upright(T)
+        sd_position_m = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0))
+        sd_angle_deg = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), 0.0)))
+        note = f"surveyed: sd {sd_position_m * 1000:.1f} mm, {sd_angle_deg:.2f} deg, {counts.get(m, 0)} frames"
+        marker = MapMarker(symbol, m, sizes(m), T, note)
+        result.append(SurveyedMarker(marker, False, counts.get(m, 0), sd_position_m, sd_angle_deg, rms.get(m, math.nan),
+                                     covariance))
+    return result
+
+
+def _marker_rms(adjustment: Adjustment) -> dict[int, float]:
+    sums: dict[int, list[float]] = {}
+    for (_, m), rms in zip(adjustment.sightings, adjustment.sighting_rms_px):
+        sums.setdefault(m, []).append(rms ** 2)
+    return {m: math.sqrt(float(np.mean(v))) for m, v in sums.items()}
+
+
+def _upright(T_map_marker: np.ndarray) -> np.ndarray:
+    """The pose with its y axis exactly vertical (a wall marker's), facing the same heading."""
+    z_axis = T_map_marker[:3, 2]
+    heading_deg = math.degrees(math.atan2(z_axis[1], z_axis[0]))
+    return frames.make_transform(frames.R_map_marker_on_wall(heading_deg), T_map_marker[:3, 3])

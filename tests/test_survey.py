@@ -1,0 +1,307 @@
+"""companion survey, companion map check and the map writer, on walks rendered by the simulator:
+the renderer's map is the ground truth the surveyed poses are held to."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import MapError, load_map, map_from_dict, write_map
+from companion.sim import simulate, trajectory
+
+REPO = Path(__file__).resolve().parent.parent
+MAP = REPO / "maps" / "warehouse.yaml"
+CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0, "mount": {"facing": "forward", "tilt_down_deg": 10.0}}
+NORTH_WALL = ("M", "UP", "O", "N", "DOWN", "HOME", "X")   # 0.20 m markers on the wall y = 10.5
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True, cwd=REPO,
+                          timeout=300)
+
+
+def render(out: Path, points, fps: float = 6.0, camera: dict = CAMERA, speed_m_s: float = 0.6, seed: int = 5) -> Path:
+    """A walk (x, y, z, heading) through the example warehouse, written as a sequence folder."""
+    facility_map = load_map(MAP)
+    model = CameraModel.from_config(camera, "test camera")
+    sim = simulate.Simulator(simulate.build_world(facility_map), model,
+                             trajectory.smooth_path(points, speed_m_s=speed_m_s), seed=seed)
+    simulate.write_sequence(out, sim, fps, str(MAP), progress=False)
+    (out / "camera.yaml").write_text(yaml.safe_dump({"camera": model.to_config()}))
+    return out
+
+
+def anchors_file(path: Path, symbols, **extra) -> Path:
+    """An anchors file: the true map's frame and the true poses of ``symbols``."""
+    truth = yaml.safe_load(MAP.read_text())
+    truth["markers"] = [m for m in truth["markers"] if str(m["symbol"]) in symbols]
+    truth["default_size_m"] = 0.20
+    truth.update(extra)
+    path.write_text(yaml.safe_dump(truth))
+    return path
+
+
+@pytest.fixture(scope="module")
+def north_walk(tmp_path_factory) -> Path:
+    """13 s along aisle 2 facing the north wall (2.5 m away): 79 frames, 2-4 of its markers in each."""
+    return render(tmp_path_factory.mktemp("walk") / "north",
+                  [(5.0, 8.0, 1.4, 80.0), (8.5, 7.9, 1.4, 95.0), (12.0, 8.0, 1.4, 80.0)])
+
+
+def pose_errors(T, T_true) -> tuple[float, float]:
+    return (float(np.linalg.norm(T[:3, 3] - T_true[:3, 3])),
+            math.degrees(frames.rotation_angle_rad(T[:3, :3], T_true[:3, :3])))
+
+
+# ------------------------------------------------------------------ writer
+
+def test_written_map_reads_back_to_the_same_poses_sizes_and_notes(tmp_path):
+    original = load_map(MAP)
+    write_map(original, tmp_path / "copy.yaml", header="a copy\nof the example")
+    text = (tmp_path / "copy.yaml").read_text()
+    assert text.startswith("# a copy\n# of the example\n")
+    copy = load_map(tmp_path / "copy.yaml")
+    assert copy.frame == original.frame and copy.parity == original.parity and copy.name == original.name
+    assert set(copy.markers) == set(original.markers)
+    for marker_id, marker in original.markers.items():
+        again = copy.markers[marker_id]
+        assert (again.symbol, again.size_m, again.note) == (marker.symbol, marker.size_m, marker.note)
+        assert np.allclose(again.T_map_marker, marker.T_map_marker, atol=1e-6)
+    entries = {str(m["symbol"]): m for m in yaml.safe_load(text)["markers"]}
+    assert entries["A"]["facing"] == 90.0            # upright wall markers by their heading
+    assert "rpy_deg" in entries["3"] and "rpy_deg" in entries["4"]   # the tilted signs by their angles
+
+
+def test_floor_ceiling_and_tilted_markers_and_the_survey_section_round_trip(tmp_path):
+    document = {
+        "frame": {"origin": "corner", "x_bearing_deg": 10.0},
+        "default_size_m": 0.15,
+        "markers": [
+            {"symbol": "HOME", "position_m": [1.5, 9.0, 0.0], "facing": "up", "rotation_deg": 90.0},
+            {"symbol": "UP", "position_m": [10.0, 5.0, 4.0], "facing": "down", "rotation_deg": -30.0, "size_m": 0.2},
+            {"symbol": "A", "position_m": [2.0, 1.0, 1.0], "rpy_deg": [100.0, 3.0, 20.0]},
+            {"symbol": "B", "position_m": [2.0, 3.0, 1.0], "facing": 33.3, "note": "pillar"},
+        ],
+        "survey": {"on_vertical_wall": ["B", "c"], "sizes_m": {"W": 0.2}, "anchor_sd_m": 0.005},
+    }
+    original = map_from_dict(document, "hand.yaml")
+    write_map(original, tmp_path / "hand.yaml")
+    copy = load_map(tmp_path / "hand.yaml")
+    for marker_id, marker in original.markers.items():
+        assert np.allclose(copy.markers[marker_id].T_map_marker, marker.T_map_marker, atol=1e-6)
+    written = {str(m["symbol"]): m for m in yaml.safe_load((tmp_path / "hand.yaml").read_text())["markers"]}
+    assert written["HOME"]["facing"] == "up" and written["HOME"]["rotation_deg"] == pytest.approx(90.0)
+    assert written["UP"]["facing"] == "down" and written["UP"]["rotation_deg"] == pytest.approx(-30.0)
+    assert written["B"]["facing"] == pytest.approx(33.3)
+    assert copy.survey.on_vertical_wall == frozenset({"B", "C"})
+    assert copy.survey.sizes_m == {"W": 0.2} and copy.survey.anchor_sd_m == 0.005 and copy.survey == original.survey
+
+
+@pytest.mark.parametrize("survey, place, words", [
+    ({"on_vertical_wall": ["A", "QQ"]}, "survey: key 'on_vertical_wall'", "unknown symbol 'QQ'"),
+    ({"on_vertical_wall": "most"}, "survey: key 'on_vertical_wall'", "must be 'all' or a list"),
+    ({"sizes_m": {"A": -1}}, "survey.sizes_m: key 'A'", "must be positive"),
+    ({"wall_deg": 1}, "survey: key 'wall_deg'", "unknown key"),
+])
+def test_survey_section_errors_name_the_file_and_key(survey, place, words):
+    document = {"frame": {"origin": "o", "x_bearing_deg": 0.0}, "survey": survey,
+                "markers": [{"symbol": "A", "size_m": 0.2, "position_m": [0, 0, 1], "facing": "+x"}]}
+    with pytest.raises(MapError) as raised:
+        map_from_dict(document, "site.yaml")
+    assert str(raised.value).startswith(f"site.yaml: {place}: ") and words in str(raised.value)
+
+
+# ------------------------------------------------------------------ survey
+
+def test_survey_maps_the_wall_from_one_anchor_close_to_the_rendered_truth(tmp_path, north_walk):
+    anchors = anchors_file(tmp_path / "anchors.yaml", {"O"})
+    out, report = tmp_path / "site.yaml", tmp_path / "report"
+    result = run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"), "--anchors", str(anchors),
+                 "--out", str(out), "--report", str(report))
+    assert result.returncode == 0, result.stderr
+    truth, surveyed = load_map(MAP), load_map(out)
+    assert {m.symbol for m in surveyed.markers.values()} == set(NORTH_WALL)
+    errors = [pose_errors(m.T_map_marker, truth.markers[i].T_map_marker) for i, m in surveyed.markers.items()]
+    position_m, angle_deg = np.array(errors).T
+    assert np.median(position_m) < 0.005 and position_m.max() < 0.02, position_m
+    assert np.median(angle_deg) < 0.3 and angle_deg.max() < 1.0, angle_deg
+    assert surveyed.marker_by_symbol("O").T_map_marker.tolist() == truth.marker_by_symbol("O").T_map_marker.tolist()
+    # the report: every marker with its numbers, the plot
+    numbers = json.loads((report / "survey.json").read_text())
+    by_symbol = {m["symbol"]: m for m in numbers["markers"]}
+    assert set(by_symbol) == set(NORTH_WALL) and by_symbol["O"]["anchor"]
+    for symbol in set(NORTH_WALL) - {"O"}:
+        entry = by_symbol[symbol]
+        assert 0 < entry["sd_position_m"] < 0.01 and 0 < entry["sd_angle_deg"] < 0.5 and entry["frames"] >= 3
+        assert f"{entry['frames']} frames" in surveyed.marker_by_symbol(symbol).note
+    image = cv2.imread(str(report / "survey.png"))
+    assert image is not None and image.shape[0] > 400
+    assert "frames read" in result.stdout
+
+
+def test_wall_prior_writes_upright_markers_with_facing(tmp_path, north_walk):
+    anchors = anchors_file(tmp_path / "anchors.yaml", {"O"}, survey={"on_vertical_wall": "all"})
+    out = tmp_path / "site.yaml"
+    assert run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"), "--anchors", str(anchors),
+               "--out", str(out)).returncode == 0
+    entries = {str(m["symbol"]): m for m in yaml.safe_load(out.read_text())["markers"]}
+    truth = load_map(MAP)
+    for symbol in NORTH_WALL:
+        assert entries[symbol]["facing"] == pytest.approx(-90.0, abs=0.5)
+        T = load_map(out).marker_by_symbol(symbol).T_map_marker
+        assert pose_errors(T, truth.marker_by_symbol(symbol).T_map_marker)[1] < 0.5
+
+
+def test_several_anchors_that_disagree_stop_the_survey_naming_the_bad_one(tmp_path, north_walk):
+    anchors = yaml.safe_load(anchors_file(tmp_path / "a.yaml", {"O", "UP", "DOWN"}).read_text())
+    for marker in anchors["markers"]:
+        if marker["symbol"] == "DOWN":
+            marker["position_m"][0] += 0.08   # a tape error of 8 cm
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(anchors))
+    out = tmp_path / "site.yaml"
+    result = run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"),
+                 "--anchors", str(tmp_path / "bad.yaml"), "--out", str(out))
+    assert result.returncode == 2 and not out.exists()
+    assert "anchors" in result.stderr and "disagree" in result.stderr and "measure DOWN again" in result.stderr
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    good = run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"),
+               "--anchors", str(tmp_path / "a.yaml"), "--out", str(out))
+    assert good.returncode == 0 and "anchor DOWN: the images move it by" in good.stderr
+
+
+def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):
+    out = tmp_path / "site.yaml"
+    camera = str(north_walk / "camera.yaml")
+
+    def fails(*args, words):
+        result = run("survey", *args, "--out", str(out))
+        assert result.returncode == 2, result.stderr
+        assert words in result.stderr and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+        assert not out.exists()
+
+    blank = tmp_path / "blank"
+    blank.mkdir()
+    for k in range(4):
+        cv2.imwrite(str(blank / f"{k:03d}.png"), np.full((480, 640), 128, np.uint8))
+    fails(str(blank), "--fps", "5", "--camera", camera, "--anchors", str(anchors_file(tmp_path / "o.yaml", {"O"})),
+          words="no markers in the footage (4 frames read)")
+    fails(str(north_walk), "--camera", camera, "--anchors", str(anchors_file(tmp_path / "w.yaml", {"W"})),
+          words="no anchor of")
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text(anchors_file(tmp_path / "u.yaml", {"O"}).read_text().replace("symbol: O", "symbol: QQ"))
+    fails(str(north_walk), "--camera", camera, "--anchors", str(unknown), words="unknown symbol 'QQ'")
+    wide = tmp_path / "wide.yaml"
+    wide.write_text(yaml.safe_dump({"camera": {**CAMERA, "width": 1280, "height": 720}}))
+    fails(str(north_walk), "--camera", str(wide), "--anchors", str(anchors_file(tmp_path / "o.yaml", {"O"})),
+          words="the frames are 640x480 but the camera file describes a 1280x720 camera")
+    fails(str(tmp_path / "nowhere"), "--camera", camera, "--anchors", str(tmp_path / "o.yaml"), words="no such file")
+    fails(str(north_walk), "--camera", camera, "--anchors", str(tmp_path / "o.yaml"), "--size-m", "-1",
+          words="--size-m must be a positive number")
+
+
+def test_markers_never_seen_together_are_named_with_the_markers_that_need_a_shared_view(tmp_path, north_walk):
+    # a second walk in aisle 0, facing rack R1's south face: no view links it to the north wall
+    aisle0 = render(tmp_path / "aisle0", [(5.0, 1.0, 1.3, 90.0), (8.0, 1.0, 1.3, 90.0)], seed=6)
+    anchors = anchors_file(tmp_path / "o.yaml", {"O"}, survey={"sizes_m": {s: 0.18 for s in "PQRYZ"}})
+    out = tmp_path / "site.yaml"
+    result = run("survey", str(north_walk), str(aisle0), "--camera", str(north_walk / "camera.yaml"),
+                 "--anchors", str(anchors), "--out", str(out))
+    assert result.returncode == 2 and not out.exists()
+    assert "groups never seen together" in result.stderr and "{M, N, O, X, UP, DOWN, HOME}" in result.stderr
+    assert "No anchor is in {" in result.stderr and "share a view" in result.stderr
+
+
+# ------------------------------------------------------------------ map check
+
+def moved_map(tmp_path: Path, symbol: str, dx_m: float = 0.0, turn_deg: float = 0.0) -> Path:
+    document = yaml.safe_load(MAP.read_text())
+    for marker in document["markers"]:
+        if str(marker["symbol"]) == symbol:
+            marker["position_m"][0] += dx_m
+            marker["facing"] = marker["facing"] if not turn_deg else -90.0 + turn_deg
+    path = tmp_path / f"moved_{symbol}.yaml"
+    path.write_text(yaml.safe_dump(document))
+    return path
+
+
+def check(walk: Path, map_path: Path) -> tuple[int, dict, str]:
+    result = run("map", "check", str(walk), "--map", str(map_path), "--camera", str(walk / "camera.yaml"), "--json")
+    lines = [json.loads(line) for line in result.stdout.splitlines()]
+    return result.returncode, {line["symbol"]: line for line in lines}, result.stderr
+
+
+def test_map_check_finds_no_moved_marker_on_the_true_map(north_walk):
+    code, lines, stderr = check(north_walk, MAP)
+    assert code == 0, stderr
+    assert len(lines) == 49 and all(set(line) == {"symbol", "frames", "position_error_m", "angle_error_deg", "verdict"}
+                                    for line in lines.values())
+    assert {s for s, line in lines.items() if line["verdict"] == "ok"} == set(NORTH_WALL)
+    assert all(line["verdict"] == "unseen" and line["position_error_m"] is None
+               for s, line in lines.items() if s not in NORTH_WALL)
+
+
+@pytest.mark.parametrize("dx_m, turn_deg", [(0.06, 0.0), (0.0, 4.0)])
+def test_map_check_flags_a_marker_moved_or_turned(tmp_path, north_walk, dx_m, turn_deg):
+    code, lines, stderr = check(north_walk, moved_map(tmp_path, "N", dx_m, turn_deg))
+    assert code == 1 and "moved: N" in stderr
+    assert lines["N"]["verdict"] == "moved"
+    assert lines["N"]["position_error_m"] == pytest.approx(dx_m, abs=0.01)
+    assert lines["N"]["angle_error_deg"] == pytest.approx(turn_deg, abs=0.5)
+    assert all(lines[s]["verdict"] == "ok" for s in NORTH_WALL if s != "N")
+
+
+def test_survey_extends_an_existing_map_and_resurveys_a_moved_marker(tmp_path, north_walk):
+    document = yaml.safe_load(moved_map(tmp_path, "DOWN", dx_m=0.07).read_text())
+    document["markers"] = [m for m in document["markers"] if m["symbol"] != "HOME"]   # not yet mapped
+    (tmp_path / "old.yaml").write_text(yaml.safe_dump(document))
+    out = tmp_path / "new.yaml"
+    # the map's default size is the racks' 0.18 m: the new wall marker's size is given
+    result = run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"), "--map",
+                 str(tmp_path / "old.yaml"), "--out", str(out), "--size-m", "0.2")
+    assert result.returncode == 0, result.stderr
+    assert "marker DOWN disagrees with the map by 7" in result.stderr
+    truth, new = load_map(MAP), load_map(out)
+    assert len(new.markers) == 49                      # the old map's 48 and HOME
+    for symbol in ("HOME", "DOWN"):
+        position_m, angle_deg = pose_errors(new.marker_by_symbol(symbol).T_map_marker,
+                                            truth.marker_by_symbol(symbol).T_map_marker)
+        assert position_m < 0.01 and angle_deg < 0.5
+    assert new.marker_by_symbol("A").T_map_marker.tolist() == truth.marker_by_symbol("A").T_map_marker.tolist()
+
+
+# ------------------------------------------------------------------ daemon watch
+
+def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
+    """The pose stage's decisions as it reports them (PoseSolution): O left out in most frames, N once."""
+    import logging
+
+    from companion.daemon.map_watch import MapWatch, MapWatchParams
+    from companion.daemon.pipeline import FrameRecord
+    from companion.geometry.pose import PoseSolution
+
+    facility_map = load_map(MAP)
+    ids = {symbol: facility_map.marker_by_symbol(symbol).id for symbol in ("UP", "O", "N")}
+    watch = MapWatch(facility_map, link=None, params=MapWatchParams(window=30, min_rejected=20))
+
+    def frame(index: int, rejected: tuple[str, ...]):
+        used = tuple(ids[s] for s in ids if s not in rejected)
+        solution = PoseSolution(None, "ok", marker_ids=used, rejected_ids=tuple(ids[s] for s in rejected))
+        watch(None, FrameRecord(index, index, (0, 0, 0, 0), None, (), solution, None))
+
+    with caplog.at_level(logging.WARNING, logger="companion"):
+        for index in range(40):
+            frame(index, ("N",) if index == 3 else ("O",) if index % 3 else ())
+            if index == 28:   # 19 of O's 29 frames so far: not yet
+                assert watch.reported == []
+    messages = [r.getMessage() for r in caplog.records if "disagrees with the map" in r.getMessage()]
+    assert [facility_map.markers[m].symbol for m in watch.reported] == ["O"]
+    assert len(messages) == 1 and messages[0].startswith("marker O disagrees with the map")
