@@ -6,18 +6,21 @@ along the two grid edges, with half its radius. A marker whose black border
 is hidden (a strip over one side, a corner patch) still shows at least two
 corners, so at least six circles, which fix the grid homography.
 
-1. ``find_blobs``: one local-mean threshold inside OpenCV, a table of the
-   dark blobs (outer contours reduced with vectorised numpy, or OpenCV's
-   connected components on speckled frames), vectorised filters on it (area,
-   aspect, fill) and a ring of 8 samples around each blob (a circle is a
-   dark, compact spot on white paper: the ring is bright all round, and the
-   spot is much darker than the ring). No per-blob Python loop.
+1. ``find_frame_blobs``: at a pyramid level (``blob_level``: half
+   resolution by default, ``reduce``), one local-mean threshold inside
+   OpenCV, a table of the dark blobs (outer contours reduced with vectorised
+   numpy, or OpenCV's connected components on speckled frames) with their
+   moment ellipses, vectorised filters on it (area, elongation, fill of the
+   ellipse) and a ring of 8 samples on the ellipse around each blob (a circle
+   is a dark, compact spot on white paper: the ring is bright all round, and
+   the spot is much darker than the ring). No per-blob Python loop.
 2. ``corner_triples``: (large, small, small) blobs at the layout's relative
    positions and size ratio, oriented by the handedness of the printed face.
 3. ``assemble_candidates``: from each triple (called corner 0; the decoder
    resolves the true rotation), the other corners' circles are predicted and
    matched blob by blob, so a corner that lost a small circle still counts.
-4. The detector then fits the homography to the circle centres, refines it
+4. The detector then reads each candidate's circle centres again in the
+   frame (``refine_centres``), fits the homography to them, refines it
    on the inner square's visible edges (``edges``), and samples and
    decodes the grid with erasures where the image shows no marker
    (``missing_corner_cells``, ``sampling.erase_near_bad_fixed_cells``).
@@ -57,8 +60,9 @@ class CircleParams:
     Blobs (looked for at a pyramid level, see ``blob_level``; sizes are in frame pixels):
     min_side_px: the smallest marker (inner-square side, pixels) the
         path looks for: circles are searched at the coarsest pyramid level at
-        which it keeps ``min_level_side_px`` (40 and 20: half resolution, a
-        quarter of the pixels; a 40 px marker's small circles there are 2 px across).
+        which it keeps ``min_level_side_px`` (20 and 20: full resolution; 40
+        would search at half resolution, a quarter of the pixels, where the
+        small circles of 40-50 px markers start to merge with the large ones).
     threshold_block_px, threshold_offset_gray, threshold_ratio: a pixel is
         dark when below both mean - offset and mean x ratio over the window.
     pre_blur: 3 x 3 box blur before thresholding (fewer noise specks, but
@@ -102,7 +106,7 @@ class CircleParams:
 
     Candidates (corners grown from a triple; see ``assemble_candidates``):
     min_circles: circles a candidate needs (on at least ``min_corners`` corners).
-    min_corners: corners with at least one circle a candidate needs.
+    min_corners: corners with at least two circles a candidate needs.
     first_triple_window_cells, triple_window_cells: a whole triple joins if its
         circles lie on average within this of their predictions (the first
         while only the anchor corner is known, then the second).
@@ -122,7 +126,7 @@ class CircleParams:
     """
 
     run: str = "always"
-    min_side_px: float = 40.0
+    min_side_px: float = 20.0
     min_level_side_px: float = 20.0
     threshold_block_px: int = 31
     threshold_offset_gray: float = 7.0
@@ -276,7 +280,6 @@ def to_frame_px(level_px: np.ndarray, scale: int) -> np.ndarray:
     """(..., 2) positions in a ``reduce``d image -> frame pixels (level pixel i averages frame pixels
     scale i .. scale i + scale - 1)."""
     return level_px * scale + (scale - 1) / 2
-
 
 
 def dark_pixels(gray: np.ndarray, params: CircleParams, scale: int = 1) -> np.ndarray:
@@ -514,7 +517,7 @@ class CircleCandidate:
     circle_ids: (K,) layout circle indices (corner 3c + slot, with the anchor
         triple called corner 0: the true rotation is left to the decoder).
     circles_px: (K, 2) matched blob centres; blob_index: (K,) their blob indices.
-    corners: sorted layout corners with at least one matched circle.
+    corners: sorted layout corners with at least two matched circles.
     """
 
     circle_ids: np.ndarray
@@ -523,7 +526,10 @@ class CircleCandidate:
 
     @property
     def corners(self) -> np.ndarray:
-        return np.unique(self.circle_ids // 3)
+        """Sorted layout corners with at least two of their circles matched (a lone circle may be the
+        part of one that shows past an occluder's edge: its corner is taken as hidden)."""
+        corners, counts = np.unique(self.circle_ids // 3, return_counts=True)
+        return corners[counts >= 2]
 
 
 def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
@@ -531,23 +537,26 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
     """Grow marker candidates from corner triples by predicting the other corners.
 
     Each triple, taken as corner 0, fixes an affine grid -> image map. The
-    other corners are visited nearest first (the two neighbours, then the
-    diagonal) and each is taken from, in order of preference:
+    other corners are visited nearest first (the neighbour that matches
+    more circles, the other neighbour, then the diagonal) and each is taken
+    from, in order of preference:
 
     1. a whole triple whose three circles lie, on average, within
        ``first_triple_window_cells`` of their predictions while only the
        anchor is known (one corner extrapolates poorly under perspective),
        ``triple_window_cells`` after that;
     2. the blob nearest the predicted large circle within
-       ``large_window_cells``, then each small circle's nearest blob within
+       ``first_large_window_cells`` (while only the anchor is known) or
+       ``large_window_cells`` (its whole triple if it is the large circle of
+       one), then each small circle's nearest blob within
        ``small_window_cells`` (a corner that lost a small circle still counts).
 
     Sizes must fit the map (a blob's radius within ``min_radius_ratio`` to
     ``max_radius_ratio`` x the circle's). Every match refines the map (a
     homography from ``min_circles_for_homography`` circles on, which must fit
     within ``max_fit_error_cells``). A candidate needs ``min_circles`` circles
-    on at least ``min_corners`` corners. The blobs of a candidate with three or
-    four corners take part in no other; a two-corner candidate may be a wrong
+    on at least ``min_corners`` corners (of two circles or more). The blobs of a
+    candidate with three or four such corners take part in no other; a two-corner candidate may be a wrong
     pairing, so its blobs stay free (the decoder settles it; identical
     candidates are listed once).
     """
@@ -566,39 +575,61 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
         in_candidate = np.zeros(len(blobs), bool)
         in_candidate[index] = True
         H = _fit(grid[ids], centres[index], p)
-        for corner in (1, 3, 2):
+
+        def tries_at(corner: int) -> list[list[int]]:
+            """Ways to match ``corner``'s circles through the current map (blob indices, -1: none), best first."""
             circles = np.arange(3 * corner, 3 * corner + 3)
             predicted, cell_px = homography.project_with_cell_px(H, grid[circles])
             if not np.isfinite(cell_px):
-                break
+                return []
+            free = ~(taken | in_candidate)
             # 1. a whole triple
             window = p.first_triple_window_cells if len(ids) == 3 else p.triple_window_cells
             error = np.linalg.norm(triples.points_px - predicted[None], axis=2).mean(axis=1) / cell_px
             r_ratio = blob_r[triples.index[:, 0]] / (radius_cells[circles[0]] * cell_px)
             fits = ((error < window) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
-                    & ~(taken | in_candidate)[triples.index].any(axis=1))
+                    & free[triples.index].all(axis=1))
             tries = [triples.index[k].tolist() for k in np.flatnonzero(fits)[np.argsort(error[fits])][:2]]
-            # 2. else circle by circle: the large one, then the small ones shifted by the large one's offset
-            if not tries:
-                window = p.first_large_window_cells if len(ids) == 3 else p.large_window_cells
-                tries = _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
-                                      window, p)
-            for found in tries:
+            if tries:
+                return tries
+            # 2. else circle by circle: the large one (with its whole triple if it has one), then the small
+            # ones shifted by the large one's offset
+            window = p.first_large_window_cells if len(ids) == 3 else p.large_window_cells
+            tries = []
+            for found in _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
+                                       window, p):
+                own = np.flatnonzero((triples.index[:, 0] == found[0]) & free[triples.index].all(axis=1))
+                tries += [triples.index[k].tolist() for k in own[:1]] + [found]
+            return tries
+
+        def quality(tries: list[list[int]]) -> int:
+            return max((sum(b >= 0 for b in found) for found in tries), default=0)
+
+        # the first neighbour to join is the one that matches best (a neighbour hidden under a strip can
+        # still lend a stray blob to a loose first window); then the other neighbour, then the diagonal
+        first_tries = {corner: tries_at(corner) for corner in (1, 3)}
+        first = max((1, 3), key=lambda corner: quality(first_tries[corner]))
+        for corner in (first, 4 - first, 2):
+            circles = np.arange(3 * corner, 3 * corner + 3)
+            for found in first_tries[corner] if corner == first else tries_at(corner):
                 added = [c for c, b in zip(circles, found) if b >= 0]
                 blobs_added = [b for b in found if b >= 0]
                 H_new = _fit(grid[ids + added], centres[index + blobs_added], p)
-                # below min_circles_for_homography points the fit is affine and always "fits"
+                # below min_circles_for_homography points the fit is affine and always "fits"; from there
+                # the whole set must fit, and so must the added circles themselves (one stray blob among
+                # seven good circles moves the RMS little)
                 checkable = len(ids) + len(added) >= p.min_circles_for_homography
-                if not checkable or homography.fit_error_cells(H_new, grid[ids + added],
-                                                               centres[index + blobs_added]) <= p.max_fit_error_cells:
+                if not checkable or max(homography.fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]),
+                                        homography.fit_error_cells(H_new, grid[added], centres[blobs_added])
+                                        ) <= p.max_fit_error_cells:
                     ids, index, H = ids + added, index + blobs_added, H_new
                     in_candidate[blobs_added] = True
                     break
-        ids_a = np.array(ids)
-        corners = len(np.unique(ids_a // 3))
-        if len(ids_a) >= p.min_circles and corners >= p.min_corners and frozenset(index) not in seen:
+        candidate = CircleCandidate(np.array(ids), centres[index].copy(), np.array(index))
+        corners = len(candidate.corners)
+        if len(ids) >= p.min_circles and corners >= p.min_corners and frozenset(index) not in seen:
             seen.add(frozenset(index))
-            candidates.append(CircleCandidate(ids_a, centres[index].copy(), np.array(index)))
+            candidates.append(candidate)
             in_any[index] = True
             if corners >= 3:
                 taken[index] = True  # three corners agreeing: these circles are this marker's

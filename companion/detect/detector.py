@@ -18,10 +18,12 @@ Stages (one module each in ``companion.detect``, run in this order):
 5. ``refine``: each decoded square-path marker's whole pattern is aligned
    to the image for its final corners (through the camera's lens model when
    the detector has the camera).
-6. ``circles`` (the occluded path): where the square path found nothing,
-   corner circles are grouped into grids, fitted, refined on the visible
-   edges, sampled with occluded and out-of-image cells as erasures, and
-   decoded the same way.
+6. ``circles`` (the occluded path): in every frame (``circles.run``), where
+   the markers found by the square path do not explain them, corner circles
+   (found at a pyramid level, on a second thread beside ArUco when OpenCV
+   may use two) are grouped into grids, read again in the frame, fitted,
+   refined on the visible edges, sampled with occluded and out-of-image
+   cells as erasures, and decoded the same way.
 
 Nothing is reported unless it decodes to a dictionary marker. Every setting
 is a field of one of the stage parameter dataclasses that ``DetectorParams``
@@ -39,8 +41,8 @@ import cv2
 import numpy as np
 
 from companion.detect import homography, sampling
-from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, blob_level,
-                                      corner_triples, find_frame_blobs, missing_corner_cells, refine_centres)
+from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, corner_triples,
+                                      find_frame_blobs, missing_corner_cells, refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -104,6 +106,9 @@ class Detector:
 
     camera: optional ``companion.geometry.camera.CameraModel``; with it the
     square-path corners are aligned through its lens model (``refine``).
+    With OpenCV on more than one thread, the circles path's blob search runs
+    on a thread of its own (started at the first frame, stopped by ``close``
+    or when the detector is dropped).
     """
 
     def __init__(self, params: DetectorParams | None = None, camera=None):
@@ -223,15 +228,15 @@ class Detector:
         clock.lap("circles_blobs")
         candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout, params), self.layout, params)
         clock.lap("circles_group")
-        detections = self._decode_circle_candidates(gray, candidates, refine=blob_level(params) > 0)
+        detections = self._decode_circle_candidates(gray, candidates)
         clock.lap("circles_decode")
         return _unique(detections, self.params.duplicate_offset_fraction)
 
-    def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate],
-                                  refine: bool) -> list[Detection]:
+    def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate]) -> list[Detection]:
         """Fit, refine on the edges, sample and decode circle candidates, all batched.
 
-        refine: the circle centres came from a pyramid level: read them again in the frame first.
+        The circle centres are read again in the frame first (the blobs were found at a pyramid
+        level; even at full resolution a thresholded blob's centroid is 4x further off).
         """
         params, min_contrast_gray = self.params.circles, self.params.sampling.min_contrast_gray
         fitted = []
@@ -239,7 +244,7 @@ class Detector:
             circles = self.layout.circles[candidate.circle_ids]
             grid_points = circles[:, :2]
             H = homography.fit(grid_points, candidate.circles_px)
-            if refine and np.isfinite(H[2, 2]):
+            if np.isfinite(H[2, 2]):
                 centres = refine_centres(gray, H, circles)
                 if np.isfinite(centres).all():
                     candidate = replace(candidate, circles_px=centres)
