@@ -288,20 +288,23 @@ def dark_pixels(gray: np.ndarray, params: CircleParams, scale: int = 1) -> np.nd
     Darker than both mean - offset and mean x ratio over a square window
     (``threshold_block_px`` frame pixels, at ``scale``): the offset keeps dim,
     low-contrast frames working, the ratio shrinks blobs on bright paper to
-    their dark cores, so circles close to cells stay apart.
+    their dark cores, so circles close to cells stay apart. Two images of
+    the frame's size are made (a large frame is not copied more).
     """
     block = max(int(params.threshold_block_px / scale) // 2 * 2 + 1, 3)
-    mean = cv2.blur(gray, (block, block))
-    limit = cv2.min(cv2.subtract(mean, params.threshold_offset_gray),
-                    cv2.convertScaleAbs(mean, alpha=params.threshold_ratio))
-    return cv2.compare(gray, limit, cv2.CMP_LT)
+    limit = cv2.blur(gray, (block, block))
+    scaled = cv2.convertScaleAbs(limit, alpha=params.threshold_ratio)
+    cv2.subtract(limit, params.threshold_offset_gray, dst=limit)
+    cv2.min(limit, scaled, dst=limit)
+    return cv2.compare(gray, limit, cv2.CMP_LT, dst=scaled)
 
 
 def _use_contours(binary: np.ndarray, params: CircleParams) -> bool:
     if params.blob_method != "auto":
         return params.blob_method == "contours"
-    specks = cv2.countNonZero(cv2.absdiff(binary, cv2.medianBlur(binary, 3)))
-    return specks <= params.max_speck_fraction * binary.size
+    specks = cv2.medianBlur(binary, 3)
+    cv2.absdiff(binary, specks, dst=specks)
+    return cv2.countNonZero(specks) <= params.max_speck_fraction * binary.size
 
 
 def _contour_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
