@@ -1,15 +1,26 @@
-"""``companion calibrate IMAGES... --board 9x6 --square-mm 25 --out camera.yaml``."""
+"""``companion calibrate``: camera intrinsics from views of a ChArUco board (or a chessboard).
+
+    companion calibrate IMAGES... --charuco 8x11 --square-mm 22 --marker-mm 16 --out camera.yaml
+    companion calibrate --device /dev/video0 --charuco --save-views views/ --out camera.yaml
+    companion calibrate IMAGES... --board 9x6 --square-mm 25 --out camera.yaml      # plain chessboard
+
+Every view left out is named with its reason; the result gives the RMS
+reprojection error and each coefficient's standard deviation.
+"""
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 from pathlib import Path
 
 import cv2
 
 from companion.capture.replay import image_files
-from companion.geometry.calibration import (Board, CalibrationError, calibrate,
-                                            write_calibration)
+from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
+                                            CharucoBoard, calibrate, capture_live, write_calibration)
+from companion.markers.charuco import DEFAULT_DICTIONARY, CharucoError, CharucoSpec
 
 
 def image_paths(inputs: list[str]) -> list[Path]:
@@ -24,39 +35,125 @@ def image_paths(inputs: list[str]) -> list[Path]:
     return paths
 
 
-def parse_board(text: str) -> tuple[int, int]:
+def parse_grid(text: str) -> tuple[int, int]:
     try:
         columns, rows = (int(part) for part in text.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"board must be COLUMNSxROWS of inner corners, e.g. 9x6, not {text!r}") from None
+        raise argparse.ArgumentTypeError(f"must be COLUMNSxROWS, e.g. 9x6, not {text!r}") from None
     if columns < 2 or rows < 2:
-        raise argparse.ArgumentTypeError("a board needs at least 2x2 inner corners")
+        raise argparse.ArgumentTypeError("a board needs at least 2x2")
     return columns, rows
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", nargs="+", help="chessboard images, or folders of them")
-    parser.add_argument("--board", type=parse_board, default=(9, 6), help="inner corners COLUMNSxROWS (default 9x6)")
-    parser.add_argument("--square-mm", type=float, default=25.0, help="printed square side in mm (default 25)")
-    parser.add_argument("--out", type=Path, default=Path("camera.yaml"), help="output calibration YAML (default camera.yaml)")
+    parser.add_argument("images", nargs="*", help="images of the board, or folders of them (or --device)")
+    parser.add_argument("--device", default=None,
+                        help="calibrate live from this V4L2 camera (/dev/video0): a view is taken each time the "
+                             "board is held still somewhere new; stops when the goal is met (Ctrl-C: stop now)")
+    target = parser.add_mutually_exclusive_group()
+    target.add_argument("--charuco", nargs="?", const="8x11", type=parse_grid, metavar="COLSxROWS",
+                        help="the board: ChArUco, COLSxROWS squares (the default: 8x11, as `companion markers "
+                             "--charuco` prints it); partial views count")
+    target.add_argument("--board", type=parse_grid, default=None, metavar="COLSxROWS",
+                        help="a plain chessboard of COLSxROWS inner corners instead, seen whole in every view")
+    parser.add_argument("--square-mm", type=float, default=None,
+                        help="printed square side in mm (default 22 for --charuco, 25 for a chessboard)")
+    parser.add_argument("--marker-mm", type=float, default=CharucoSpec.marker_mm,
+                        help=f"ChArUco marker side in mm (default {CharucoSpec.marker_mm:g})")
+    parser.add_argument("--aruco-dictionary", default=DEFAULT_DICTIONARY,
+                        help=f"OpenCV dictionary of the ChArUco markers (default {DEFAULT_DICTIONARY})")
+    parser.add_argument("--out", type=Path, default=Path("camera.yaml"),
+                        help="output calibration YAML (default camera.yaml)")
+    live = parser.add_argument_group("live capture (--device)")
+    live.add_argument("--save-views", type=Path, default=None, metavar="DIR",
+                      help="save the views taken as PNGs (to calibrate again from the folder)")
+    live.add_argument("--min-views", type=int, default=CaptureGoal.min_views,
+                      help=f"views before stopping (default {CaptureGoal.min_views})")
+    live.add_argument("--coverage", type=float, default=CaptureGoal.coverage,
+                      help=f"share of the image the corners must cover (default {CaptureGoal.coverage:g})")
+    live.add_argument("--width", type=int, default=None, help="camera mode width")
+    live.add_argument("--height", type=int, default=None, help="camera mode height")
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.square_mm <= 0:
-        print(f"companion calibrate: --square-mm must be positive, not {args.square_mm}", file=sys.stderr)
-        return 2
     try:
-        paths = image_paths(args.images)
-        images = {str(p): cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths}
-        unreadable = [name for name, image in images.items() if image is None]
-        if unreadable:
-            raise CalibrationError(f"cannot read image(s): {', '.join(unreadable)}")
-        calibration = calibrate(images, Board(*args.board, args.square_mm / 1000.0))
-    except CalibrationError as error:
+        board = make_board(args)
+        if args.device is not None:
+            if args.images:
+                raise CalibrationError("give images or --device, not both")
+            calibration = calibrate_device(args, board)
+            paths_count = None
+        else:
+            if not args.images:
+                raise CalibrationError("give images (files or folders), or --device for a live camera")
+            paths = image_paths(args.images)
+            images = {str(p): cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths}
+            unreadable = [name for name, image in images.items() if image is None]
+            if unreadable:
+                raise CalibrationError(f"cannot read image(s): {', '.join(unreadable)}")
+            calibration = calibrate(images, board)
+            paths_count = len(paths)
+        write_calibration(args.out, calibration)
+    except (CalibrationError, CharucoError) as error:
         print(f"companion calibrate: {error}", file=sys.stderr)
         return 2
-    write_calibration(args.out, calibration)
-    fx, fy, cx, cy = calibration.K[0, 0], calibration.K[1, 1], calibration.K[0, 2], calibration.K[1, 2]
-    print(f"{len(calibration.views)} of {len(paths)} views, RMS {calibration.rms_px:.3f} px, "
-          f"fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f} -> {args.out}")
+    except OSError as error:
+        print(f"companion calibrate: cannot write {error.filename or args.out}: {error.strerror}", file=sys.stderr)
+        return 2
+    print_result(calibration, paths_count, args.out)
     return 0
+
+
+def make_board(args: argparse.Namespace):
+    """--board: a chessboard; otherwise the ChArUco board (--charuco, default 8x11 as printed by default)."""
+    square_mm = args.square_mm
+    if square_mm is not None and not square_mm > 0:
+        raise CalibrationError(f"--square-mm must be positive, not {square_mm}")
+    if args.board is not None:
+        return Board(*args.board, (square_mm or 25.0) / 1000.0)
+    columns, rows = args.charuco or (8, 11)
+    return CharucoBoard(CharucoSpec(columns, rows, square_mm or CharucoSpec.square_mm, args.marker_mm,
+                                    args.aruco_dictionary))
+
+
+def calibrate_device(args: argparse.Namespace, board) -> Calibration:
+    """Live capture from a V4L2 camera, progress on stdout, Ctrl-C to stop with the views so far."""
+    if not isinstance(board, CharucoBoard):
+        raise CalibrationError("live capture (--device) needs a ChArUco board, not --board")
+    if args.device.startswith("/") and not Path(args.device).exists():
+        raise CalibrationError(f"{args.device}: no such camera device (ls /dev/video*)")
+    from companion.capture.v4l2 import v4l2_source
+    source = v4l2_source(args.device, args.width, args.height)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    source.start()
+    goal = CaptureGoal(min_views=args.min_views, coverage=args.coverage)
+    print(f"hold the {board.describe()} still in view; a view is taken each time it rests somewhere new "
+          f"(goal: {goal.min_views} views, {100 * goal.coverage:.0f} % of the image covered; Ctrl-C to stop)")
+    try:
+        if not source.connected.wait(timeout=5.0):
+            raise CalibrationError(f"{args.device}: cannot open the camera")
+        calibration, images = capture_live(source, board, goal, stop, on_event=lambda e: print(e.message,
+                                                                                                 flush=True))
+    finally:
+        source.close()
+        signal.signal(signal.SIGINT, previous)
+    if args.save_views is not None:
+        args.save_views.mkdir(parents=True, exist_ok=True)
+        for name, image in images.items():
+            cv2.imwrite(str(args.save_views / f"{name}.png"), image)
+    return calibration
+
+
+def print_result(calibration: Calibration, images: int | None, out: Path) -> None:
+    for name, reason in calibration.rejected:
+        print(f"left out {name}: {reason}")
+    total = f" of {images}" if images is not None else ""
+    print(f"{len(calibration.views)}{total} views, {calibration.points} corners, image coverage "
+          f"{100 * calibration.coverage:.0f} %, RMS {calibration.rms_px:.3f} px -> {out}")
+    values = calibration.parameters()
+    for name in PARAMETERS:
+        value, std = values[name], calibration.std[name]
+        unit = " px" if name in ("fx", "fy", "cx", "cy") else ""
+        relative = f" ({100 * std / abs(value):.2f} %)" if name in ("fx", "fy") else ""
+        print(f"  {name:2} {value:12.5f}{unit} ± {std:.5f}{unit}{relative}")

@@ -5,6 +5,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from companion.markers.charuco import DEFAULT_DICTIONARY as CHARUCO_DICTIONARY
+from companion.markers.charuco import CharucoError, CharucoSpec, charuco_pdf
 from companion.markers.dictionary import DictionaryError
 from companion.markers.layout import MarkerLayout
 from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_size_mm,
@@ -16,6 +18,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     which = parser.add_mutually_exclusive_group(required=True)
     which.add_argument("--symbols", help="comma-separated symbols, e.g. A,B,7,HOME")
     which.add_argument("--all", action="store_true", help="all 50 symbols of the dictionary")
+    which.add_argument("--charuco", nargs="?", const="8x11", metavar="COLSxROWS", type=parse_squares,
+                       help="a ChArUco calibration board as a PDF instead (default 8x11 squares; see "
+                            "--square-mm, --marker-mm, --aruco-dictionary, --page)")
     parser.add_argument("--parity", type=int, choices=(2, 4), default=2,
                         help="Reed-Solomon parity symbols per code (default 2; 4 is the robust variant)")
     parser.add_argument("--dictionary", choices=("5x5", "6x6", "8x8"), default=DEFAULT_DICTIONARY,
@@ -30,14 +35,42 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet-zone-cells", type=int, default=1,
                         help="white margin around the grid in cells (default 1, as wide as the black border)")
     parser.add_argument("--page", choices=tuple(PAGES_MM), default="a4", help="PDF page size (default a4)")
+    board = parser.add_argument_group("ChArUco board (--charuco)")
+    board.add_argument("--square-mm", type=float, default=CharucoSpec.square_mm,
+                       help=f"chessboard square side (default {CharucoSpec.square_mm:g})")
+    board.add_argument("--marker-mm", type=float, default=CharucoSpec.marker_mm,
+                       help=f"ArUco marker side inside the white squares (default {CharucoSpec.marker_mm:g})")
+    board.add_argument("--aruco-dictionary", default=CHARUCO_DICTIONARY,
+                       help=f"OpenCV's dictionary of the board's markers (default {CHARUCO_DICTIONARY})")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
-        return generate(args)
-    except (PrintingError, DictionaryError) as error:
+        return write_charuco(args) if args.charuco else generate(args)
+    except (PrintingError, DictionaryError, CharucoError) as error:
         print(f"companion markers: error: {error}", file=sys.stderr)
         return 2
+
+
+def parse_squares(text: str) -> tuple[int, int]:
+    """``COLSxROWS`` squares of a ChArUco board."""
+    try:
+        columns, rows = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be COLUMNSxROWS of squares, e.g. 8x11, not {text!r}") from None
+    return columns, rows
+
+
+def write_charuco(args: argparse.Namespace) -> int:
+    """The ChArUco board PDF: ``charuco-8x11-22mm-16mm-a4.pdf`` in --out."""
+    spec = CharucoSpec(*args.charuco, args.square_mm, args.marker_mm, args.aruco_dictionary)
+    document = charuco_pdf(spec, args.page)
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / f"{spec.file_stem()}-{args.page}.pdf"
+    path.write_bytes(document)
+    print(f"{path}: {spec.describe()}, {spec.corners} corners; calibrate with: "
+          f"companion calibrate IMAGES... {spec.calibrate_options()}")
+    return 0
 
 
 def generate(args: argparse.Namespace) -> int:

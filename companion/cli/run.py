@@ -1,11 +1,15 @@
 """``companion run [--config FILE]``: start the positioning daemon (``companion.daemon``)."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 import signal
 import sys
+from pathlib import Path
 
-from companion.daemon.config import ConfigError, default_config_path, load_config
+from companion.daemon.config import Config, ConfigError, default_config_path, http_address, load_config
+from companion.daemon.record import RecordParams
+from companion.yaml_input import Where
 from companion.daemon.service import Daemon, setup_logging
 
 log = logging.getLogger("companion")
@@ -15,12 +19,18 @@ def configure_parser(parser) -> None:
     parser.add_argument("--config", metavar="FILE", default=None,
                         help=f"YAML config (default: the embedded {default_config_path().name}: bundled replay, "
                              "maps/warehouse.yaml, udpout:127.0.0.1:14550)")
+    parser.add_argument("--record", metavar="DIR", default=None,
+                        help="record the flight into the sequence folder DIR (new or empty; '{time}' in it becomes "
+                             "the start time), replayable with source: {kind: replay, path: DIR}; the config's "
+                             "record section sets codec and limits")
+    parser.add_argument("--http", metavar="HOST:PORT", default=None,
+                        help="serve the live view there (like status.http; e.g. 127.0.0.1:8080)")
 
 
 def main(args) -> int:
     setup_logging()
     try:
-        config = load_config(args.config)
+        config = with_options(load_config(args.config), args)
         daemon = Daemon(config, status_stream=sys.stdout)
     except (ConfigError, ValueError) as error:
         log.error("%s", error)
@@ -32,6 +42,16 @@ def main(args) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+def with_options(config: Config, args) -> Config:
+    """The config with ``--record`` and ``--http`` applied over its ``record`` and ``status.http``."""
+    if args.record is not None:
+        record = config.record or RecordParams(path=Path(args.record))
+        config = dataclasses.replace(config, record=dataclasses.replace(record, path=Path(args.record)))
+    if args.http is not None:
+        config = dataclasses.replace(config, http=http_address(args.http, Where("command line (--http)", ConfigError, "status")))
+    return config
 
 
 def _on_signal(daemon: Daemon, signum: int) -> None:

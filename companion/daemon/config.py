@@ -22,9 +22,10 @@ from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
 from companion.mavlink.link import LinkParams, Origin
 from companion.capture.replay import SEQUENCE_FILE, read_sequence_info
+from companion.daemon.record import RecordParams
 from companion.yaml_input import Where, read_yaml
 
-TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status"}
+TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status", "record"}
 SOURCE_KINDS = ("replay", "v4l2")
 REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
 V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
@@ -34,7 +35,7 @@ MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
 # mavlink keys that are not LinkParams fields of the same name
 MAVLINK_SPECIAL_KEYS = {"messages", "origin"}
 LINK_FIELDS = {f.name for f in dataclasses.fields(LinkParams)} - {"origin"} - set(MESSAGES.values())
-STATUS_KEYS = {"interval_s"}
+STATUS_KEYS = {"interval_s", "http"}
 DEFAULT_CONFIG = "default.yaml"
 
 
@@ -71,6 +72,8 @@ class Config:
     fusion: FusionParams
     mavlink: LinkParams
     status_interval_s: float = 0.5
+    http: tuple[str, int] | None = None     # status.http: the live view's (host, port); None: off
+    record: RecordParams | None = None      # record: the flight recording; None: off
 
 
 def default_config_path() -> Path:
@@ -96,7 +99,7 @@ def config_from_dict(data, path) -> Config:
     camera = _camera(data, where, path, sequence)
     facility_map = _map(data, where, sequence)
     status_where = where.sub("status")
-    status = status_where.mapping(data.get("status"), "interval_s")
+    status = status_where.mapping(data.get("status"), "interval_s, http")
     status_where.reject_unknown(status, STATUS_KEYS)
     return Config(
         path=path,
@@ -108,7 +111,43 @@ def config_from_dict(data, path) -> Config:
         fusion=_parameters(data.get("fusion"), where.sub("fusion"), FusionParams, "fusion parameters"),
         mavlink=_mavlink(data.get("mavlink"), where.sub("mavlink"), facility_map),
         status_interval_s=status_where.number(status, "interval_s", 0.5, minimum=0.05),
+        http=http_address(status.get("http"), status_where),
+        record=_record(data.get("record"), where.sub("record")),
     )
+
+
+# ------------------------------------------------ live view and recording (issue 12)
+
+RECORD_KEYS = {f.name for f in dataclasses.fields(RecordParams)}
+
+
+def http_address(value, where: Where) -> tuple[str, int] | None:
+    """``status.http``: "HOST:PORT" (or a bare port, on 127.0.0.1) for the live view; None: off."""
+    if value is None or value is False:
+        return None
+    if isinstance(value, int) and not isinstance(value, bool):
+        host, port_text = "127.0.0.1", str(value)
+    elif isinstance(value, str) and value.rpartition(":")[0]:
+        host, _, port_text = value.rpartition(":")
+        host = host.strip("[]")
+    else:
+        raise where.error(f"must be HOST:PORT such as 127.0.0.1:8080 (or false), got {value!r}", "http")
+    if not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
+        raise where.error(f"the port must be 0..65535, got {port_text!r}", "http")
+    return host, int(port_text)
+
+
+def _record(section, where: Where) -> RecordParams | None:
+    """The ``record`` section: a folder path, or a mapping of ``RecordParams`` fields; None: off."""
+    if section is None:
+        return None
+    section = {"path": section} if isinstance(section, str) else where.mapping(section, ", ".join(sorted(RECORD_KEYS)))
+    where.reject_unknown(section, RECORD_KEYS)
+    values = {key: section[key] for key in RECORD_KEYS - {"path"} if key in section}
+    try:
+        return RecordParams(path=where.path(section, "path"), **values)
+    except (TypeError, ValueError) as error:
+        raise where.error(str(error)) from None
 
 
 def _source(section, where: Where) -> ReplayConfig | V4L2Config:

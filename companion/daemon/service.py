@@ -26,7 +26,7 @@ import os
 import sys
 import threading
 import time
-
+from pathlib import Path
 
 from companion.geometry import frames
 from companion.daemon.config import Config, ConfigError, ReplayConfig
@@ -36,6 +36,8 @@ from companion.mavlink.link import MavlinkLink
 from companion.daemon.notify import Notifier
 from companion.daemon.map_watch import MapWatch
 from companion.daemon.pipeline import Pipeline
+from companion.daemon.record import GROUNDTRUTH_FILE, Recorder
+from companion.daemon.web import LiveView
 from companion.daemon.status import DaemonStatus, recent_activity
 from companion.geometry.pose import PoseSolver
 from companion.capture.replay import replay_source
@@ -95,10 +97,31 @@ class Daemon:
         self.failed = False
         self._pipeline_alive_s = time.monotonic()
         self._pipeline_thread = threading.Thread(target=self._run_pipeline, name="pipeline", daemon=True)
+        self.recorder, self.live_view = self._make_observers()
+
+    def _make_observers(self) -> tuple[Recorder | None, LiveView | None]:
+        """The flight recording and the live view (``record``, ``status.http``), as pipeline observers."""
+        config = self.config
+        recorder = live_view = None
+        if config.http is not None:   # first: a busy port must fail before a recording folder is made
+            stats = self.pipeline.stats
+            live_view = LiveView(config.http, config.facility_map, self.status, lambda: list(stats.records),
+                                 lambda: list(self.link.statustext_history))
+            self.pipeline.observers.append(live_view)
+        if config.record is not None:
+            replayed = config.source.path if isinstance(config.source, ReplayConfig) else None
+            groundtruth = replayed / GROUNDTRUTH_FILE if replayed is not None and replayed.is_dir() else None
+            recorder = Recorder(config.record, config.camera, Path(config.facility_map.path), groundtruth,
+                                source=describe_source(config))
+            self.pipeline.observers.append(recorder)
+        return recorder, live_view
 
     def run(self) -> int:
         """Run until ``stop_event`` is set (signal, end of replay); returns the exit code."""
         self.link.start()
+        for observer in (self.recorder, self.live_view):
+            if observer is not None:
+                observer.start()
         self.source.start()
         clock_offset_ns = getattr(self.source, "clock_offset_ns", None)
         if clock_offset_ns is not None:
@@ -120,6 +143,9 @@ class Daemon:
         if self._pipeline_thread.is_alive():
             self._pipeline_thread.join(timeout=5.0)
         self.source.close()
+        for observer in (self.recorder, self.live_view):
+            if observer is not None:
+                observer.close()
         self.link.close()
         self.notifier.close()
         self._print_summary()

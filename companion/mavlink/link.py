@@ -156,6 +156,8 @@ class MavlinkLink:
         self._stop = threading.Event()
         self._transport_broken = threading.Event()
         self._statustexts: collections.deque = collections.deque(maxlen=4)
+        # (wall time s, severity, text) of the latest STATUSTEXTs, for the live view
+        self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
         self._handshake_started_s = 0.0
@@ -210,6 +212,7 @@ class MavlinkLink:
     def statustext(self, text: str, severity: int = SEVERITY_INFO) -> None:
         """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``."""
         self._statustexts.append((severity, text))
+        self.statustext_history.append((time.time(), severity, text))
 
     # ----------------------------------------------------------- sending
 

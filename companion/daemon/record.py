@@ -1,0 +1,440 @@
+"""Flight recording: what the daemon saw and did, as a sequence folder that replay reads back.
+
+``companion run --record DIR`` (or the config's ``record`` section) adds a
+:class:`Recorder` to the pipeline's observers. The folder it writes::
+
+    DIR/video.avi        the frames the pipeline processed (FFV1 lossless, or MJPEG)
+    DIR/timestamps.csv   frame,t_ns,file   one row per recorded frame (t_ns: capture time, 0 = first frame)
+    DIR/estimates.csv    one row per pipeline frame: the verdict, the raw pose, what was sent, covariance
+    DIR/detections.csv   one row per decoded marker: symbol, path, corrections, corners
+    DIR/attitude.csv     t_ns,roll_deg,pitch_deg  the flight controller's attitude, when the link has it
+    DIR/groundtruth.csv  copied from a replayed sequence that has one (same frame numbers)
+    DIR/map.yaml         a copy of the facility map
+    DIR/sequence.yaml    camera, map (map.yaml), rate, counts, why the recording stopped
+
+so that ``source: {kind: replay, path: DIR}`` replays it with no other file,
+wherever the folder is copied.
+
+The observer runs on the pipeline thread and only queues: images go through
+a bounded budget (``queue_frames``); when the writer thread falls behind (a
+slow disk) the image is dropped and counted, its estimate row is still
+written, and the pipeline never waits. The recording stops by itself at
+``max_duration_s`` or ``max_size_mb``, when the disk is nearly full (logged
+once, with the reason), on a write error, or when the daemon stops.
+"""
+from __future__ import annotations
+
+import csv
+import datetime
+import logging
+import math
+import queue
+import shutil
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from companion.capture.replay import SEQUENCE_FILE, TIMESTAMPS_FILE
+from companion.daemon.pipeline import FrameRecord
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.types import Frame
+
+log = logging.getLogger("companion")
+
+VIDEO_FILE = "video.avi"
+ESTIMATES_FILE = "estimates.csv"
+DETECTIONS_FILE = "detections.csv"
+ATTITUDE_FILE = "attitude.csv"
+GROUNDTRUTH_FILE = "groundtruth.csv"
+MAP_FILE = "map.yaml"
+
+# codec -> what it is; both are AVI files any OpenCV/ffmpeg reads
+CODECS = {"ffv1": "FFV1, lossless",
+          "mjpg": "motion JPEG at record.jpeg_quality: smaller (1.4x on the bundled noisy flight), "
+                  "a few grey levels off"}
+
+# Why a frame gave no fresh vision fix, first cause first ("ok": a fix went out).
+VERDICTS = ("ok", "no marker", "pose withheld", "filter gating", "link")
+
+AXES = ("north", "east", "down", "roll", "pitch", "yaw")
+AXIS_UNITS = ("m", "m", "m", "rad", "rad", "rad")
+COVARIANCE_COLUMNS = tuple(f"cov_{AXES[i]}_{AXES[j]}" for i in range(6) for j in range(i, 6))
+ESTIMATE_COLUMNS = (
+    "frame", "t_ns", "verdict", "pose_status", "markers", "sent", "latency_ns",
+    "detect_ns", "pose_ns", "fuse_ns", "send_ns",
+    *(f"meas_{a}_{u}" for a, u in zip(AXES, AXIS_UNITS)),
+    *(f"{a}_{u}" for a, u in zip(AXES, AXIS_UNITS)),
+    "v_north_m_s", "v_east_m_s", "v_down_m_s", "tracking", "reset_counter",
+    *COVARIANCE_COLUMNS,
+)
+DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "quality",
+                     "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y")
+ATTITUDE_COLUMNS = ("t_ns", "roll_deg", "pitch_deg")
+
+# rows (estimates, detections) waiting for the writer beyond which even rows are dropped
+MAX_QUEUED_ROWS = 2000
+SIZE_CHECK_EVERY_FRAMES = 15
+FLUSH_INTERVAL_S = 1.0
+
+
+class RecordError(ValueError):
+    """A recording that cannot start (folder not empty, codec unavailable): names the folder."""
+
+
+@dataclass(frozen=True)
+class RecordParams:
+    """The ``record`` section (and ``--record DIR``).
+
+    path: the sequence folder to write; ``{time}`` in it becomes the local
+        start time (``2026-12-01T12-33-52``), so a service writes a new folder
+        per run. It must not exist or be empty.
+    codec: a key of ``CODECS``; jpeg_quality: 1-100, for mjpg.
+    max_duration_s, max_size_mb: the recording stops (the daemon goes on) at
+        whichever comes first; and when the disk has less than ``min_free_mb``
+        (or two seconds of recording) left.
+    queue_frames: images waiting for the disk before new ones are dropped.
+    """
+
+    path: Path
+    codec: str = "ffv1"
+    jpeg_quality: int = 95
+    max_duration_s: float = 3600.0
+    max_size_mb: float = 4000.0
+    min_free_mb: float = 50.0
+    queue_frames: int = 30
+
+    def __post_init__(self):
+        if self.codec not in CODECS:
+            raise ValueError(f"codec must be one of {', '.join(CODECS)}, got {self.codec!r}")
+        if not (isinstance(self.jpeg_quality, int) and 1 <= self.jpeg_quality <= 100):
+            raise ValueError(f"jpeg_quality must be an integer in 1..100, got {self.jpeg_quality!r}")
+        for name in ("max_duration_s", "max_size_mb", "min_free_mb"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if not (isinstance(self.queue_frames, int) and self.queue_frames >= 1):
+            raise ValueError(f"queue_frames must be an integer >= 1, got {self.queue_frames!r}")
+
+
+@dataclass
+class RecordCounters:
+    frames: int = 0          # images written
+    rows: int = 0            # estimate rows written (one per pipeline frame while recording)
+    dropped_frames: int = 0  # images the writer could not keep up with (their rows are kept)
+    dropped_rows: int = 0    # rows dropped because even the row queue was full
+    bytes: int = 0           # size of the folder's files at the last check
+
+
+def verdict(record: FrameRecord) -> str:
+    """Why this frame gave no fresh vision fix, or "ok" (one of ``VERDICTS``).
+
+    "filter gating": the pose was measured but the filter did not take it
+    (it failed the gate, or the filter is still confirming a new fix).
+    "link": a fresh estimate was made but not sent (no handshake yet, rate limit, send failed).
+    """
+    if not record.detections:
+        return "no marker"
+    if record.measurement is None:
+        return "pose withheld"
+    if record.estimate is None or not record.estimate.tracking:
+        return "filter gating"
+    return "ok" if record.sent else "link"
+
+
+def expand_folder(path: Path, now: datetime.datetime | None = None) -> Path:
+    """``path`` with ``{time}`` replaced by the local time (``%Y-%m-%dT%H-%M-%S``)."""
+    stamp = (now or datetime.datetime.now()).strftime("%Y-%m-%dT%H-%M-%S")
+    return Path(str(path).replace("{time}", stamp))
+
+
+def estimate_row(record: FrameRecord, t0_ns: int) -> list:
+    """The estimates.csv row of one pipeline frame (empty cells where there is no value)."""
+    measurement, estimate = record.measurement, record.estimate
+    row = [record.index, record.t_ns - t0_ns, verdict(record),
+           record.solution.status if record.solution is not None else "no marker",
+           record.markers, int(record.sent), "" if record.latency_ns is None else record.latency_ns,
+           *record.stage_ns]
+    if measurement is not None:
+        roll, pitch, yaw = frames.euler_321_from_rotation(measurement.T_ned_body[:3, :3])
+        row += [f"{v:.6f}" for v in measurement.T_ned_body[:3, 3]] + [f"{v:.6f}" for v in (roll, pitch, yaw)]
+    else:
+        row += [""] * 6
+    if estimate is not None:
+        row += [f"{v:.6f}" for v in estimate.position_ned_m]
+        row += [f"{v:.6f}" for v in (estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)]
+        row += [f"{v:.6f}" for v in estimate.velocity_ned_m_s]
+        row += [int(estimate.tracking), estimate.reset_counter]
+        covariance = np.asarray(estimate.covariance_ned)
+        row += [f"{covariance[i, j]:.6g}" for i in range(6) for j in range(i, 6)]
+    else:
+        row += [""] * (6 + 3 + 2 + len(COVARIANCE_COLUMNS))
+    return row
+
+
+def detection_rows(record: FrameRecord, t0_ns: int) -> list[list]:
+    return [[record.index, record.t_ns - t0_ns, d.symbol, d.id, d.path, d.corrected, f"{d.quality:.3f}",
+             *(f"{v:.3f}" for v in np.asarray(d.corners_px).ravel())] for d in record.detections]
+
+
+class Recorder:
+    """A pipeline observer that records into a sequence folder from its own writer thread.
+
+    camera, map_path: written into sequence.yaml (the map copied beside it);
+    groundtruth: a groundtruth.csv to copy (a replayed sequence's), or None;
+    source: a description of the source for sequence.yaml.
+    """
+
+    def __init__(self, params: RecordParams, camera: CameraModel, map_path: Path,
+                 groundtruth: Path | None = None, source: str = ""):
+        self.params = params
+        self.folder = expand_folder(params.path)
+        if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
+            raise RecordError(f"record: {self.folder} already exists and is not an empty folder; "
+                              "choose a new one (a {time} in the path makes one per run)")
+        try:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(map_path, self.folder / MAP_FILE)
+            if groundtruth is not None and groundtruth.is_file():
+                shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
+        except OSError as error:
+            raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
+        self.camera = camera
+        self.source = source
+        self.counters = RecordCounters()
+        self.stop_reason: str | None = None
+        self._started_utc = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        self._t0_ns: int | None = None
+        self._last_t_ns: int | None = None
+        self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
+        self._image_budget = threading.Semaphore(params.queue_frames)
+        self._stopped = threading.Event()   # no more rows taken (limit reached, error, close)
+        self._writer: cv2.VideoWriter | None = None
+        self._files = {}
+        self._csv = {}
+        self._thread = threading.Thread(target=self._run, name="record", daemon=True)
+        try:
+            self._open_tables()
+            self._write_info()
+        except OSError as error:
+            raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
+
+    # ------------------------------------------------------ pipeline thread
+
+    def __call__(self, frame: Frame, record: FrameRecord) -> None:
+        """Queue the frame and its record; never blocks (see the module docstring)."""
+        if self._stopped.is_set():
+            return
+        image = frame.image if self._image_budget.acquire(blocking=False) else None
+        if image is None:
+            self.counters.dropped_frames += 1
+        try:
+            self._rows.put_nowait(("frame", image, record))
+        except queue.Full:
+            self.counters.dropped_rows += 1
+            if image is not None:
+                self._image_budget.release()
+
+    def attitude(self, t_ns: int, roll_deg: float, pitch_deg: float) -> None:
+        """Record one attitude sample of the flight controller (capture clock, like frames)."""
+        if self._stopped.is_set():
+            return
+        try:
+            self._rows.put_nowait(("attitude", None, (t_ns, roll_deg, pitch_deg)))
+        except queue.Full:
+            pass
+
+    # -------------------------------------------------------------- control
+
+    def start(self) -> None:
+        self._thread.start()
+        log.info("recording to %s (%s, at most %.0f s or %.0f MB)", self.folder, self.params.codec,
+                 self.params.max_duration_s, self.params.max_size_mb)
+
+    def close(self) -> None:
+        """Stop taking frames, write what is queued, close the files; idempotent."""
+        self._stop("the daemon stopped")
+        if self._thread.is_alive():
+            self._thread.join(timeout=10.0)
+        elif not self._thread.ident:
+            self._finish()   # never started: still leave a consistent folder
+
+    # ---------------------------------------------------------------- writer
+
+    def _stop(self, reason: str) -> None:
+        if not self._stopped.is_set():
+            self.stop_reason = reason
+            self._stopped.set()
+
+    def _run(self) -> None:
+        next_flush_s = time.monotonic() + FLUSH_INTERVAL_S
+        try:
+            while True:
+                try:
+                    item = self._rows.get(timeout=0.1)
+                except queue.Empty:
+                    if self._stopped.is_set():
+                        break
+                    continue
+                self._write(*item)
+                if self._limit_reached():
+                    break
+                if time.monotonic() >= next_flush_s:
+                    for handle in self._files.values():
+                        handle.flush()
+                    next_flush_s = time.monotonic() + FLUSH_INTERVAL_S
+        except OSError as error:
+            self._stop(f"write failed: {error.strerror or error}")
+            log.error("recording stopped: %s (%s)", self.stop_reason, self.folder)
+        finally:
+            self._drain()
+            self._finish()
+
+    def _limit_reached(self) -> bool:
+        return self._stopped.is_set() and self.stop_reason != "the daemon stopped"
+
+    def _write(self, kind: str, image: np.ndarray | None, payload) -> None:
+        if kind == "attitude":          # payload: (t_ns, roll_deg, pitch_deg)
+            if self._t0_ns is not None:
+                t_ns, roll_deg, pitch_deg = payload
+                self._csv[ATTITUDE_FILE].writerow((t_ns - self._t0_ns, f"{roll_deg:.4f}", f"{pitch_deg:.4f}"))
+            return
+        record: FrameRecord = payload
+        if self._t0_ns is None:
+            self._t0_ns = record.t_ns
+        self._csv[ESTIMATES_FILE].writerow(estimate_row(record, self._t0_ns))
+        self._csv[DETECTIONS_FILE].writerows(detection_rows(record, self._t0_ns))
+        self.counters.rows += 1
+        if image is not None:
+            try:
+                self._write_image(image, record)
+            finally:
+                self._image_budget.release()
+        self._check_limits(record.t_ns)
+
+    def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:
+        if self._last_t_ns is not None and record.t_ns <= self._last_t_ns:
+            return  # replay must see rising times; the row above still says what happened
+        if self._writer is None:
+            self._writer = self._open_video(image.shape[1], image.shape[0])
+        if (image.shape[1], image.shape[0]) != self._video_size:
+            self.counters.dropped_frames += 1
+            return
+        # OpenCV's MJPEG writer takes 3-channel frames (its gray mode writes garbage)
+        self._writer.write(image if self.params.codec == "ffv1" else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+        self._csv[TIMESTAMPS_FILE].writerow((record.index, record.t_ns - self._t0_ns, ""))
+        self._last_t_ns = record.t_ns
+        self.counters.frames += 1
+
+    def _open_video(self, width: int, height: int) -> cv2.VideoWriter:
+        path = str(self.folder / VIDEO_FILE)
+        fps = 30.0  # nominal: timestamps.csv holds the real times
+        if self.params.codec == "ffv1":
+            writer = cv2.VideoWriter(path, cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), fps, (width, height),
+                                     [cv2.VIDEOWRITER_PROP_IS_COLOR, 0])
+        else:
+            writer = cv2.VideoWriter(path, cv2.CAP_OPENCV_MJPEG, cv2.VideoWriter_fourcc(*"MJPG"), fps,
+                                     (width, height))
+            writer.set(cv2.VIDEOWRITER_PROP_QUALITY, self.params.jpeg_quality)
+        if not writer.isOpened():
+            raise OSError(f"OpenCV cannot write a {self.params.codec} video to {path}")
+        self._video_size = (width, height)
+        return writer
+
+    def _check_limits(self, t_ns: int) -> None:
+        duration_s = (t_ns - self._t0_ns) * 1e-9
+        if duration_s >= self.params.max_duration_s:
+            self._stop(f"duration limit reached ({self.params.max_duration_s:g} s)")
+        elif self.counters.rows % SIZE_CHECK_EVERY_FRAMES == 0:
+            self.counters.bytes = folder_bytes(self.folder)
+            free_mb = shutil.disk_usage(self.folder).free / 1e6
+            # keep room for the last rows, the index ffmpeg writes on closing and for the rest of the system
+            reserve_mb = max(self.params.min_free_mb, 2.0 * self.counters.bytes / 1e6 / max(duration_s, 1.0))
+            if self.counters.bytes >= self.params.max_size_mb * 1e6:
+                self._stop(f"size limit reached ({self.params.max_size_mb:g} MB)")
+            elif free_mb < reserve_mb:
+                self._stop(f"disk nearly full ({free_mb:.1f} MB free, {reserve_mb:.1f} MB kept free)")
+        if self._limit_reached():
+            log.warning("recording stopped: %s; %d frames in %s (the daemon goes on)",
+                        self.stop_reason, self.counters.frames, self.folder)
+
+    def _drain(self) -> None:
+        """Forget what is still queued after a limit or an error (it would pass the limit)."""
+        while True:
+            try:
+                _, image, _ = self._rows.get_nowait()
+            except queue.Empty:
+                return
+            if image is not None:
+                self._image_budget.release()
+
+    def _open_tables(self) -> None:
+        headers = {TIMESTAMPS_FILE: ("frame", "t_ns", "file"), ESTIMATES_FILE: ESTIMATE_COLUMNS,
+                   DETECTIONS_FILE: DETECTION_COLUMNS, ATTITUDE_FILE: ATTITUDE_COLUMNS}
+        for name, header in headers.items():
+            handle = open(self.folder / name, "w", newline="")
+            self._files[name] = handle
+            self._csv[name] = csv.writer(handle)
+            self._csv[name].writerow(header)
+
+    def _finish(self) -> None:
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        for name, handle in self._files.items():
+            try:
+                handle.close()
+            except OSError as error:   # the last rows could not be flushed (disk full)
+                log.error("recording: %s: %s", self.folder / name, error.strerror or error)
+        attitude = self.folder / ATTITUDE_FILE
+        if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
+            attitude.unlink()   # no attitude from the link: no file
+        if self.counters.frames == 0:
+            (self.folder / TIMESTAMPS_FILE).unlink(missing_ok=True)   # nothing to replay
+        self.counters.bytes = folder_bytes(self.folder)
+        try:
+            self._write_info()
+        except OSError as error:
+            log.error("recording: cannot write %s: %s", self.folder / SEQUENCE_FILE, error.strerror or error)
+        log.info("recorded %d frames (%d dropped) to %s: %s", self.counters.frames, self.counters.dropped_frames,
+                 self.folder, self.stop_reason or "recording")
+
+    def _write_info(self) -> None:
+        """sequence.yaml: written at start (a crash still leaves a readable folder) and at the end."""
+        timestamps = self.folder / TIMESTAMPS_FILE
+        info = {
+            "generator": "companion run --record",
+            "started_utc": self._started_utc,
+            "source": self.source,
+            "map": MAP_FILE,
+            "camera": self.camera.to_config(),
+            "video": VIDEO_FILE if self.counters.frames else None,
+            "video_codec": self.params.codec,
+            "frames": self.counters.frames,
+            "fps": recorded_fps(timestamps) if self.counters.frames > 1 else None,
+            "duration_s": (self._last_t_ns - self._t0_ns) * 1e-9 if self._last_t_ns is not None else 0.0,
+            "pipeline_frames": self.counters.rows,
+            "dropped_frames": self.counters.dropped_frames,
+            "dropped_rows": self.counters.dropped_rows,
+            "size_mb": round(self.counters.bytes / 1e6, 3),
+            "stopped": self.stop_reason or "recording",
+        }
+        (self.folder / SEQUENCE_FILE).write_text(yaml.safe_dump(info, sort_keys=False))
+
+
+def recorded_fps(timestamps: Path) -> float | None:
+    """Frames per second from the median spacing of timestamps.csv."""
+    with open(timestamps, newline="") as handle:
+        t_ns = np.array([int(r["t_ns"]) for r in csv.DictReader(handle)], dtype=np.int64)
+    if len(t_ns) < 2:
+        return None
+    spacing_ns = float(np.median(np.diff(t_ns)))
+    return round(1e9 / spacing_ns, 3) if spacing_ns > 0 and math.isfinite(spacing_ns) else None
+
+
+def folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.iterdir() if p.is_file())

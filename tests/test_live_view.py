@@ -1,0 +1,204 @@
+"""The live view over real loopback HTTP: the daemon replays the hover flight (looping, real time) and
+the tests are its clients. The page itself is tested in a real browser in test_browser.py."""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import socket
+import subprocess
+import sys
+import threading
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.daemon.config import ConfigError, config_from_dict
+from companion.daemon.overlay import REJECTED, UNMAPPED, USED, annotate
+from companion.daemon.pipeline import FrameRecord
+from companion.daemon.service import Daemon
+from companion.daemon.status import DaemonStatus
+from companion.daemon.web import WebError
+from companion.geometry.pose import PoseSolution
+from companion.types import Detection, PoseMeasurement
+from mavlink_peer import free_port
+
+REPO = Path(__file__).resolve().parent.parent
+HOVER = REPO / "tests" / "data" / "sequences" / "warehouse_hover"
+MAP = REPO / "maps" / "warehouse.yaml"
+
+
+def make_daemon(tmp_path: Path, http="127.0.0.1:0") -> Daemon:
+    config = config_from_dict({
+        "source": {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
+        "map": str(MAP),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "status": {"http": http},
+    }, tmp_path / "daemon.yaml")
+    return Daemon(config)
+
+
+@pytest.fixture
+def daemon(tmp_path):
+    daemon = make_daemon(tmp_path)
+    runner = threading.Thread(target=daemon.run, name="test-daemon")
+    runner.start()
+    yield daemon
+    daemon.stop_event.set()
+    runner.join(timeout=15)
+    assert not runner.is_alive()
+
+
+def get(daemon: Daemon, path: str, timeout_s: float = 5.0):
+    with urllib.request.urlopen(daemon.live_view.url.rstrip("/") + path, timeout=timeout_s) as response:
+        return response.status, dict(response.headers), response.read()
+
+
+def wait_for(condition, timeout_s: float = 10.0) -> None:
+    done = threading.Event()
+    for _ in range(int(timeout_s / 0.05)):
+        if condition():
+            return
+        done.wait(0.05)
+    raise AssertionError("condition not met in time")
+
+
+def test_no_client_no_work(daemon):
+    wait_for(lambda: daemon.pipeline.stats.frames >= 20)
+    assert daemon.live_view.counters.encoded == 0 and daemon.live_view.counters.dropped == 0
+    assert not daemon.live_view.wanted()
+
+
+def test_frame_jpg_is_the_annotated_newest_frame_and_after_waits_for_a_newer_one(daemon):
+    status, headers, body = get(daemon, "/frame.jpg")
+    assert status == 200 and headers["Content-Type"] == "image/jpeg"
+    image = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (480, 640, 3)
+    # annotated: the banner is drawn in colour on the gray frame
+    assert np.abs(image[5, :, 2].astype(int) - image[5, :, 1]).mean() > 30
+    serial, index = int(headers["X-Frame-Serial"]), int(headers["X-Frame-Index"])
+    _, newer, _ = get(daemon, f"/frame.jpg?after={serial}")
+    assert int(newer["X-Frame-Serial"]) > serial and int(newer["X-Frame-Index"]) != index
+
+
+def test_status_json_holds_every_status_field_and_the_true_estimate(daemon):
+    wait_for(lambda: daemon.status().track_state == "tracking")
+    _, headers, body = get(daemon, "/status.json")
+    document = json.loads(body)
+    assert headers["Content-Type"] == "application/json"
+    assert set(document["status"]) == {f.name for f in dataclasses.fields(DaemonStatus)}
+    assert document["status"]["track_state"] == "tracking" and document["line"].count("|") >= 5
+    estimate = document["estimate"]
+    covariance = np.array(estimate["covariance_ned"])
+    assert covariance.shape == (6, 6) and np.allclose(covariance, covariance.T) and np.all(np.diag(covariance) > 0)
+    # the hover flight's ground truth (map frame and NED) from the renderer
+    with open(HOVER / "groundtruth.csv", newline="") as handle:
+        truth = list(csv.DictReader(handle))[-1]
+    np.testing.assert_allclose(estimate["position_map_m"], [float(truth[k]) for k in ("x_m", "y_m", "z_m")],
+                               atol=0.05)
+    np.testing.assert_allclose(estimate["position_ned_m"],
+                               [float(truth[k]) for k in ("north_m", "east_m", "down_m")], atol=0.05)
+    assert document["track_map_m"] and document["frame"]["verdict"] in ("ok", "link")
+    assert any(m["text"] == "companion: tracking markers" for m in document["statustexts"])
+
+
+def test_map_json_places_the_markers_of_the_map(daemon):
+    _, _, body = get(daemon, "/map.json")
+    document = json.loads(body)
+    markers = {m["symbol"]: m for m in document["markers"]}
+    assert len(markers) == 49
+    # maps/warehouse.yaml: HOME on the north wall (y = 10.5) facing -y
+    assert markers["HOME"]["centre_m"][1] == pytest.approx(10.5) and markers["HOME"]["normal"] == \
+        pytest.approx([0.0, -1.0], abs=1e-9)
+
+
+def test_mjpeg_stream_sends_successive_frames_and_counts_its_client(daemon):
+    host, port = daemon.live_view.server.server_address[:2]
+    with socket.create_connection((host, port), timeout=5) as sock:
+        sock.sendall(b"GET /stream.mjpg HTTP/1.1\r\nHost: x\r\n\r\n")
+        reader = sock.makefile("rb")   # closed below: the socket stays open while it is
+        assert b"200" in reader.readline()
+        headers = {}
+        while (line := reader.readline().strip()):
+            name, _, value = line.decode().partition(":")
+            headers[name.lower()] = value.strip()
+        assert headers["content-type"] == "multipart/x-mixed-replace; boundary=companionframe"
+        indices = []
+        for _ in range(3):
+            assert reader.readline().strip() == b"--companionframe"
+            part = {}
+            while (line := reader.readline().strip()):
+                name, _, value = line.decode().partition(":")
+                part[name.lower()] = value.strip()
+            jpeg = reader.read(int(part["content-length"]))
+            assert cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_GRAYSCALE).shape == (480, 640)
+            reader.readline()
+            indices.append(int(part["x-frame-index"]))
+        assert daemon.live_view.wanted() and daemon.live_view._streams == 1
+        assert indices[0] < indices[1] < indices[2]   # a looping replay numbers on
+        reader.close()
+    wait_for(lambda: daemon.live_view._streams == 0)
+
+
+def test_unknown_path_is_404(daemon):
+    with pytest.raises(urllib.error.HTTPError) as error:
+        get(daemon, "/admin")
+    assert error.value.code == 404
+
+
+def test_a_busy_port_is_a_one_line_error(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(WebError, match=f"status.http: cannot listen on 127.0.0.1:{port}"):
+            make_daemon(tmp_path, http=f"127.0.0.1:{port}")
+        run = subprocess.run([sys.executable, "-m", "companion", "run", "--http", f"127.0.0.1:{port}"],
+                             capture_output=True, text=True, timeout=30)
+    assert run.returncode == 2 and run.stderr.count("\n") == 1 and "cannot listen on" in run.stderr
+
+
+@pytest.mark.parametrize("value, message", [
+    ("8080", "must be HOST:PORT"), ("localhost:http", "the port must be 0..65535"),
+    ("127.0.0.1:70000", "the port must be 0..65535"), ([8080], "must be HOST:PORT"),
+])
+def test_http_key_errors_name_the_key(tmp_path, value, message):
+    with pytest.raises(ConfigError, match=f"status.http: {message}"):
+        config_from_dict({"source": {"kind": "replay", "path": str(HOVER)}, "map": str(MAP),
+                          "status": {"http": value}}, tmp_path / "daemon.yaml")
+
+
+def test_a_wide_address_is_announced_as_reachable_from_the_network(tmp_path, caplog):
+    daemon = make_daemon(tmp_path, http="0.0.0.0:0")
+    try:
+        with caplog.at_level("WARNING", logger="companion"):
+            daemon.live_view.start()
+        assert "reachable from the network, with no password and no encryption" in caplog.text
+    finally:
+        daemon.live_view.close()
+        daemon.link.close()
+
+
+# --------------------------------------------------------------- the overlay
+
+def test_overlay_outlines_markers_by_their_part_in_the_pose():
+    gray = np.full((480, 640), 128, np.uint8)
+    square = np.array([[100.0, 100.0], [200.0, 100.0], [200.0, 200.0], [100.0, 200.0]])
+    detections = (Detection("A", 0, square, "square", 0, 1.0),
+                  Detection("B", 1, square + [250.0, 0.0], "circles", 2, 1.0),
+                  Detection("STAR", 49, square + [0.0, 220.0], "square", 0, 1.0))
+    solution = PoseSolution(None, "ambiguous", marker_ids=(0,), rejected_ids=(1,), unmapped_ids=(49,))
+    record = FrameRecord(7, 0, (0, 0, 0, 0), None, detections, solution, None)
+    image = annotate(gray, record)
+    # the pose was withheld: no mapped marker is "used"; the unmapped one is grey
+    assert tuple(image[100, 150]) == REJECTED and tuple(image[100, 400]) == REJECTED
+    assert tuple(image[320, 150]) == UNMAPPED
+    pose = PoseMeasurement(0, np.eye(4), np.eye(4), np.eye(6), (0,), 0.1)
+    accepted = PoseSolution(pose, "ok", marker_ids=(0,), rejected_ids=(1,), unmapped_ids=(49,))
+    image = annotate(gray, dataclasses.replace(record, solution=accepted))
+    assert tuple(image[100, 150]) == USED and tuple(image[100, 400]) == REJECTED
+    assert tuple(image[150, 150]) == (128, 128, 128)   # inside the outline: the frame itself

@@ -1,0 +1,296 @@
+"""Flight recording: `companion run --record DIR` writes a sequence folder that replay reads back.
+
+The round trip runs the real daemon as a user would (a subprocess, UDP to a
+loopback port with nothing listening), copies the recording elsewhere and
+replays the copy: the frames must be the pixels the daemon processed and the
+poses the same.
+"""
+from __future__ import annotations
+
+import csv
+import datetime
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from companion.capture.replay import open_recording, replay_source
+from companion.daemon.config import ConfigError, config_from_dict
+from companion.daemon.record import (ESTIMATE_COLUMNS, VERDICTS, Recorder, RecordError, RecordParams,
+                                     expand_folder)
+from companion.daemon.service import Daemon
+from companion.geometry.camera import CameraModel
+from mavlink_peer import free_port
+
+REPO = Path(__file__).resolve().parent.parent
+HOVER = REPO / "tests" / "data" / "sequences" / "warehouse_hover"   # 31 frames at 15 fps, mp4v video
+MAP = REPO / "maps" / "warehouse.yaml"
+
+
+def read_rows(path: Path) -> list[dict]:
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def decoded_frames(sequence: Path) -> dict[int, np.ndarray]:
+    """Frame number -> (H, W) gray image, as the replay decodes them."""
+    source = replay_source(sequence, realtime=False)
+    source.start()
+    images = {}
+    try:
+        while True:
+            frame = source.get(timeout_s=2.0)
+            if frame is None:
+                break
+            images[frame.index] = frame.image
+    finally:
+        source.close()
+    return images
+
+
+def run_companion(config: Path, *options: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config), *options],
+                          capture_output=True, text=True, timeout=60)
+
+
+def write_config(folder: Path, source: dict, **sections) -> Path:
+    data = {"source": source,
+            # nothing listens: stream at once instead of waiting for an origin handshake
+            "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0}, **sections}
+    path = folder / f"config{len(list(folder.glob('config*.yaml')))}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def measured_poses(recording: Path) -> dict[int, np.ndarray]:
+    """Frame -> the raw pose stage's NED position and attitude (6,), from estimates.csv."""
+    columns = [c for c in ESTIMATE_COLUMNS if c.startswith("meas_")]
+    return {int(r["frame"]): np.array([float(r[c]) for c in columns])
+            for r in read_rows(recording / "estimates.csv") if r["meas_north_m"]}
+
+
+# ----------------------------------------------------------------- round trip
+
+def test_a_recorded_replay_replays_from_a_copy_with_the_same_frames_and_poses(tmp_path):
+    first = tmp_path / "first"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP))
+    run = run_companion(config, "--record", str(first))
+    assert run.returncode == 0, run.stderr
+    assert f"recording to {first}" in run.stderr
+
+    # what the daemon processed, pixel for pixel (FFV1 is lossless), with the source's frame numbers
+    original = decoded_frames(HOVER)
+    recorded = decoded_frames(first)
+    assert sorted(recorded) == sorted(original) == list(range(31))
+    for index, image in original.items():
+        assert np.array_equal(recorded[index], image), f"frame {index} differs"
+
+    info = yaml.safe_load((first / "sequence.yaml").read_text())
+    assert info["map"] == "map.yaml" and (first / "map.yaml").read_text() == MAP.read_text()
+    camera = CameraModel.from_config(info["camera"], "recorded")
+    hover_camera = CameraModel.from_config(yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover")
+    np.testing.assert_allclose(camera.K, hover_camera.K)
+    np.testing.assert_allclose(camera.T_body_camera, hover_camera.T_body_camera, atol=1e-9)
+    assert (info["frames"], info["dropped_frames"], info["stopped"]) == (31, 0, "the daemon stopped")
+    # the replayed sequence's ground truth comes along, same frame numbers
+    assert (first / "groundtruth.csv").read_text() == (HOVER / "groundtruth.csv").read_text()
+
+    rows = read_rows(first / "estimates.csv")
+    assert [int(r["frame"]) for r in rows] == list(range(31))
+    assert {r["verdict"] for r in rows} <= set(VERDICTS)
+    # a fresh fix in nearly every frame; as fast as possible, the link's rate limit holds most back ("link")
+    assert sum(r["verdict"] in ("ok", "link") for r in rows) >= 25, [r["verdict"] for r in rows]
+    sent = [r for r in rows if r["sent"] == "1"]
+    covariance = np.array([[float(r["cov_north_north"]), float(r["cov_east_east"]), float(r["cov_down_down"])]
+                           for r in sent])
+    assert len(sent) >= 3 and np.all(covariance > 0)
+    detections = read_rows(first / "detections.csv")
+    assert {d["frame"] for d in detections} >= {r["frame"] for r in rows if r["verdict"] == "ok"}
+
+    # the recorded poses are right: against the hover flight's ground truth
+    truth = {int(r["frame"]): np.array([float(r["north_m"]), float(r["east_m"]), float(r["down_m"])])
+             for r in read_rows(HOVER / "groundtruth.csv")}
+    first_poses = measured_poses(first)
+    errors = [np.linalg.norm(pose[:3] - truth[frame]) for frame, pose in first_poses.items()]
+    assert len(errors) >= 25 and np.median(errors) < 0.05
+
+    # copied anywhere, the recording replays with no camera or map in the config
+    moved = shutil.copytree(first, tmp_path / "elsewhere" / "flight")
+    shutil.rmtree(first)
+    second = tmp_path / "second"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(moved), "realtime": False})
+    run = run_companion(config, "--record", str(second))
+    assert run.returncode == 0, run.stderr
+    second_poses = measured_poses(second)
+    assert sorted(second_poses) == sorted(first_poses)
+    for frame, pose in first_poses.items():
+        np.testing.assert_allclose(second_poses[frame], pose, atol=2e-6, err_msg=f"frame {frame}")
+
+
+def test_mjpg_recording_is_high_quality_and_replays(tmp_path):
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP),
+                          record={"path": str(folder), "codec": "mjpg", "jpeg_quality": 95})
+    run = run_companion(config)
+    assert run.returncode == 0, run.stderr
+    original, recorded = decoded_frames(HOVER), decoded_frames(folder)
+    assert sorted(recorded) == sorted(original)
+    for index, image in original.items():
+        difference = np.abs(recorded[index].astype(int) - image)
+        assert difference.mean() < 1.5 and np.percentile(difference, 99) <= 6, index
+    assert yaml.safe_load((folder / "sequence.yaml").read_text())["video_codec"] == "mjpg"
+
+
+# ------------------------------------------------------------ limits, slow disk
+
+def test_the_duration_limit_stops_the_recording_not_the_daemon(tmp_path):
+    folder = tmp_path / "flight"
+    config = config_from_dict({
+        "source": {"kind": "replay", "path": str(HOVER), "realtime": True},
+        "map": str(MAP),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "record": {"path": str(folder), "max_duration_s": 0.5},
+    }, tmp_path / "daemon.yaml")
+    daemon = Daemon(config)
+    assert daemon.run() == 0
+    info = yaml.safe_load((folder / "sequence.yaml").read_text())
+    assert info["stopped"] == "duration limit reached (0.5 s)"
+    recording = open_recording(folder)
+    # frames at 15 fps (66.7 ms apart) from t = 0 up to the first one at or past 0.5 s
+    assert recording.t_ns[-1] <= 0.5e9 + 66_666_667 and recording.t_ns[-1] >= 0.5e9 - 66_666_667
+    assert daemon.pipeline.stats.frames > len(recording.t_ns) == info["frames"]
+    assert len(decoded_frames(folder)) == info["frames"]
+
+
+def test_a_slow_disk_drops_recorded_frames_counted_never_rows(tmp_path):
+    """Frames offered far faster than FFV1 encodes them: the images beyond the budget are dropped and
+    counted, every frame's estimate row is still written, and timestamps match the video."""
+    daemon_config = config_from_dict({"source": {"kind": "replay", "path": str(HOVER)}, "map": str(MAP)},
+                                     tmp_path / "c.yaml")
+    recorder = Recorder(RecordParams(path=tmp_path / "flight", queue_frames=2), daemon_config.camera, MAP)
+    recorder.start()
+    from companion.daemon.pipeline import FrameRecord
+    from companion.types import Frame
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (480, 640), dtype=np.uint8) for _ in range(4)]
+    offered = 200
+    for index in range(offered):
+        record = FrameRecord(index, 1_000_000 + index * 10_000_000, (0, 0, 0, 0), None, (), None, None)
+        recorder(Frame(images[index % 4], record.t_ns, index), record)
+    recorder.close()
+    counters = recorder.counters
+    assert counters.dropped_frames > 0
+    assert counters.frames + counters.dropped_frames == offered
+    assert counters.rows == offered and counters.dropped_rows == 0
+    rows = read_rows(tmp_path / "flight" / "estimates.csv")
+    assert len(rows) == offered and {r["verdict"] for r in rows} == {"no marker"}
+    recording = open_recording(tmp_path / "flight")
+    assert len(recording.t_ns) == counters.frames
+    assert yaml.safe_load((tmp_path / "flight" / "sequence.yaml").read_text())["dropped_frames"] == \
+        counters.dropped_frames
+    decoded = decoded_frames(tmp_path / "flight")
+    for number, image in decoded.items():
+        assert np.array_equal(image, images[number % 4])
+
+
+def test_recording_and_pipeline_threads_end_when_the_daemon_stops(tmp_path):
+    config = config_from_dict({
+        "source": {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
+        "map": str(MAP),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "record": str(tmp_path / "flight"),
+    }, tmp_path / "daemon.yaml")
+    daemon = Daemon(config)
+    runner = threading.Thread(target=daemon.run)
+    runner.start()
+    threading.Event().wait(1.0)
+    daemon.stop_event.set()
+    runner.join(timeout=15)
+    assert not runner.is_alive()
+    assert not any(t.name == "record" and t.is_alive() for t in threading.enumerate())
+    assert yaml.safe_load((tmp_path / "flight" / "sequence.yaml").read_text())["stopped"] == "the daemon stopped"
+
+
+# ---------------------------------------------------------------- bad input
+
+def test_an_existing_recording_is_never_overwritten(tmp_path):
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    (folder / "timestamps.csv").write_text("frame,t_ns,file\n")
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER)}, map=str(MAP))
+    run = run_companion(config, "--record", str(folder))
+    assert run.returncode == 2
+    assert run.stderr.count("\n") == 1 and "already exists and is not an empty folder" in run.stderr
+    assert "Traceback" not in run.stderr
+    assert (folder / "timestamps.csv").read_text() == "frame,t_ns,file\n"
+
+
+def test_time_in_the_path_makes_a_folder_per_run():
+    moment = datetime.datetime(2026, 12, 1, 12, 33, 52)
+    assert expand_folder(Path("/var/lib/companion/flight-{time}"), moment) == \
+        Path("/var/lib/companion/flight-2026-12-01T12-33-52")
+
+
+@pytest.mark.parametrize("section, message", [
+    ({"path": "x", "codec": "h264"}, "record: codec must be one of ffv1, mjpg, got 'h264'"),
+    ({"path": "x", "max_size_mb": 0}, "record: max_size_mb must be positive, got 0"),
+    ({"path": "x", "jpeg_quality": 101}, "record: jpeg_quality must be an integer in 1..100, got 101"),
+    ({"codec": "ffv1"}, "record.path: missing"),
+    ({"path": "x", "speed": 2}, "record.speed: unknown key 'speed'"),
+    (["x"], "record: must be a mapping"),
+])
+def test_record_section_errors_name_the_key(tmp_path, section, message):
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.").replace("(", r"\(")):
+        config_from_dict({"source": {"kind": "replay", "path": str(HOVER)}, "map": str(MAP), "record": section},
+                         tmp_path / "daemon.yaml")
+
+
+def test_recorder_refuses_a_file_in_the_way(tmp_path):
+    (tmp_path / "flight").write_text("not a folder")
+    with pytest.raises(RecordError, match="flight already exists"):
+        Recorder(RecordParams(path=tmp_path / "flight"), None, MAP)
+
+
+def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
+    """attitude.csv (t_ns,roll_deg,pitch_deg) with t_ns on the time base of timestamps.csv (0 = first frame);
+    samples from before the first frame have no place on it and are left out."""
+    from companion.daemon.pipeline import FrameRecord
+    from companion.types import Frame
+    recorder = Recorder(RecordParams(path=tmp_path / "flight"), CameraModel.from_config(
+        yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover"), MAP)
+    recorder.start()
+    start_ns = 5_000_000_000
+    recorder.attitude(start_ns - 10_000_000, 9.0, 9.0)
+    for index in range(3):
+        t_ns = start_ns + index * 33_000_000
+        record = FrameRecord(index, t_ns, (0, 0, 0, 0), None, (), None, None)
+        recorder(Frame(np.zeros((480, 640), np.uint8), t_ns, index), record)
+        recorder.attitude(t_ns + 5_000_000, 1.5 + index, -2.25)
+    recorder.close()
+    rows = read_rows(tmp_path / "flight" / "attitude.csv")
+    assert [(int(r["t_ns"]), float(r["roll_deg"]), float(r["pitch_deg"])) for r in rows] == \
+        [(5_000_000, 1.5, -2.25), (38_000_000, 2.5, -2.25), (71_000_000, 3.5, -2.25)]
+    assert [int(t) for t in open_recording(tmp_path / "flight").t_ns] == [0, 33_000_000, 66_000_000]
+
+
+def test_a_nearly_full_disk_stops_the_recording_cleanly(tmp_path):
+    """The disk's real free space, with the floor set above it: the recording stops at its first check,
+    says why, and leaves a folder that replays."""
+    floor_mb = shutil.disk_usage(tmp_path).free / 1e6 + 1000.0
+    config = config_from_dict({
+        "source": {"kind": "replay", "path": str(HOVER), "realtime": False},
+        "map": str(MAP),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "record": {"path": str(tmp_path / "flight"), "min_free_mb": floor_mb},
+    }, tmp_path / "daemon.yaml")
+    daemon = Daemon(config)
+    assert daemon.run() == 0
+    info = yaml.safe_load((tmp_path / "flight" / "sequence.yaml").read_text())
+    assert info["stopped"].startswith("disk nearly full (") and info["frames"] < 31
+    assert daemon.pipeline.stats.frames == 31
+    assert len(open_recording(tmp_path / "flight").t_ns) == info["frames"]

@@ -1,0 +1,128 @@
+"""`companion report DIR`: a self-contained HTML report of a recorded flight."""
+from __future__ import annotations
+
+import base64
+import csv
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.daemon.config import config_from_dict
+from companion.daemon.record import ESTIMATE_COLUMNS
+from companion.daemon.service import Daemon
+from companion.report.flight_log import ReportError, read_flight
+from mavlink_peer import free_port
+
+REPO = Path(__file__).resolve().parent.parent
+HOVER = REPO / "tests" / "data" / "sequences" / "warehouse_hover"
+MAP = REPO / "maps" / "warehouse.yaml"
+SECTIONS = ("Summary", "Track over the map", "Position and yaw against time", "Vision availability",
+            "Capture → send latency", "Markers", "Error against the ground truth")
+
+
+def report(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "companion", "report", *args], capture_output=True, text=True,
+                          timeout=120)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    """The hover flight replayed by the daemon (as fast as possible) and recorded."""
+    folder = tmp_path_factory.mktemp("report") / "flight"
+    config = config_from_dict({
+        "source": {"kind": "replay", "path": str(HOVER), "realtime": False},
+        "map": str(MAP),
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "record": str(folder),
+    }, folder.parent / "daemon.yaml")
+    assert Daemon(config).run() == 0
+    return folder
+
+
+def test_report_of_a_recording_is_one_self_contained_page_with_every_section(recording):
+    run = report(str(recording))
+    assert run.returncode == 0, run.stderr
+    page = (recording / "report.html").read_text()
+    assert f"{recording / 'report.html'}: 31 frames" in run.stdout
+    for title in SECTIONS:
+        assert f"<h2>{title}</h2>" in page, title
+    # self-contained: nothing fetched from elsewhere, every plot embedded and a real PNG
+    assert not re.search(r'(src|href)="(?!data:)', page)
+    images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    assert len(images) == 6   # every section but the summary
+    for encoded in images:
+        image = cv2.imdecode(np.frombuffer(base64.b64decode(encoded), np.uint8), cv2.IMREAD_COLOR)
+        assert image is not None and image.shape[0] > 150 and image.shape[1] > 500
+    # the summary's error comes from the copied ground truth: the hover is tracked within centimetres
+    error = re.search(r"position error \(estimate\)</td><td>median ([0-9.]+) m", page)
+    assert error and float(error.group(1)) < 0.05
+    # the markers table lists what detections.csv holds: the hover sees A and 5 in every frame
+    assert re.search(r"<td>A</td><td>0</td><td>31</td>", page) and re.search(r"<td>5</td><td>31</td><td>31</td>", page)
+
+
+def write_estimates(folder: Path, verdicts: list[str], pose_status: dict[int, str] | None = None,
+                    fps: float = 30.0) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / "estimates.csv", "w", newline="") as handle:
+        writer = csv.DictWriter(handle, ESTIMATE_COLUMNS)
+        writer.writeheader()
+        for i, verdict in enumerate(verdicts):
+            writer.writerow({"frame": i, "t_ns": round(i * 1e9 / fps), "verdict": verdict,
+                             "pose_status": (pose_status or {}).get(i, "ok"), "markers": 1, "sent": int(verdict == "ok"),
+                             "detect_ns": 5_000_000, "pose_ns": 1_000_000, "fuse_ns": 100_000, "send_ns": 10_000,
+                             "latency_ns": 7_000_000 if verdict == "ok" else ""})
+
+
+def test_gaps_are_found_with_their_reason(tmp_path):
+    """100 frames at 30 fps, written by hand: 20-39 no marker, 60-65 pose withheld (ambiguous),
+    80 link (one frame: shorter than 0.2 s, no gap)."""
+    verdicts = ["ok"] * 100
+    verdicts[20:40] = ["no marker"] * 20
+    verdicts[60:66] = ["pose withheld"] * 6
+    verdicts[80] = "link"
+    write_estimates(tmp_path / "flight", verdicts, {i: "ambiguous" for i in range(60, 66)})
+    log = read_flight(tmp_path / "flight")
+    gaps = log.gaps()
+    assert [(g.frames, g.reason) for g in gaps] == [(20, "no marker"), (6, "pose withheld (ambiguous)")]
+    # from the last fix before (frame 19) to the first after (frame 40): 21 periods
+    assert gaps[0].start_s == pytest.approx(19 / 30) and gaps[0].duration_s == pytest.approx(21 / 30)
+    assert gaps[1].duration_s == pytest.approx(7 / 30)
+    assert gaps[1].reasons == {"pose withheld": 6, "pose withheld: ambiguous": 6}
+    run = report(str(tmp_path / "flight"))
+    assert run.returncode == 0, run.stderr
+    assert "the track is drawn without markers" in run.stderr    # no sequence.yaml, no --map
+    page = (tmp_path / "flight" / "report.html").read_text()
+    assert "Error against the ground truth" not in page and "2 gap(s)" in run.stdout
+
+
+def test_a_folder_without_estimates_is_a_one_line_error(tmp_path):
+    run = report(str(HOVER))
+    assert run.returncode == 2 and run.stderr.count("\n") == 1
+    assert "no estimates.csv" in run.stderr and "companion run --record" in run.stderr
+    run = report(str(tmp_path / "nowhere"))
+    assert run.returncode == 2 and "no such folder" in run.stderr
+
+
+def test_a_bad_value_names_the_file_row_and_column(tmp_path):
+    write_estimates(tmp_path / "flight", ["ok"] * 5)
+    path = tmp_path / "flight" / "estimates.csv"
+    lines = path.read_text().splitlines()
+    lines[3] = lines[3].replace(",ok,", ",fine,", 1)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ReportError, match="row 4, column verdict: unknown value 'fine'"):
+        read_flight(tmp_path / "flight")
+    lines[3] = "2,abc" + lines[3][lines[3].index(",", 2):]
+    path.write_text("\n".join(lines) + "\n")
+    run = report(str(tmp_path / "flight"))
+    assert run.returncode == 2 and "estimates.csv: row 4, column t_ns: not a number: 'abc'" in run.stderr
+    assert "Traceback" not in run.stderr
+
+
+def test_a_missing_map_file_is_named(recording, tmp_path):
+    run = report(str(recording), "--map", str(tmp_path / "none.yaml"))
+    assert run.returncode == 2 and "none.yaml" in run.stderr and run.stderr.count("\n") == 1
