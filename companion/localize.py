@@ -24,7 +24,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.geometry.pose import PoseSolution, PoseSolver
-from companion.capture.replay import ReplaySource, open_recording, read_sequence_info
+from companion.capture.replay import ReplaySource, open_recording, read_sequence_info, sequence_map_path
 
 GET_TIMEOUT_S = 1.0
 
@@ -54,13 +54,15 @@ class FrameResult:
 
 def resources(sequence: Path, map_path: str | None, camera_path: str | None) -> tuple[FacilityMap, CameraModel]:
     """The facility map and camera: given on the command line, or from sequence.yaml."""
+    if not sequence.exists():
+        raise LocalizeError(f"{sequence}: no such sequence folder, video or image folder")
     info = read_sequence_info(sequence) if sequence.is_dir() else {}
     info_file = str(sequence / "sequence.yaml")
     if map_path is None:
-        if "map" not in info:
-            raise LocalizeError(f"{sequence}: no --map given and no 'map' in sequence.yaml")
-        candidate = sequence / str(info["map"])
-        map_path = str(candidate if candidate.exists() else Path(str(info["map"])))
+        named = sequence_map_path(sequence, info) if sequence.is_dir() else None
+        if named is None:
+            raise LocalizeError(f"{sequence}: no --map given and no 'map' in {info_file if info else 'a sequence.yaml'}")
+        map_path = str(named)
     if camera_path is not None:
         camera = load_camera(camera_path)
     elif "camera" in info:
@@ -96,7 +98,7 @@ def map_detector(facility_map: FacilityMap, camera: CameraModel):
 
 
 def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | None = None,
-             fps: float | None = None, detector=None):
+             fps: float | None = None, detector=None, fps_option: str = "--fps"):
     """Yield a FrameResult per frame of the recording, in order.
 
     Frames come from ``companion.capture`` (as fast as they are consumed);
@@ -107,7 +109,7 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
     """
     if detector is None:
         detector = map_detector(solver.facility_map, solver.camera)
-    recording = open_recording(sequence, fps)
+    recording = open_recording(sequence, fps, fps_option)
     recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
     source = ReplaySource(recording, realtime=False)
     source.start()

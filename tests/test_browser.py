@@ -49,7 +49,7 @@ def daemon(tmp_path):
     config.write_text(yaml.safe_dump({
         "source": {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
         "map": str(REPO / "maps" / "warehouse.yaml"),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0,
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0,
                     "statustext_interval_s": 0.2},
     }))
     process = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config),

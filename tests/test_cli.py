@@ -56,7 +56,9 @@ def run_dispatcher(args: list[str], setup: str = "", extra_path: Path | None = N
 
 
 def cli_modules(outcome: Outcome) -> set[str]:
-    return {m for m in outcome.modules if m.startswith("companion.cli.")}
+    """The sub-command modules imported (the shared output-path checks are no sub-command)."""
+    commands = {module for module, _ in cli.COMMANDS.values()}
+    return {m for m in outcome.modules if m in commands}
 
 
 def test_top_level_help_lists_every_command_and_imports_none_of_them():

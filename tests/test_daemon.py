@@ -3,6 +3,7 @@ independent MAVLink peer (libmav, its own process) on loopback."""
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import re
@@ -10,6 +11,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -62,7 +64,7 @@ def write_config(tmp_path: Path, sequence: Path, port: int, **overrides) -> Path
         "source": {"kind": "replay", "path": str(sequence), "realtime": True},
         "map": str(MAP),
         "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "origin_wait_s": 5.0, "origin_retry_s": 0.3,
-                    "statustext_interval_s": 0.2, "heartbeat_interval_s": 0.5},
+                    "statustext_interval_s": 0.2, "heartbeat_interval_s": 0.5, "duplicate_listen_s": 0.6},
         "status": {"interval_s": 0.2},
     }
     for section, values in overrides.items():
@@ -379,3 +381,255 @@ def test_a_wrong_detector_key_stops_the_daemon_naming_file_and_key(tmp_path):
     code, _, stderr = finish(start_daemon(config), timeout_s=30)
     assert code == 2
     assert f"{config}: detector.circles.min_aera_px: unknown key" in stderr and "Traceback" not in stderr
+
+
+# ------------------------------------------- issue 11: health, start order, parameters, two daemons
+
+class NotifyListener:
+    """systemd's side of the notify socket: collects every datagram (STATUS= lines among them)."""
+
+    def __init__(self, path: Path):
+        self.path = str(path)
+        self.messages: list[str] = []
+        self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._socket.bind(self.path)
+        self._socket.settimeout(0.1)
+        self._reading = threading.Event()
+        self._reading.set()
+        self._thread = threading.Thread(target=self._read, daemon=True)
+        self._thread.start()
+
+    def _read(self):
+        while self._reading.is_set():
+            try:
+                self.messages.append(self._socket.recv(4096).decode())
+            except socket.timeout:
+                pass
+
+    def statuses(self) -> list[str]:
+        return [m[len("STATUS="):] for m in self.messages if m.startswith("STATUS=")]
+
+    def close(self):
+        self._reading.clear()
+        self._thread.join()
+        self._socket.close()
+
+
+def test_a_camera_that_stalls_is_reported_and_the_heartbeat_goes_critical(tmp_path, peers):
+    """The replay delivers nothing for 3 s in the middle (a stalled camera): the status line
+    says so with 0 fps, one STATUSTEXT per change, HEARTBEAT CRITICAL during the stall and
+    ACTIVE again once frames return."""
+    rows = read_rows(HOVER / "timestamps.csv")
+    sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in rows], gap_after=12,
+                                gap_ns=3_000_000_000)
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    notify = NotifyListener(tmp_path / "notify.sock")
+    try:
+        code, _, stderr = finish(start_daemon(write_config(tmp_path, sequence, port),
+                                              env={"NOTIFY_SOCKET": notify.path}), timeout_s=40)
+    finally:
+        notify.close()
+    assert code == 0, stderr
+    truth = Truth(sequence)
+    offset = clock_offset_ns(stderr)
+    vision = peer.records("VISION_POSITION_ESTIMATE")
+    frame_of = {id(r): truth.frame[truth.at(r["fields"]["usec"] * 1000 - offset + 500)] for r in vision}
+    last_before_ns = max(r["t_ns"] for r in vision if frame_of[id(r)] <= 12)
+    first_after_ns = min(r["t_ns"] for r in vision if frame_of[id(r)] > 12)
+    heartbeats = [(r["t_ns"], r["fields"]["system_status"]) for r in peer.records("HEARTBEAT")]
+    during = [status for t, status in heartbeats if last_before_ns < t < first_after_ns]
+    after = [status for t, status in heartbeats if t > first_after_ns + 0.3e9]
+    assert 5 in during, heartbeats       # MAV_STATE_CRITICAL while no frame comes
+    assert after and set(after) == {4}   # MAV_STATE_ACTIVE once they are back
+    # the first CRITICAL heartbeat and the STATUSTEXT come during the stall, long before the frames return
+    first_critical_ns = min(t for t, status in heartbeats if status == 5)
+    assert last_before_ns < first_critical_ns < first_after_ns - 1.5e9
+    texts = [(r["t_ns"], r["fields"]["text"]) for r in peer.records("STATUSTEXT")]
+    stalled = [t for t, text in texts if "camera stalled" in text]
+    again = [t for t, text in texts if "frames again" in text]
+    assert len(stalled) == 1 and len(again) == 1, texts
+    assert last_before_ns < stalled[0] < first_after_ns - 1.5e9 and again[0] > first_after_ns - 1e9
+    statuses = notify.statuses()
+    assert any(s.startswith("  0.0 fps") and "camera stalled" in s for s in statuses), statuses
+    assert any(" fps | markers " in s and "| tracking |" in s for s in statuses)
+    assert stderr.count("camera stalled") == 1
+
+
+def test_frames_of_another_aspect_ratio_than_the_calibration_stop_the_daemon(tmp_path):
+    """A 1280x720 calibration and 640x480 frames: no silent 'no pose', a clear error."""
+    config = write_config(tmp_path, HOVER, free_port(),
+                          camera={"width": 1280, "height": 720, "hfov_deg": 70.0,
+                                  "mount": {"lever_arm_m": [0.1, 0.0, 0.05], "facing": "forward",
+                                            "tilt_down_deg": 20.0}})
+    code, _, stderr = finish(start_daemon(config))
+    assert code == 1, stderr
+    assert "calibrated for 1280x720 frames but gets 640x480" in stderr
+    assert "Traceback" not in stderr
+
+
+def test_frames_of_a_scaled_size_scale_the_intrinsics_and_the_pose_is_right(tmp_path, peers):
+    """The sequence's camera calibrated at twice the resolution (same field of view): the daemon
+    says it scales the intrinsics and the vehicle's pose is still the true one."""
+    camera = yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"]
+    assert (camera["width"], camera["height"]) == (640, 480)
+    # a 2x sensor mode: the same rays land on pixel 2 (x + 0.5) - 0.5
+    doubled = dict(camera, width=1280, height=960, fx_px=2 * camera["fx_px"], fy_px=2 * camera["fy_px"],
+                   cx_px=2 * (camera["cx_px"] + 0.5) - 0.5, cy_px=2 * (camera["cy_px"] + 0.5) - 0.5)
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    code, _, stderr = finish(start_daemon(write_config(tmp_path, HOVER, port, camera=doubled)))
+    assert code == 0, stderr
+    assert "camera calibrated for 1280x960, frames are 640x480: intrinsics scaled by 0.5" in stderr
+    truth = Truth(HOVER)
+    vision = vision_frames(peer, clock_offset_ns(stderr), truth)
+    errors = [np.linalg.norm([f["x"], f["y"], f["z"]] - truth.ned[row]) for f, row in vision]
+    assert len(vision) >= 5 and np.median(errors) < 0.05, errors
+
+
+def test_markers_but_no_pose_say_why_in_the_status_line_and_the_log(tmp_path, peers):
+    """Every pose is withheld as too uncertain: after 2 s the status line and the log say
+    'no pose' with the pose stage's reason counted, instead of a silent 'sent 0'."""
+    port = free_port()
+    peers(port, "--origin-reply", "on_set")
+    notify = NotifyListener(tmp_path / "notify.sock")
+    config = write_config(tmp_path, HOVER, port, source={"loop": True}, pose={"max_position_sd_m": 1e-6})
+    process = start_daemon(config, env={"NOTIFY_SOCKET": notify.path})
+    deadline = time.monotonic() + 20
+    while not any("no pose" in s and "uncertain" in s for s in notify.statuses()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    process.send_signal(signal.SIGTERM)
+    code, _, stderr = finish(process)
+    notify.close()
+    assert code == 0, stderr
+    line = next(s for s in notify.statuses() if "| no pose" in s and "uncertain" in s)
+    assert re.search(r"markers [1-9]\d* \| no pose \| latency - \| no pose \d+\.\d s: uncertain \d+", line), line
+    assert re.search(r"no pose for 2\.\d s: uncertain \d+", stderr)
+
+
+def test_a_parameter_that_blocks_vision_is_logged_and_told(tmp_path, peers):
+    port = free_port()
+    served = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 0, "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_YAW": 6,
+              "EK3_SRC1_VELXY": 0, "VISO_DELAY_MS": 10, "VISO_POS_X": 0, "VISO_POS_Y": 0, "VISO_POS_Z": 0}
+    peer = peers(port, "--origin-reply", "on_set", "--params", json.dumps(served))
+    process = start_daemon(write_config(tmp_path, HOVER, port, source={"loop": True}))
+    texts = peer.wait_for("STATUSTEXT", timeout_s=25)
+    deadline = time.monotonic() + 15
+    while not any("VISO_TYPE" in r["fields"]["text"] for r in peer.records("STATUSTEXT")) \
+            and time.monotonic() < deadline:
+        time.sleep(0.1)
+    process.send_signal(signal.SIGTERM)
+    code, _, stderr = finish(process)
+    assert code == 0, stderr
+    texts = [r["fields"]["text"] for r in peer.records("STATUSTEXT")]
+    assert "companion: VISO_TYPE=0 blocks vision" in texts, texts
+    assert "flight controller parameter VISO_TYPE = 0 blocks vision fusion: visual odometry is off" in stderr
+    assert not [t for t in texts if "EK3_" in t or "VISO_POS" in t]  # the rest fits
+
+
+def test_check_fc_prints_the_table_and_exits_1_on_a_blocking_parameter(peers):
+    port = free_port()
+    served = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 1, "EK3_SRC1_POSXY": 3, "EK3_SRC1_POSZ": 1, "EK3_SRC1_YAW": 6,
+              "EK3_SRC1_VELXY": 0, "VISO_DELAY_MS": 10, "VISO_POS_X": 0.1, "VISO_POS_Y": 0, "VISO_POS_Z": 0}
+    peers(port, "--params", json.dumps(served))
+    result = subprocess.run([sys.executable, "-m", "companion", "check-fc", f"udpout:127.0.0.1:{port}",
+                             "--config", str(write_config(Path(tempfile.mkdtemp()), HOVER, port))],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1, result.stderr
+    lines = {line.split()[0]: line for line in result.stdout.splitlines() if line.strip()}
+    assert re.match(r"EK3_SRC1_POSXY\s+3\s+6 \(ExternalNav\)\s+BLOCKS\s+horizontal position from GPS", lines["EK3_SRC1_POSXY"])
+    assert re.match(r"EK3_SRC1_POSZ\s+1\s+.*degrades\s+height from baro", lines["EK3_SRC1_POSZ"])
+    # the hover sequence's camera sits 0.1 m forward of the body origin: VISO_POS_X = 0.1 applies it twice
+    assert "degrades" in lines["VISO_POS_X"] and "applied twice" in lines["VISO_POS_X"]
+    assert re.match(r"VISO_TYPE\s+1\s+1 \(MAVLink\)\s+ok", lines["VISO_TYPE"])
+    assert "1 parameter(s) block vision fusion, 2 degrade it" in result.stdout
+
+
+def test_check_fc_with_nothing_listening_is_a_clear_error():
+    result = subprocess.run([sys.executable, "-m", "companion", "check-fc", f"udpout:127.0.0.1:{free_port()}",
+                             "--timeout-s", "1.5"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith("companion check-fc: no flight controller answered on udpout:")
+    assert "Traceback" not in result.stderr
+
+
+def test_a_second_daemon_on_the_same_vehicle_refuses_to_run(tmp_path):
+    """Two daemons with the same ids through one router to the FC: the second exits with a
+    clear error and never sends vision; the first goes on."""
+    from mavlink_peer import UdpRouter
+    fc_port, router_port = free_port(), free_port()
+    fc = PeerProcess(fc_port, tmp_path / "fc.jsonl", "--origin-reply", "on_set", duration_s=60).wait_listening()
+    router = UdpRouter(router_port, fc_port)
+    first = start_daemon(write_config(tmp_path, HOVER, router_port, source={"loop": True}))
+    try:
+        fc.wait_for("VISION_POSITION_ESTIMATE", count=10, timeout_s=20)
+        second_dir = tmp_path / "second"
+        second_dir.mkdir()
+        code, _, stderr = finish(start_daemon(write_config(second_dir, HOVER, router_port, source={"loop": True})),
+                                 timeout_s=30)
+        vision_after_ns = time.monotonic_ns()
+        fc.wait_for("VISION_POSITION_ESTIMATE", count=len(fc.records("VISION_POSITION_ESTIMATE")) + 10)
+        assert first.poll() is None
+        first.send_signal(signal.SIGTERM)
+        first_code, _, first_stderr = finish(first)
+    finally:
+        if first.poll() is None:
+            first.kill()
+        router.stop()
+        fc.stop()
+    assert code == 1, stderr
+    assert "refusing to run: another companion sends as system 1 component 197" in stderr
+    assert "Traceback" not in stderr
+    assert first_code == 0, first_stderr
+    vision_id = 102
+    assert router.sent_by[0].count(vision_id) > 20 and vision_id not in router.sent_by[1]
+    assert any(r["t_ns"] > vision_after_ns for r in fc.records("VISION_POSITION_ESTIMATE"))
+
+
+def test_a_looping_replay_whose_files_vanish_does_not_flood_the_log(tmp_path, peers):
+    """loop: true and the frames deleted mid-run: a few log lines and one 'camera lost', not one
+    line per frame (the landed code wrote 480,000 lines in 16 s)."""
+    sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in read_rows(HOVER / "timestamps.csv")])
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    process = start_daemon(write_config(tmp_path, sequence, port, source={"loop": True}))
+    peer.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=20)
+    (sequence / "frames").rename(tmp_path / "gone")
+    texts = []
+    deadline = time.monotonic() + 15
+    while not any("camera lost" in t for t in texts) and time.monotonic() < deadline:
+        time.sleep(0.1)
+        texts = [r["fields"]["text"] for r in peer.records("STATUSTEXT")]
+    time.sleep(3.0)
+    process.send_signal(signal.SIGTERM)
+    code, _, stderr = finish(process)
+    assert code == 0, stderr
+    lines = stderr.splitlines()
+    assert len(lines) < 40, f"{len(lines)} log lines:\n" + "\n".join(lines[:60])
+    assert sum("camera lost" in line for line in lines) == 1
+    assert [t for t in texts if "camera lost" in t] == [next(t for t in texts if "camera lost" in t)]
+    assert any(r["fields"]["system_status"] == 5 for r in peer.records("HEARTBEAT"))
+    corrupt = int(re.search(r"corrupt (\d+)", stderr).group(1))
+    assert 0 < corrupt < 500, corrupt  # paced at the recording's 15 fps and backed off, not a tight loop
+
+
+def test_log_level_chooses_what_is_logged(tmp_path):
+    """Two unreadable frames in a row: the first is a warning at any level, the second (within the
+    throttle's 5 s) only at debug; info lines only from info down."""
+    sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in read_rows(HOVER / "timestamps.csv")])
+    rows = read_rows(sequence / "timestamps.csv")
+    for row in rows[10:12]:
+        (sequence / row["file"]).unlink()
+    config = write_config(tmp_path, sequence, free_port())
+
+    def run(level: str) -> str:
+        result = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config), "--log-level", level],
+                                capture_output=True, text=True, timeout=60)
+        assert result.returncode == 0, result.stderr
+        return result.stderr
+
+    quiet, chatty = run("warning"), run("debug")
+    assert " INFO " not in quiet and "stage total" not in quiet
+    assert quiet.count("is unreadable") == 1 and rows[10]["file"] in quiet
+    assert chatty.count("is unreadable") == 2 and f"DEBUG companion.capture.replay: replay: {sequence / rows[11]['file']}" in chatty
+    assert "stage total" in chatty

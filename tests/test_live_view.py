@@ -36,7 +36,7 @@ def make_daemon(tmp_path: Path, http="127.0.0.1:0") -> Daemon:
     config = config_from_dict({
         "source": {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
         "map": str(MAP),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0},
         "status": {"http": http},
     }, tmp_path / "daemon.yaml")
     return Daemon(config)

@@ -1,6 +1,7 @@
 """MavlinkLink against an independent MAVLink peer (libmav, its own process) on loopback."""
 from __future__ import annotations
 
+import json
 import select
 import threading
 import time
@@ -88,7 +89,8 @@ def test_origin_is_requested_confirmed_and_sent_before_any_vision(peers, links):
     publisher.stop()
     received = peer.records()
     origin_msgs = peer.records("SET_GPS_GLOBAL_ORIGIN")
-    request = [r for r in peer.records("COMMAND_LONG") if r["fields"]["command"] == 512]
+    request = [r for r in peer.records("COMMAND_LONG")
+               if r["fields"]["command"] == 512 and r["fields"]["param1"] == 49]
     reply_t_ns = first_time(peer.records(kind="sent"), "GPS_GLOBAL_ORIGIN")
     assert origin_msgs[0]["t_ns"] < request[0]["t_ns"] < reply_t_ns < vision[0]["t_ns"]
     assert origin_msgs[0]["fields"]["latitude"] == 473977419
@@ -118,7 +120,7 @@ def test_fc_that_never_confirms_does_not_block_the_stream(peers, links):
     link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_wait_s=1.0,
                  origin_retry_s=0.2, heartbeat_interval_s=0.2, statustext_interval_s=0.1)
     publisher = Publisher(link)
-    vision = peer.wait_for("VISION_POSITION_ESTIMATE", count=3)
+    peer.wait_for("VISION_POSITION_ESTIMATE", count=3)
     statustexts = peer.wait_for("STATUSTEXT")
     publisher.stop()
     assert link.counters.origin_timeouts == 1 and link.counters.origin_confirmed == 0
@@ -245,6 +247,8 @@ def test_serial_device_with_baud_rate_over_a_pseudo_terminal(links):
     deadline = time.monotonic() + 10
     while "SET_GPS_GLOBAL_ORIGIN" not in {m.get_type() for m in seen} and time.monotonic() < deadline:
         os.write(master, mm.mavlink2.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3).pack(fc))
+        # an ArduPilot FC's EKF says it is initialised: the origin may go now
+        os.write(master, mm.ardupilot.MAVLink_ekf_status_report_message(mm.EKF_READY_FLAG, 0, 0, 0, 0, 0).pack(fc))
         time.sleep(0.05)
         while True:
             ready = select.select([master], [], [], 0)[0]
@@ -262,3 +266,113 @@ def test_serial_device_with_baud_rate_over_a_pseudo_terminal(links):
         time.sleep(0.05)
     assert link.counters.transport_errors >= 2  # lost, then a failed reopen at least
     assert all(thread.is_alive() for thread in link._threads)
+
+
+# ------------------------------------------------ issue 11: start order, parameters, two companions
+
+def event_time(peer: PeerProcess, name: str, timeout_s: float = 15.0) -> int:
+    return peer.wait_for(name, kind="event", timeout_s=timeout_s)[0]["t_ns"]
+
+
+def test_origin_waits_for_the_ekf_so_the_vehicle_ends_up_with_origin_and_home(peers, links):
+    """Companion and FC power up together: the FC's EKF initialises 3 s later. An origin sent
+    before that is acknowledged but lost (ArduPilot), so the link waits for EKF_STATUS_REPORT."""
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set", "--ekf-init-s", "3", "--home", "auto")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_wait_s=5.0, origin_retry_s=0.3,
+                 heartbeat_interval_s=0.2)
+    publisher = Publisher(link)
+    home_ns = event_time(peer, "home set")
+    publisher.stop()
+    initialised_ns = event_time(peer, "ekf initialised")
+    assert not peer.records("origin lost", kind="event")
+    assert first_time(peer.records(), "SET_GPS_GLOBAL_ORIGIN") > initialised_ns
+    assert first_time(peer.records(), "VISION_POSITION_ESTIMATE") > event_time(peer, "origin set")
+    assert initialised_ns < home_ns
+    # the EKF was asked for while waiting, and the home the FC reports is known to the link
+    assert [r for r in peer.records("COMMAND_LONG") if r["fields"]["param1"] == 193]
+    deadline = time.monotonic() + 5
+    while link.home is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert link.home is not None and link.home.latitude_deg == pytest.approx(ORIGIN.latitude_deg)
+
+
+def test_a_fc_without_home_is_asked_to_set_it_here(peers, links):
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set", "--home", "command")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_retry_s=0.3,
+                 heartbeat_interval_s=0.2, home_wait_s=1.0)
+    publisher = Publisher(link)
+    event_time(peer, "home set")
+    publisher.stop()
+    set_home = [r for r in peer.records("COMMAND_LONG") if r["fields"]["command"] == 179]
+    assert set_home and set_home[0]["fields"]["param1"] == 1.0  # MAV_CMD_DO_SET_HOME, at the current position
+    assert set_home[0]["t_ns"] > first_time(peer.records(), "VISION_POSITION_ESTIMATE")
+
+
+def test_a_fc_that_gets_no_home_is_reported(peers, links):
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set", "--home", "never")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_retry_s=0.2,
+                 heartbeat_interval_s=0.2, home_wait_s=0.5, statustext_interval_s=0.1)
+    publisher = Publisher(link)
+    texts = [r["fields"]["text"] for r in peer.wait_for("STATUSTEXT")]
+    publisher.stop()
+    assert any("no home" in text for text in texts), texts
+    assert link.home is None
+
+
+def test_parameters_are_read_when_the_fc_appears(peers, links):
+    port = free_port()
+    served = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 0, "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 1, "EK3_SRC1_YAW": 6,
+              "EK3_SRC1_VELXY": 0, "VISO_DELAY_MS": 10, "VISO_POS_X": 0.1, "VISO_POS_Y": 0.0}  # no VISO_POS_Z
+    peer = peers(port, "--params", json.dumps(served))
+    link = MavlinkLink(LinkParams(connection=f"udpout:127.0.0.1:{port}", origin_retry_s=0.2,
+                                  heartbeat_interval_s=0.2))
+    got = []
+    link.on_parameters = lambda autopilot, values: got.append((autopilot, values))
+    link.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        link.close()
+    assert got, "no parameters reported"
+    autopilot, values = got[0]
+    assert autopilot == 3
+    assert values == {**{k: pytest.approx(float(v)) for k, v in served.items()}, "VISO_POS_Z": None}
+    requests = [r["fields"]["param_id"] for r in peer.records("PARAM_REQUEST_READ")]
+    assert requests.count("VISO_POS_Z") == 3 and requests.count("VISO_TYPE") == 1
+
+
+def test_a_second_companion_with_our_ids_refuses_to_stream(tmp_path, links):
+    """Two companions through one router to the FC: the one started later sees the first's
+    HEARTBEAT (same system and component id, another process) and never sends vision."""
+    from mavlink_peer import UdpRouter
+    fc_port, router_port = free_port(), free_port()
+    fc = PeerProcess(fc_port, tmp_path / "fc.jsonl").wait_listening()
+    router = UdpRouter(router_port, fc_port)
+    try:
+        first = links(connection=f"udpout:127.0.0.1:{router_port}", heartbeat_interval_s=0.3)
+        first_publisher = Publisher(first)
+        fc.wait_for("VISION_POSITION_ESTIMATE", count=5)
+        time.sleep(0.01)  # a later start time
+        second = links(connection=f"udpout:127.0.0.1:{router_port}", heartbeat_interval_s=0.3)
+        second_publisher = Publisher(second)
+        deadline = time.monotonic() + 10
+        while second.state is not LinkState.DUPLICATE and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.0)
+        second_publisher.stop()
+        first_publisher.stop()
+    finally:
+        router.stop()
+        fc.stop()
+    assert second.state is LinkState.DUPLICATE and "another companion" in second.duplicate
+    assert "before this one" in second.duplicate
+    assert first.state is LinkState.STREAMING and first.duplicate is not None  # told, and goes on
+    vision_id = mm.mavlink2.MAVLINK_MSG_ID_VISION_POSITION_ESTIMATE
+    first_ids, second_ids = router.sent_by[0], router.sent_by[1]
+    assert first_ids.count(vision_id) > 30 and vision_id not in second_ids
+    assert second.counters.held_back > 0

@@ -101,11 +101,32 @@ def test_odometry_quality_falls_with_uncertainty_but_stays_known():
 
 
 def test_heartbeat_is_an_onboard_controller_not_an_autopilot():
-    decoded, _ = roundtrip(mm.heartbeat(active=True))
+    decoded, _ = roundtrip(mm.heartbeat(mm.mavlink2.MAV_STATE_ACTIVE, instance=0xDEADBEEF))
     assert decoded.type == 18 and decoded.autopilot == 8
     assert decoded.system_status == mm.mavlink2.MAV_STATE_ACTIVE
-    assert mm.heartbeat(active=False).system_status == mm.mavlink2.MAV_STATE_STANDBY
+    assert decoded.custom_mode == 0xDEADBEEF  # the process's token travels in custom_mode
+    assert mm.heartbeat(mm.mavlink2.MAV_STATE_CRITICAL).system_status == 5  # MAV_STATE_CRITICAL in common.xml
     assert decoded.get_srcSystem() == 1 and decoded.get_srcComponent() == 197
+
+
+def test_ekf_is_ready_with_its_attitude_once_initialised():
+    # EKF_STATUS_FLAGS of ardupilotmega.xml: EKF_ATTITUDE = 1, EKF_UNINITIALIZED = 1024
+    assert mm.ekf_ready(1 | 2 | 4)
+    assert not mm.ekf_ready(1024) and not mm.ekf_ready(1 | 1024) and not mm.ekf_ready(2 | 4)
+
+
+def test_param_value_as_ardupilot_and_as_px4_encode_it():
+    # ArduPilot: the float is the value; PX4 (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE): an INT32
+    # parameter's bytes sit in the float field.
+    import struct
+    ardupilot = mm.mavlink2.MAVLink_param_value_message(b"VISO_TYPE", 1.0, 2, 100, 7)
+    assert mm.param_value(ardupilot, bytewise=False) == ("VISO_TYPE", 1.0)
+    bits_of_15 = struct.unpack("<f", struct.pack("<i", 15))[0]
+    px4 = mm.mavlink2.MAVLink_param_value_message(b"EKF2_EV_CTRL", bits_of_15, 6, 900, 3)
+    decoded, _ = roundtrip(px4)
+    assert mm.param_value(decoded, bytewise=True) == ("EKF2_EV_CTRL", 15.0)
+    delay = mm.mavlink2.MAVLink_param_value_message(b"EKF2_EV_DELAY", 35.5, 9, 900, 4)  # REAL32: a float
+    assert mm.param_value(delay, bytewise=True) == ("EKF2_EV_DELAY", 35.5)
 
 
 def test_set_gps_global_origin_units():

@@ -92,27 +92,62 @@ def test_png_markers_are_detected_by_aruco_at_the_sidecar_corners_and_decode(tmp
         assert result.mismatched_cells == 0 and result.erased_cells == 0
 
 
-def test_png_size_pixels_per_cell_and_phys_print_the_inner_square_at_size(tmp_path):
-    for dpi in ("300", "600", "97"):
-        out = tmp_path / dpi
-        assert run_markers(out, "--symbols", "C", "--size-mm", "42.5", "--dpi", dpi, "--quiet-zone-cells", "2") == 0
+def inner_square_run_px(image: np.ndarray, sidecar: dict) -> int:
+    """The inner square's width in pixels, measured on the image: the black run of its top border row."""
+    corners = np.array(sidecar["inner_corners_px"])
+    row = int(round(corners[0, 1] + sidecar["px_per_cell"] / 2))  # the middle of the top border row
+    black = image[row] < 128
+    x = int(round(corners[0, 0] + 1))
+    left, right = x, x
+    while left > 0 and black[left - 1]:
+        left -= 1
+    while right + 1 < len(black) and black[right + 1]:
+        right += 1
+    return right - left + 1
+
+
+def png_resolution_px_per_m(png: Path) -> int:
+    phys = [body for kind, body in png_chunks(png.read_bytes()) if kind == b"pHYs"]
+    assert len(phys) == 1
+    ppm_x, ppm_y, unit = struct.unpack(">IIB", phys[0])
+    assert ppm_x == ppm_y and unit == 1
+    return ppm_x
+
+
+def test_png_is_written_at_the_asked_dpi_and_prints_the_inner_square_at_size(tmp_path):
+    """Printed at the --dpi it says, the inner square is --size-mm to within half a pixel (the
+    landed code wrote 301.9 dpi and whole pixels per cell: 0.6 % large when printed at 300 dpi)."""
+    for dpi in (300, 600, 97):
+        out = tmp_path / str(dpi)
+        assert run_markers(out, "--symbols", "C", "--size-mm", "35", "--dpi", str(dpi)) == 0
         png = out / "marker-C-p2.png"
         sidecar = json.loads((out / "marker-C-p2.json").read_text())
-        ppc, q = sidecar["px_per_cell"], sidecar["quiet_zone_cells"]
-        cell_px_at_dpi = 42.5 / 8 / 25.4 * float(dpi)
-        assert isinstance(ppc, int) and abs(ppc - cell_px_at_dpi) <= 0.5
-        side_px = (sidecar["cells"] + 2 * q) * ppc
-        assert cv2.imread(str(png), cv2.IMREAD_GRAYSCALE).shape == (side_px, side_px)
-        assert sidecar["image_px"] == [side_px, side_px]
+        ppm = png_resolution_px_per_m(png)
+        assert ppm == round(dpi / 0.0254)          # the PNG's unit: whole pixels per metre
+        assert ppm * 0.0254 == pytest.approx(dpi, abs=0.5 * 0.0254)  # half a px/m: the format's own step
+        image = cv2.imread(str(png), cv2.IMREAD_GRAYSCALE)
+        inner_px = inner_square_run_px(image, sidecar)
+        printed_mm = inner_px / dpi * 25.4       # printed at the DPI the file states
+        assert abs(printed_mm - 35.0) <= 0.5 * 25.4 / dpi + 1e-9, (dpi, inner_px, printed_mm)
+        assert inner_px == sidecar["inner_px"] and sidecar["size_mm"] == pytest.approx(inner_px / ppm * 1000)
+        assert list(image.shape[::-1]) == sidecar["image_px"]
 
-        phys = [body for kind, body in png_chunks(png.read_bytes()) if kind == b"pHYs"]
-        assert len(phys) == 1
-        ppm_x, ppm_y, unit = struct.unpack(">IIB", phys[0])
-        assert ppm_x == ppm_y and unit == 1
-        printed_inner_mm = 8 * ppc / ppm_x * 1000.0
-        assert printed_inner_mm == pytest.approx(sidecar["size_mm"], abs=1e-9)
-        assert printed_inner_mm == pytest.approx(42.5, abs=0.01)
-        assert sidecar["dpi"] == pytest.approx(ppm_x * 0.0254)
+
+def test_png_of_a_larger_marker_and_quiet_zone_keeps_the_size(tmp_path):
+    assert run_markers(tmp_path, "--symbols", "C", "--size-mm", "42.5", "--dpi", "300", "--quiet-zone-cells", "2") == 0
+    sidecar = json.loads((tmp_path / "marker-C-p2.json").read_text())
+    image = cv2.imread(str(tmp_path / "marker-C-p2.png"), cv2.IMREAD_GRAYSCALE)
+    assert inner_square_run_px(image, sidecar) == round(42.5 / 25.4 * 300)  # 502 px
+    # the quiet zone, 2 cells of 502 / 8 px each side, is white up to the grid
+    assert abs(image.shape[0] - (14 + 4) * 502 / 8) <= 1 and image[:125, :].min() == 255
+
+
+def test_a_png_too_large_to_make_is_refused_before_any_work(tmp_path, capsys):
+    for size, lower_dpi in (("3000", "--dpi 50 or less"), ("1e6", "")):
+        assert run_markers(tmp_path, "--symbols", "A", "--size-mm", size) == 2
+        err = capsys.readouterr().err
+        assert "--format svg or --format pdf" in err and lower_dpi in err, err
+    assert not list(tmp_path.iterdir())
 
 
 def test_png_sidecar_circles_match_the_drawn_circles(tmp_path):
@@ -475,10 +510,61 @@ def test_non_positive_size_is_a_clear_error(tmp_path, capsys, size):
     assert "--size-mm must be a positive number" in capsys.readouterr().err
 
 
-def test_marker_too_large_for_the_page_is_a_clear_error(tmp_path, capsys):
-    assert run_markers(tmp_path, "--symbols", "A", "--format", "pdf", "--size-mm", "150") == 2
+def test_the_readme_example_tiles_150_mm_markers_over_a4_pages_that_join_into_the_marker(tmp_path, capsys):
+    """`companion markers --symbols A,B,7,HOME --parity 4 --size-mm 150 --format pdf --page a4` (the README's
+    example, refused by the landed code): every marker on several pages; rendered by poppler, the tiles
+    of each marker put side by side are that marker, 150 mm across its inner square."""
+    assert cli.main(["markers", "--symbols", "A,B,7,HOME", "--parity", "4", "--size-mm", "150", "--format", "pdf",
+                     "--page", "a4", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    # one page: the 20-cell cut square plus 2 x 4 mm of crop marks in 210 - 2 x 8 mm: 186 mm = 20 cells of
+    # 9.3 mm, an inner square of 8 x 9.3 = 74.4 mm
+    assert "each tiled on 2 x 3 a4 pages (24 pages)" in out and "the largest that fits one a4 page is 74.4 mm" in out
+    (pdf_path,) = tmp_path.glob("*.pdf")
+    layout = MarkerLayout(4)
+    marker = printing.MarkerPrint(layout, 0, 150.0, 1)
+    tiles = printing.tile_geometry(marker, "a4")
+    dpi = 40
+    px_per_mm = dpi / 25.4
+    origin_mm = printing.PAGE_MARGIN_MM + printing.CROP_MARK_GAP_MM + printing.CROP_MARK_LENGTH_MM
+    for index, symbol in enumerate(["A", "B", "7", "HOME"]):
+        rows = []
+        for row in range(tiles.rows):
+            pieces = []
+            for column in range(tiles.columns):
+                page = render_page(pdf_path, 1 + index * tiles.per_marker + row * tiles.columns + column, dpi)
+                width_mm = (tiles.column_cells[column + 1] - tiles.column_cells[column]) * marker.cell_mm
+                height_mm = (tiles.row_cells[row + 1] - tiles.row_cells[row]) * marker.cell_mm
+                x0, y0 = round(origin_mm * px_per_mm), round(origin_mm * px_per_mm)
+                pieces.append(page[y0:y0 + round(height_mm * px_per_mm), x0:x0 + round(width_mm * px_per_mm)])
+            rows.append(np.hstack([p[:min(q.shape[0] for q in pieces)] for p in pieces]))
+        joined = np.vstack([r[:, :min(q.shape[1] for q in rows)] for r in rows])
+        found = aruco_detect(joined, "6x6")
+        marker_id = layout.dictionary.id_of(symbol)
+        assert list(found) == [marker_id], symbol
+        corners = found[marker_id]
+        side_mm = np.mean(np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)) / px_per_mm
+        assert side_mm == pytest.approx(150.0, abs=1.5)  # within about two pixels at 40 dpi
+        result = GridDecoder(layout).decode_algebraic(sample_grid(joined, layout, corners))
+        assert result is not None and result.symbol == symbol and result.mismatched_cells == 0
+
+
+def test_a_marker_too_large_for_one_page_says_the_largest_that_fits(tmp_path):
+    marker = printing.MarkerPrint(MarkerLayout(2), 0, 150.0, 1)
+    with pytest.raises(printing.PrintingError, match=r"the largest that fits is \d+\.\d mm"):
+        printing.sheet_geometry([marker], "a4")
+    largest = printing.largest_on_one_page_mm(marker, "a4")
+    assert printing.fits_one_page([printing.MarkerPrint(MarkerLayout(2), 0, largest, 1)], "a4")
+    assert not printing.fits_one_page([printing.MarkerPrint(MarkerLayout(2), 0, largest + 0.1, 1)], "a4")
+
+
+@pytest.mark.parametrize("out", ["/proc/companion-markers", "a-file", "a-file/below"])
+def test_an_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys, out):
+    (tmp_path / "a-file").write_text("")
+    path = out if out.startswith("/") else str(tmp_path / out)
+    assert cli.main(["markers", "--symbols", "A", "--out", path]) == 2
     err = capsys.readouterr().err
-    assert "a4 page" in err and "--size-mm" in err
+    assert err.startswith(f"companion markers: --out {path}: ") and err.count("\n") == 1, err
 
 
 def test_quiet_zone_narrower_than_the_border_is_refused(tmp_path, capsys):

@@ -60,8 +60,8 @@ def run_companion(config: Path, *options: str) -> subprocess.CompletedProcess:
 
 def write_config(folder: Path, source: dict, **sections) -> Path:
     data = {"source": source,
-            # nothing listens: stream at once instead of waiting for an origin handshake
-            "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0}, **sections}
+            # nothing listens: stream at once (no origin handshake, no listening for another companion)
+            "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0}, **sections}
     path = folder / f"config{len(list(folder.glob('config*.yaml')))}.yaml"
     path.write_text(yaml.safe_dump(data))
     return path
@@ -153,7 +153,7 @@ def test_the_duration_limit_stops_the_recording_not_the_daemon(tmp_path):
     config = config_from_dict({
         "source": {"kind": "replay", "path": str(HOVER), "realtime": True},
         "map": str(MAP),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0},
         "record": {"path": str(folder), "max_duration_s": 0.5},
     }, tmp_path / "daemon.yaml")
     daemon = Daemon(config)
@@ -202,7 +202,7 @@ def test_recording_and_pipeline_threads_end_when_the_daemon_stops(tmp_path):
     config = config_from_dict({
         "source": {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
         "map": str(MAP),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0},
         "record": str(tmp_path / "flight"),
     }, tmp_path / "daemon.yaml")
     daemon = Daemon(config)
@@ -285,7 +285,7 @@ def test_a_nearly_full_disk_stops_the_recording_cleanly(tmp_path):
     config = config_from_dict({
         "source": {"kind": "replay", "path": str(HOVER), "realtime": False},
         "map": str(MAP),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0},
         "record": {"path": str(tmp_path / "flight"), "min_free_mb": floor_mb},
     }, tmp_path / "daemon.yaml")
     daemon = Daemon(config)

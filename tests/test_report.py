@@ -37,7 +37,7 @@ def recording(tmp_path_factory) -> Path:
     config = config_from_dict({
         "source": {"kind": "replay", "path": str(HOVER), "realtime": False},
         "map": str(MAP),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0},
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0},
         "record": str(folder),
     }, folder.parent / "daemon.yaml")
     assert Daemon(config).run() == 0

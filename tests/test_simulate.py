@@ -314,7 +314,9 @@ def test_sequence_folder_round_trip(tmp_path, world, camera, facility_map):
     np.testing.assert_allclose(stored.K, camera.K)
     np.testing.assert_allclose(stored.dist, camera.dist)
     np.testing.assert_allclose(stored.T_body_camera, camera.T_body_camera, atol=1e-12)
-    assert sequence.map_path().resolve() == MAP.resolve()
+    # the map travels with the sequence: a copy beside it, the original named for reference
+    assert sequence.map_path() == out / "map.yaml" and sequence.map_path().read_bytes() == MAP.read_bytes()
+    assert sequence.info["map_source"] == str(MAP.resolve())
     assert sequence.info["trajectory"]["pattern"] == "path" and sequence.info["seed"] == 4
     # groundtruth.csv reads back as a trajectory
     replay = tj.read_trajectory_csv(out / "groundtruth.csv")
@@ -393,6 +395,7 @@ def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, came
 @pytest.mark.parametrize("name", ["warehouse_hover", "warehouse_aisle"])
 def test_committed_sequences_ground_truth(name, facility_map):
     sequence = simulate.read_sequence(SEQUENCES[name])
+    # sequences made before maps travelled with them name the repository's map, still found
     assert sequence.map_path().resolve() == MAP.resolve()
     count = sum(1 for _ in sequence.images())
     assert count == len(sequence.t_ns) == sequence.info["frames"]

@@ -299,3 +299,81 @@ def test_missing_v4l2_camera_is_retried_with_backoff_until_closed():
     source.close()
     assert not source._thread.is_alive()
     assert source.error is None
+
+
+# ------------------------------------------------ issue 11: nothing floods
+
+def test_a_looping_replay_whose_files_vanish_is_paced_reported_once_and_retried(tmp_path, caplog):
+    """The files of a looping real-time replay are deleted while it runs: the unreadable
+    frames are paced at the recorded rate (not read in a tight loop), the log says so a
+    few times (not once per frame), the source reports itself lost, and frames put back
+    are played again."""
+    folder = write_sequence(tmp_path / "seq", 10)  # 10 frames at 50 fps: 0.2 s a loop
+    source = replay_source(folder, realtime=True, loop=True)
+    source.backoff_initial_s, source.backoff_max_s = 0.05, 0.2
+    caplog.set_level("DEBUG", logger="companion.capture")
+    source.start()
+    assert len(drain_until(source, 10, took=lambda f: f)) == 10
+    hidden = tmp_path / "hidden"
+    (folder / "frames").rename(hidden)
+    deadline = time.monotonic() + 10
+    while source.lost_reason is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    lost_reason = source.lost_reason
+    time.sleep(1.5)
+    corrupt_while_gone = source.counters.corrupt
+    records_while_gone = [r for r in caplog.records if r.levelno >= 30]
+    hidden.rename(folder / "frames")
+    back = drain_until(source, 10, took=lambda f: f)
+    source.close()
+    assert lost_reason is not None and "unreadable" in lost_reason
+    # At 50 fps, 1.5 s and more of vanished files are at most a few hundred frames, not hundreds of thousands.
+    assert 0 < corrupt_while_gone < 200, corrupt_while_gone
+    assert len(records_while_gone) <= 4, [r.getMessage() for r in records_while_gone]
+    assert any("unreadable" in r.getMessage() for r in records_while_gone)
+    assert len(back) == 10 and source.lost_reason is None
+    assert any("readable again" in r.getMessage() for r in caplog.records)
+
+
+def test_v4l2_cannot_open_names_a_missing_device(tmp_path):
+    from companion.capture.v4l2 import device_problem
+
+    problem = device_problem(str(tmp_path / "video7"))
+    assert "does not exist" in problem and "video7" in problem
+
+
+def test_v4l2_cannot_open_names_the_group_that_may_read_the_device():
+    """A device node this user may not open: the message names its group. Checked as an
+    unprivileged user (a forked child that drops root), so that root's override does not
+    hide the problem."""
+    import grp
+    import os
+    import shutil
+    import tempfile
+
+    from companion.capture.v4l2 import device_problem
+
+    folder = Path(tempfile.mkdtemp(dir="/tmp"))
+    try:
+        os.chmod(folder, 0o755)
+        device = folder / "video5"
+        device.write_bytes(b"")
+        group = grp.getgrgid(os.stat(device).st_gid).gr_name
+        os.chmod(device, 0o660 if os.geteuid() == 0 else 0o000)
+        read_end, write_end = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: drop root if we have it, diagnose, report through the pipe
+            try:
+                if os.geteuid() == 0:
+                    os.setgid(65534)
+                    os.setuid(65534)
+                os.write(write_end, device_problem(str(device)).encode())
+            finally:
+                os._exit(0)
+        os.close(write_end)
+        with os.fdopen(read_end) as pipe:
+            problem = pipe.read()
+        os.waitpid(pid, 0)
+    finally:
+        shutil.rmtree(folder)
+    assert "permission" in problem and f"group {group}" in problem, problem

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.capture.source import SourceError, ThreadedSource, to_gray
+from companion.capture.source import LogThrottle, SourceError, ThreadedSource, to_gray
 from companion.types import Frame
 from companion.yaml_input import read_yaml
 
@@ -27,6 +27,10 @@ SEQUENCE_FILE = "sequence.yaml"
 
 
 TIMESTAMPS_FILE = "timestamps.csv"
+
+
+# Unreadable frames spanning this much recorded time make the replay "lost" until one reads again.
+LOST_AFTER_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -54,11 +58,12 @@ def image_files(folder: Path) -> list[Path]:
     return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
-def open_recording(path, fps: float | None = None) -> Recording:
+def open_recording(path, fps: float | None = None, fps_option: str = "source.fps") -> Recording:
     """A sequence folder (timestamps.csv), a video file, or a folder of images.
 
     fps: frame rate for a video or image folder without timestamps (a video's
-    own rate is used when not given).
+    own rate is used when not given); fps_option: how the caller's user gives
+    it (the config key, or a command's flag), named in the errors.
     """
     path = Path(path)
     if path.is_dir() and (path / TIMESTAMPS_FILE).exists():
@@ -68,7 +73,7 @@ def open_recording(path, fps: float | None = None) -> Recording:
         if not files:
             raise SourceError(f"{path}: no {TIMESTAMPS_FILE} and no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
         if not fps:
-            raise SourceError(f"{path}: an image folder without {TIMESTAMPS_FILE} needs source.fps")
+            raise SourceError(f"{path}: an image folder without {TIMESTAMPS_FILE} needs {fps_option}")
         return _evenly_spaced(path, len(files), fps, files=files, video=None)
     if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
         capture = cv2.VideoCapture(str(path))
@@ -78,7 +83,7 @@ def open_recording(path, fps: float | None = None) -> Recording:
             raise SourceError(f"{path}: not a readable video")
         rate = fps or video_fps
         if not rate or rate <= 0:
-            raise SourceError(f"{path}: the video states no frame rate; set source.fps")
+            raise SourceError(f"{path}: the video states no frame rate; set {fps_option}")
         return _evenly_spaced(path, count, rate, files=None, video=path)
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder")
@@ -124,6 +129,39 @@ def read_sequence_info(folder) -> dict:
     return read_yaml(path, SourceError, "sequence info")
 
 
+def sequence_map_path(folder, info: dict | None = None) -> Path | None:
+    """The facility map a sequence folder's ``sequence.yaml`` names, or None when it names none.
+
+    The map is relative to the folder: ``companion simulate`` puts a copy in it
+    (``map.yaml``), so a copied folder keeps its map. Older sequences named it
+    relative to the repository they were made in (``../../maps/x.yaml``): it is
+    looked for there too, and in the folders above. SourceError when named but
+    found nowhere, naming sequence.yaml and the way out (``--map``, ``map:``).
+    """
+    folder = Path(folder)
+    info = read_sequence_info(folder) if info is None else info
+    name = info.get("map")
+    if name is None:
+        return None
+    if not isinstance(name, str) or not name:
+        raise SourceError(f"{folder / SEQUENCE_FILE}: map: must be a path, got {name!r}")
+    candidate = Path(name)
+    if candidate.is_absolute():
+        if candidate.is_file():
+            return candidate
+    else:
+        for base in [folder, *folder.resolve().parents]:
+            if (base / candidate).is_file():
+                return base / candidate
+        # an old sequence's "../../maps/x.yaml" copied elsewhere: the same path below a folder above
+        tail = Path(*[part for part in candidate.parts if part != ".."])
+        for base in folder.resolve().parents:
+            if (base / tail).is_file():
+                return base / tail
+    raise SourceError(f"{folder / SEQUENCE_FILE}: map: {name} is found neither beside the sequence nor in a folder "
+                      "above it; give the map (--map, or map: in a config)")
+
+
 class ReplaySource(ThreadedSource):
     """Plays a Recording, paced in real time or as fast as the pipeline takes frames.
 
@@ -131,17 +169,30 @@ class ReplaySource(ThreadedSource):
     the recording for each completed loop), so skipped frames leave gaps.
     ``clock_offset_ns``: in real time, ``Frame.t_ns = t_recorded + clock_offset_ns``
     (set when the replay starts; the next loop adds the recording's length).
+
+    Unreadable frames are skipped and counted, and keep their place in time
+    (a real-time replay whose files vanished waits for each frame's time as
+    if it played it); the log names the first of a run and then at most one
+    a few seconds. After ``LOST_AFTER_S`` of recorded time without a readable
+    frame the replay is lost (``lost_reason``, logged once); a loop in which
+    nothing could be read is retried after a backoff (``backoff_initial_s``
+    doubling to ``backoff_max_s``), and the first readable frame ends it.
     """
 
     thread_name = "replay"
 
-    def __init__(self, recording: Recording, realtime: bool = True, loop: bool = False):
+    def __init__(self, recording: Recording, realtime: bool = True, loop: bool = False,
+                 backoff_initial_s: float = 0.5, backoff_max_s: float = 8.0):
         super().__init__()
         self.recording = recording
         self.realtime = realtime
         self.loop = loop
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
         self.clock_offset_ns: int | None = None
         self._started = threading.Event()
+        self._unreadable_log = LogThrottle(log)
+        self._unreadable_run = 0  # unreadable frames in a row
 
     def start(self) -> None:
         super().start()
@@ -156,20 +207,23 @@ class ReplaySource(ThreadedSource):
         offset_ns = self.clock_offset_ns
         frames_per_loop = int(rec.frames[-1]) + 1
         loop_count = 0
+        backoff_s = self.backoff_initial_s
         while not self._stop.is_set():
+            readable = 0
             for image, number, recorded_t_ns, where in self._images():
+                t_ns = int(recorded_t_ns) + offset_ns
+                # Sleep until the frame's capture time, interruptibly.
+                if self.realtime and self._stop.wait(max(0.0, (t_ns - time.monotonic_ns()) * 1e-9)):
+                    return
                 if self._stop.is_set():
                     return
                 if image is None:
-                    self.counters.corrupt += 1
-                    log.warning("replay: %s is unreadable; skipped (%d so far)", where, self.counters.corrupt)
+                    self._skip_unreadable(where)
                     continue
+                self._readable_again()
+                readable += 1
                 index = int(number) + loop_count * frames_per_loop
                 if self.realtime:
-                    t_ns = int(recorded_t_ns) + offset_ns
-                    # Sleep until the frame's capture time, interruptibly.
-                    if self._stop.wait(max(0.0, (t_ns - time.monotonic_ns()) * 1e-9)):
-                        return
                     self._publish(Frame(image=image, t_ns=t_ns, index=index))
                 else:
                     self._publish(Frame(image=image, t_ns=time.monotonic_ns(), index=index),
@@ -178,13 +232,41 @@ class ReplaySource(ThreadedSource):
                 return
             offset_ns += loop_length_ns
             loop_count += 1
+            if readable:
+                backoff_s = self.backoff_initial_s
+                continue
+            # Nothing readable in a whole loop: wait before the next try, keeping time rising.
+            waited_ns = time.monotonic_ns()
+            if self._stop.wait(backoff_s):
+                return
+            offset_ns += time.monotonic_ns() - waited_ns
+            backoff_s = min(2 * backoff_s, self.backoff_max_s)
+
+    def _skip_unreadable(self, where) -> None:
+        self.counters.corrupt += 1
+        self._unreadable_run += 1
+        if self.lost_reason is not None:
+            log.debug("replay: %s is unreadable; skipped", where)
+            return
+        self._unreadable_log.log(logging.WARNING, "replay: %s is unreadable; skipped (%d so far)",
+                                 where, self.counters.corrupt)
+        if self._unreadable_run * self.recording.period_ns >= LOST_AFTER_S * 1e9:
+            self.lost_reason = f"{self._unreadable_run} frames in a row unreadable (the last: {where})"
+            log.warning("replay: nothing readable for %.1f s of recording (%s); retrying, with a pause "
+                        "after each loop that reads nothing", LOST_AFTER_S, self.lost_reason)
+
+    def _readable_again(self) -> None:
+        if self.lost_reason is not None:
+            log.warning("replay: frames readable again after %d unreadable ones", self._unreadable_run)
+            self.lost_reason = None
+        self._unreadable_run = 0
 
     def _images(self):
         """Yields (gray image or None if unreadable, frame number, recorded t_ns, what it was)."""
         rec = self.recording
         if rec.files is not None:
             for file, number, t_ns in zip(rec.files, rec.frames, rec.t_ns):
-                yield to_gray(cv2.imread(str(file), cv2.IMREAD_GRAYSCALE)), number, t_ns, file
+                yield read_gray(file), number, t_ns, file
             return
         capture = cv2.VideoCapture(str(rec.video))
         try:
@@ -193,6 +275,18 @@ class ReplaySource(ThreadedSource):
                 yield (to_gray(image) if ok else None), number, t_ns, f"{rec.video} frame {number}"
         finally:
             capture.release()
+
+
+def read_gray(path: Path) -> np.ndarray | None:
+    """An image file as (H, W) uint8 gray, or None if it is missing or not an image.
+
+    Decoded from the bytes (OpenCV's imread prints a warning of its own for every missing file).
+    """
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError:
+        return None
+    return to_gray(cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)) if data.size else None
 
 
 def replay_source(path, realtime: bool = True, loop: bool = False, fps: float | None = None) -> ReplaySource:

@@ -1,10 +1,13 @@
 """A live V4L2 camera read by its own thread, reopened with backoff when it vanishes or stalls."""
 from __future__ import annotations
 
+import grp
 import logging
+import os
+import pwd
+import threading
 import time
 from typing import Callable
-import threading
 
 import cv2
 
@@ -26,10 +29,12 @@ class CaptureSource(ThreadedSource):
 
     def __init__(self, open_capture: Callable[[], cv2.VideoCapture], name: str,
                  stall_timeout_s: float = 2.0, backoff_initial_s: float = 0.5,
-                 backoff_max_s: float = 8.0):
+                 backoff_max_s: float = 8.0, diagnose: Callable[[], str] | None = None):
         super().__init__()
         self.name = name
         self._open_capture = open_capture
+        # Why the device cannot be opened (missing, permissions), asked after a failed open.
+        self._diagnose = diagnose or (lambda: "the driver refused it")
         self.stall_timeout_s = stall_timeout_s
         self.backoff_initial_s = backoff_initial_s
         self.backoff_max_s = backoff_max_s
@@ -46,11 +51,12 @@ class CaptureSource(ThreadedSource):
             capture = self._open_capture()
             if not capture.isOpened():
                 capture.release()
-                log.warning("camera %s: cannot open; retrying in %.1f s", self.name, backoff_s)
+                self._cannot_open(backoff_s)
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.backoff_max_s)
                 continue
             log.info("camera %s: opened", self.name)
+            self.lost_reason = None
             self.connected.set()
             try:
                 index, delivered = self._read_until_lost(capture, index)
@@ -60,10 +66,20 @@ class CaptureSource(ThreadedSource):
             if delivered:
                 backoff_s = self.backoff_initial_s
             if not self._stop.is_set():
+                self.lost_reason = f"camera {self.name}: no frame for {self.stall_timeout_s:.1f} s"
                 log.warning("camera %s: lost (no frame for %.1f s); reopening in %.1f s",
                             self.name, self.stall_timeout_s, backoff_s)
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.backoff_max_s)
+
+    def _cannot_open(self, backoff_s: float) -> None:
+        """Say why the device cannot be opened: once per distinct reason, retries at DEBUG."""
+        reason = f"camera {self.name}: cannot open: {self._diagnose()}"
+        if reason != self.lost_reason:
+            log.warning("%s; retrying with backoff (up to %.0f s)", reason, self.backoff_max_s)
+        else:
+            log.debug("%s; retrying in %.1f s", reason, backoff_s)
+        self.lost_reason = reason
 
     def _read_until_lost(self, capture: cv2.VideoCapture, index: int) -> tuple[int, bool]:
         """Read frames until stopped or lost; returns (next index, any frame delivered)."""
@@ -118,4 +134,36 @@ def v4l2_source(device: str | int, width: int | None = None, height: int | None 
                  capture.get(cv2.CAP_PROP_FRAME_HEIGHT), capture.get(cv2.CAP_PROP_FPS))
         return capture
 
-    return CaptureSource(open_capture, name=str(device), stall_timeout_s=stall_timeout_s)
+    return CaptureSource(open_capture, name=str(device), stall_timeout_s=stall_timeout_s,
+                         diagnose=lambda: device_problem(device))
+
+
+def device_path(device: str | int) -> str:
+    """The device node of a V4L2 device given as a path or an index."""
+    return f"/dev/video{device}" if isinstance(device, int) or str(device).isdigit() else str(device)
+
+
+def device_problem(device: str | int) -> str:
+    """Why a V4L2 device does not open: missing, not readable by this user (naming the
+    device's group), or present and readable but refused by the driver (busy, no capture)."""
+    path = device_path(device)
+    try:
+        info = os.stat(path)
+    except FileNotFoundError:
+        return f"{path} does not exist (camera unplugged or another number? `v4l2-ctl --list-devices`)"
+    except PermissionError:
+        return f"permission denied on a folder of {path}"
+    if not os.access(path, os.R_OK | os.W_OK):
+        group = _name(grp.getgrgid, info.st_gid)
+        user = _name(pwd.getpwuid, os.geteuid())
+        return (f"permission denied: user {user} may not read and write {path} (group {group}, mode "
+                f"{info.st_mode & 0o777:o}); add the user to group {group} (sudo usermod -aG {group} {user}; "
+                f"the systemd unit: SupplementaryGroups={group})")
+    return f"{path} exists and is readable, but the driver did not open it (in use by another program, or no capture device)"
+
+
+def _name(lookup, number: int) -> str:
+    try:
+        return lookup(number)[0]
+    except KeyError:
+        return str(number)

@@ -23,6 +23,7 @@ COMMANDS = {
     "report": ("companion.cli.report", "write an HTML flight report (plots) of a recorded flight"),
     "survey": ("companion.cli.survey", "build a facility map from walk-through footage and a few measured anchors"),
     "map": ("companion.cli.map", "check a facility map against a walk-through (markers that moved)"),
+    "check-fc": ("companion.cli.check_fc", "read the flight controller's vision parameters and judge them"),
 }
 
 
@@ -68,7 +69,21 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
-    return int(module.main(args) or 0)
+    from companion.cli.output import OutputError
+
+    try:
+        return int(module.main(args) or 0)
+    except OutputError as error:
+        print(f"companion {command}: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:
+        # a file that vanished or a disk that filled up mid-way: one line, not a traceback
+        where = f"{error.filename}: " if error.filename else ""
+        print(f"companion {command}: {where}{error.strerror or error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"companion {command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

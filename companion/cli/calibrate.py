@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 
 from companion.capture.replay import image_files
+from companion.cli.output import output_dir, output_file
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
                                             CharucoBoard, calibrate, capture_live, write_calibration)
 from companion.markers.charuco import DEFAULT_DICTIONARY, CharucoError, CharucoSpec
@@ -78,6 +79,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     try:
         board = make_board(args)
+        # where the results go, before the work, not after it
+        output_file(args.out, "--out")
+        if args.save_views is not None:
+            output_dir(args.save_views, "--save-views")
         if args.device is not None:
             if args.images:
                 raise CalibrationError("give images or --device, not both")
@@ -139,7 +144,6 @@ def calibrate_device(args: argparse.Namespace, board) -> Calibration:
         source.close()
         signal.signal(signal.SIGINT, previous)
     if args.save_views is not None:
-        args.save_views.mkdir(parents=True, exist_ok=True)
         for name, image in images.items():
             cv2.imwrite(str(args.save_views / f"{name}.png"), image)
     return calibration

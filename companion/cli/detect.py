@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from companion.cli.output import output_dir
 from companion.detect.circles import CIRCLES_RUN_MODES, CircleParams
 from companion.capture.replay import image_files
 from companion.detect.detector import DICTIONARIES, Detector, DetectorParams
@@ -61,7 +62,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     detector = Detector(params)
     if args.draw:
-        args.draw.mkdir(parents=True, exist_ok=True)
+        output_dir(args.draw, "--draw")
     failed = len(missing)
     drawn_names: set[str] = set()
     for path in paths:
@@ -76,7 +77,9 @@ def main(args: argparse.Namespace) -> int:
         print(json_line(path, detections, ms) if args.json else text_line(path, detections, ms), flush=True)
         if args.draw:
             name = _unique_name(path, drawn_names)
-            cv2.imwrite(str(args.draw / name), draw(gray, detections))
+            if not cv2.imwrite(str(args.draw / name), draw(gray, detections)):
+                print(f"companion detect: --draw {args.draw / name}: could not be written", file=sys.stderr)
+                failed += 1
     if failed:
         print(f"companion detect: {failed} of {len(paths) + len(missing)} images could not be read",
               file=sys.stderr)

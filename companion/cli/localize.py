@@ -33,6 +33,12 @@ def main(args) -> int:
     """0: every frame localized (or tried); 1: the replay failed or skipped frames (the results so far are
     printed, then the error); 2: the sequence, map or camera cannot be used."""
     results = []
+    if args.fps is not None and not args.fps > 0:
+        print(f"companion localize: --fps must be positive, not {args.fps}", file=sys.stderr)
+        return 2
+    if args.max_markers is not None and args.max_markers < 1:
+        print(f"companion localize: --max-markers must be 1 or more, not {args.max_markers}", file=sys.stderr)
+        return 2
     try:
         facility_map, camera = resources(Path(args.sequence), args.map_path, args.camera_path)
         truth = groundtruth(Path(args.sequence))

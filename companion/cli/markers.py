@@ -5,12 +5,14 @@ import argparse
 import sys
 from pathlib import Path
 
+from companion.cli.output import output_dir
 from companion.markers.charuco import DEFAULT_DICTIONARY as CHARUCO_DICTIONARY
 from companion.markers.charuco import CharucoError, CharucoSpec, charuco_pdf
 from companion.markers.dictionary import DictionaryError
 from companion.markers.layout import MarkerLayout
-from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_size_mm,
-                                        marker_svg, markers_pdf, num, resolve_marker_ids, sheet_geometry,
+from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_png_size,
+                                        check_size_mm, fits_one_page, largest_on_one_page_mm, marker_svg,
+                                        markers_pdf, num, resolve_marker_ids, sheet_geometry, tile_geometry,
                                         write_marker_png)
 
 
@@ -31,10 +33,12 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="png (one file per marker + JSON sidecar), svg, or pdf sheets (default png)")
     parser.add_argument("--out", type=Path, default=Path("markers"), help="output folder (default ./markers)")
     parser.add_argument("--dpi", type=float, default=300.0,
-                        help="PNG resolution used to choose whole pixels per cell (default 300)")
+                        help="PNG print resolution, stored in the file; the inner square is the nearest whole "
+                             "number of pixels to --size-mm at it (default 300)")
     parser.add_argument("--quiet-zone-cells", type=int, default=1,
                         help="white margin around the grid in cells (default 1, as wide as the black border)")
-    parser.add_argument("--page", choices=tuple(PAGES_MM), default="a4", help="PDF page size (default a4)")
+    parser.add_argument("--page", choices=tuple(PAGES_MM), default="a4",
+                        help="PDF page size (default a4); a marker larger than the page is tiled over several")
     board = parser.add_argument_group("ChArUco board (--charuco)")
     board.add_argument("--square-mm", type=float, default=CharucoSpec.square_mm,
                        help=f"chessboard square side (default {CharucoSpec.square_mm:g})")
@@ -65,8 +69,7 @@ def write_charuco(args: argparse.Namespace) -> int:
     """The ChArUco board PDF: ``charuco-8x11-22mm-16mm-a4.pdf`` in --out."""
     spec = CharucoSpec(*args.charuco, args.square_mm, args.marker_mm, args.aruco_dictionary)
     document = charuco_pdf(spec, args.page)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"{spec.file_stem()}-{args.page}.pdf"
+    path = output_dir(args.out, "--out") / f"{spec.file_stem()}-{args.page}.pdf"
     path.write_bytes(document)
     print(f"{path}: {spec.describe()}, {spec.corners} corners; calibrate with: "
           f"companion calibrate IMAGES... {spec.calibrate_options()}")
@@ -83,15 +86,14 @@ def generate(args: argparse.Namespace) -> int:
     layout = MarkerLayout(args.parity, args.dictionary)
     ids = resolve_marker_ids(layout, args.symbols, args.all)
     markers = [MarkerPrint(layout, marker_id, size_mm, args.quiet_zone_cells) for marker_id in ids]
-    out_dir: Path = args.out
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if args.format == "png":
+        check_png_size(markers[0], args.dpi)
+    out_dir: Path = output_dir(args.out, "--out")
 
     if args.format == "pdf":
         path = out_dir / f"markers-p{layout.parity}-{args.dictionary}-{num(size_mm)}mm-{args.page}.pdf"
         path.write_bytes(markers_pdf(markers, args.page))
-        n_pages = sheet_geometry(markers, args.page).page_count(len(markers))
-        print(f"{path}: {len(markers)} markers on {n_pages} {args.page} page(s), inner square "
-              f"{num(size_mm)} mm, cut square {num(markers[0].outer_mm)} mm")
+        print(f"{path}: {describe_pdf(markers, args.page)}")
         return 0
     for marker in markers:
         if args.format == "svg":
@@ -102,7 +104,20 @@ def generate(args: argparse.Namespace) -> int:
         else:
             path, sidecar = write_marker_png(marker, args.dpi, out_dir)
             width, height = sidecar["image_px"]
-            print(f"{path}: {marker.symbol} id {marker.marker_id}, {width}x{height} px, "
-                  f"{sidecar['px_per_cell']} px/cell, inner square {sidecar['size_mm']:.3f} mm "
-                  f"at {sidecar['dpi']:.2f} dpi")
+            print(f"{path}: {marker.symbol} id {marker.marker_id}, {width}x{height} px, inner square "
+                  f"{sidecar['inner_px']} px = {sidecar['size_mm']:.3f} mm at {sidecar['dpi']:.4f} dpi")
     return 0
+
+
+def describe_pdf(markers: list[MarkerPrint], page: str) -> str:
+    """How many markers on how many pages; for tiled markers, the tiles and the largest untiled size."""
+    first = markers[0]
+    sizes = f"inner square {num(first.size_mm)} mm, cut square {num(first.outer_mm)} mm"
+    if fits_one_page(markers, page):
+        n_pages = sheet_geometry(markers, page).page_count(len(markers))
+        return f"{len(markers)} markers on {n_pages} {page} page(s), {sizes}"
+    tiles = tile_geometry(first, page)
+    return (f"{len(markers)} markers, each tiled on {tiles.rows} x {tiles.columns} {page} pages "
+            f"({tiles.per_marker * len(markers)} pages), {sizes}; the largest that fits one {page} page is "
+            f"{largest_on_one_page_mm(first, page):.1f} mm: cut the tiles at their crop marks and butt them, "
+            "cell edges aligned by the ticks")

@@ -5,6 +5,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from companion.capture.replay import sequence_map_path
+from companion.capture.source import SourceError
 from companion.geometry.facility_map import FacilityMap, MapError, load_map
 from companion.report.flight_log import FlightLog, ReportError, read_flight
 
@@ -39,15 +41,13 @@ def report_map(log: FlightLog, map_path: Path | None) -> FacilityMap | None:
     """--map, else the map sequence.yaml names (beside the recording, or as written); None without one."""
     if map_path is not None:
         return load_map(map_path)
-    name = log.info.get("map")
-    if not isinstance(name, str) or not name:
+    try:
+        named = sequence_map_path(log.folder, log.info)
+    except SourceError as error:
+        print(f"companion report: {error}: the track is drawn without markers", file=sys.stderr)
+        return None
+    if named is None:
         print("companion report: no --map and no map in sequence.yaml: the track is drawn without markers",
               file=sys.stderr)
         return None
-    candidate = log.folder / name
-    candidate = candidate if candidate.is_file() else Path(name)
-    if not candidate.is_file():
-        print(f"companion report: the map {name} named by sequence.yaml is not there: the track is drawn without "
-              "markers (give --map)", file=sys.stderr)
-        return None
-    return load_map(candidate)
+    return load_map(named)

@@ -1,4 +1,5 @@
-"""``companion run [--config FILE]``: start the positioning daemon (``companion.daemon``)."""
+"""``companion run [--config FILE] [--replay PATH] [--log-level LEVEL] [--record DIR] [--http HOST:PORT]``:
+start the positioning daemon (``companion.daemon``)."""
 from __future__ import annotations
 
 import dataclasses
@@ -10,7 +11,7 @@ from pathlib import Path
 from companion.daemon.config import Config, ConfigError, default_config_path, http_address, load_config
 from companion.daemon.record import RecordParams
 from companion.yaml_input import Where
-from companion.daemon.service import Daemon, setup_logging
+from companion.daemon.service import LOG_LEVELS, Daemon, setup_logging
 
 log = logging.getLogger("companion")
 
@@ -19,6 +20,12 @@ def configure_parser(parser) -> None:
     parser.add_argument("--config", metavar="FILE", default=None,
                         help=f"YAML config (default: the embedded {default_config_path().name}: bundled replay, "
                              "maps/warehouse.yaml, udpout:127.0.0.1:14550)")
+    parser.add_argument("--replay", metavar="PATH", default=None,
+                        help="replay this sequence folder, video or image folder in real time instead of the "
+                             "config's source (the rest of the config as it is)")
+    parser.add_argument("--log-level", choices=LOG_LEVELS, default="info",
+                        help="least important messages logged (default info; debug adds every skipped frame "
+                             "and retry)")
     parser.add_argument("--record", metavar="DIR", default=None,
                         help="record the flight into the sequence folder DIR (new or empty; '{time}' in it becomes "
                              "the start time), replayable with source: {kind: replay, path: DIR}; the config's "
@@ -28,9 +35,9 @@ def configure_parser(parser) -> None:
 
 
 def main(args) -> int:
-    setup_logging()
+    setup_logging(args.log_level)
     try:
-        config = with_options(load_config(args.config), args)
+        config = with_options(load_config(args.config, replay=args.replay), args)
         daemon = Daemon(config, status_stream=sys.stdout)
     except (ConfigError, ValueError) as error:
         log.error("%s", error)

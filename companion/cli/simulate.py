@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 import numpy as np
 
+from companion.cli.output import output_dir
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.sim import trajectory as trajectories
@@ -87,7 +89,24 @@ def _waypoints(text: str):
     return rows
 
 
+def check_pattern_options(args) -> None:
+    """The built-in patterns' numbers, each named by its option when it cannot make a flight."""
+    def require(ok: bool, option: str, rule: str, value) -> None:
+        if not ok:
+            raise SimulationError(f"{option} must be {rule}, not {value}")
+
+    finite = math.isfinite
+    if args.pattern in ("hover", "figure8") and not args.trajectory:
+        require(finite(args.duration) and args.duration > 0, "--duration", "a positive number of seconds",
+                args.duration)
+    require(finite(args.period) and args.period > 0, "--period", "a positive number of seconds", args.period)
+    require(finite(args.drift) and args.drift >= 0, "--drift", "0 or more metres", args.drift)
+    require(all(finite(v) and v >= 0 for v in args.size), "--size", "two numbers >= 0", args.size)
+    require(args.supersample >= 1, "--supersample", "1 or more", args.supersample)
+
+
 def trajectory_from_args(args, facility_map: FacilityMap) -> trajectories.Trajectory:
+    check_pattern_options(args)
     if args.trajectory:
         return trajectories.read_trajectory_csv(args.trajectory)
     centre = args.center
@@ -116,7 +135,7 @@ def main(args) -> int:
         camera = load_camera(args.camera) if args.camera else CameraModel.from_config(DEFAULT_CAMERA,
                                                                                       "<default camera>")
         traj = trajectory_from_args(args, facility_map)
-        if args.fps <= 0:
+        if not (math.isfinite(args.fps) and args.fps > 0):
             raise SimulationError(f"--fps must be positive, got {args.fps}")
         if args.occluders < 0:
             raise SimulationError(f"--occluders must be 0 or more, got {args.occluders}")
@@ -127,10 +146,12 @@ def main(args) -> int:
         world = build_world(facility_map, args.seed)
         simulator = Simulator(world, camera, traj, degradations, args.seed, args.supersample, args.occluders)
         options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
+        frame_count = len(frame_times_ns(traj.duration_s, args.fps))
+        output_dir(args.out, "OUT")
         out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
                              {"options": options}, args.codec)
     except ValueError as error:
         print(f"companion simulate: {error}", file=sys.stderr)
         return 2
-    print(f"wrote {out} ({len(frame_times_ns(traj.duration_s, args.fps))} frames)")
+    print(f"wrote {out} ({frame_count} frames)")
     return 0

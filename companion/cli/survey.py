@@ -10,6 +10,7 @@ import tempfile
 from pathlib import Path
 
 from companion.capture.source import SourceError
+from companion.cli.output import OutputError, output_dir, output_file
 from companion.geometry.camera import CameraError, load_camera
 from companion.geometry.facility_map import MapError, load_map, write_map
 from companion.survey.observations import SurveyError
@@ -41,6 +42,10 @@ def main(args) -> int:
             raise SurveyError(f"--size-m must be a positive number of metres, got {args.size_m:g}")
         anchors = load_map(args.anchors or args.existing)
         camera = load_camera(args.camera)
+        # where the results go, before minutes of survey work
+        output_file(Path(args.out), "--out")
+        if args.report:
+            output_dir(Path(args.report), "--report")
         options = SurveyOptions(size_m=args.size_m, fps=args.fps, progress=progress)
         result = survey([Path(s) for s in args.sequences], camera, anchors, options, extend=args.existing is not None)
         _write_atomically(result, args)
@@ -48,7 +53,7 @@ def main(args) -> int:
             from companion.survey.report import write_report
 
             write_report(result, args.report)
-    except (SurveyError, MapError, CameraError, SourceError) as error:
+    except (SurveyError, MapError, CameraError, SourceError, OutputError) as error:
         print(f"companion survey: {error}", file=sys.stderr)
         return 2
     except OSError as error:

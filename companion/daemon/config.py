@@ -21,7 +21,7 @@ from companion.geometry.facility_map import FacilityMap, geodetic_origin, load_m
 from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
 from companion.mavlink.link import LinkParams, Origin
-from companion.capture.replay import SEQUENCE_FILE, read_sequence_info
+from companion.capture.replay import SEQUENCE_FILE, read_sequence_info, sequence_map_path
 from companion.daemon.record import RecordParams
 from companion.yaml_input import Where, read_yaml
 
@@ -82,10 +82,19 @@ def default_config_path() -> Path:
     return Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
 
 
-def load_config(path=None) -> Config:
-    """Read, resolve and validate a config file (the default one when ``path`` is None)."""
+def load_config(path=None, replay=None) -> Config:
+    """Read, resolve and validate a config file (the default one when ``path`` is None).
+
+    replay: a sequence folder, video or image folder to replay in real time instead of the
+    config's source (the rest of the config as it is: try a site's config on a recording).
+    """
     path = Path(path) if path is not None else default_config_path()
-    return config_from_dict(read_yaml(path, ConfigError, "config"), path)
+    data = read_yaml(path, ConfigError, "config")
+    if replay is not None:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: the config must be a mapping of sections")
+        data = {**data, "source": {"kind": "replay", "path": str(Path(replay).resolve()), "realtime": True}}
+    return config_from_dict(data, path)
 
 
 def config_from_dict(data, path) -> Config:
@@ -212,26 +221,15 @@ def _map(data: dict, where: Where, sequence) -> FacilityMap:
     if "map" in data:
         map_path = where.path(data, "map")
     elif sequence is not None and "map" in sequence[0]:
-        map_path = _sequence_map_path(sequence[0]["map"], sequence[1])
+        try:
+            map_path = sequence_map_path(sequence[1].parent, sequence[0])
+        except ValueError as error:
+            raise ConfigError(str(error)) from None
     else:
         raise where.error("missing (a facility map file, unless the replayed sequence names one)", "map")
     if not map_path.is_file():
         raise where.error(f"{map_path} does not exist", "map")
     return load_map(map_path)
-
-
-def _sequence_map_path(name, info_path: Path) -> Path:
-    """A sequence's map: relative to the sequence folder, else to a folder above it (the repository)."""
-    where = Where(str(info_path), ConfigError)
-    if not isinstance(name, str) or not name:
-        raise where.error(f"must be a path, got {name!r}", "map")
-    candidate = Path(name)
-    if candidate.is_absolute():
-        return candidate
-    for folder in [info_path.parent, *info_path.parent.resolve().parents]:
-        if (folder / candidate).is_file():
-            return folder / candidate
-    raise where.error(f"{name} found neither in {info_path.parent} nor in a folder above it", "map")
 
 
 def _parameters(section, where: Where, params_type, what: str):

@@ -8,20 +8,17 @@ disk, network) to a thread of its own.
 from __future__ import annotations
 
 import collections
-import logging
 import time
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
-from companion.fusion import PoseFilter, TrackState
+from companion.fusion import PoseFilter
 from companion.geometry import frames
 from companion.geometry.pose import PoseSolution
-from companion.mavlink.link import SEVERITY_INFO, SEVERITY_WARNING, MavlinkLink
+from companion.mavlink.link import MavlinkLink
 from companion.types import Detection, Estimate, Frame, PoseMeasurement
-
-log = logging.getLogger("companion")
 
 STAGES = ("detect", "pose", "fuse", "send")
 
@@ -74,12 +71,13 @@ class PipelineStats:
         self.frames += 1
         self.sent += record.latency_ns is not None
 
-    def recent(self, window_s: float) -> list[FrameRecord]:
+    def recent(self, window_s: float, now_ns: int | None = None) -> list[FrameRecord]:
+        """The records captured in the ``window_s`` before ``now_ns`` (monotonic; default: the newest record's time)."""
         records = list(self.records)
         if not records:
             return []
-        newest = records[-1].t_ns
-        return [r for r in records if newest - r.t_ns <= window_s * 1e9]
+        newest = records[-1].t_ns if now_ns is None else now_ns
+        return [r for r in records if 0 <= newest - r.t_ns <= window_s * 1e9]
 
     def stage_table(self) -> list[tuple[str, float, float]]:
         """(stage, median ms, p99 ms) for each stage, the total and the capture->send latency."""
@@ -110,7 +108,6 @@ class Pipeline:
         self.T_map_ned = T_map_ned
         self.stats = PipelineStats()
         self.observers: list[FrameObserver] = []
-        self._previous_state = pose_filter.state
 
     def process(self, frame: Frame) -> FrameRecord:
         t0 = time.perf_counter_ns()
@@ -126,7 +123,6 @@ class Pipeline:
             sent = self.link.publish(estimate)
         t4 = time.perf_counter_ns()
         latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
-        self._report_state_change()
         record = FrameRecord(frame.index, frame.t_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), latency_ns,
                              tuple(detections), solution, estimate)
         self.stats.add(record)
@@ -141,22 +137,3 @@ class Pipeline:
             return None
         R = frames.rotation_from_euler_321(estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)
         return self.T_map_ned @ frames.make_transform(R, estimate.position_ned_m)
-
-    def _report_state_change(self) -> None:
-        state, previous = self.pose_filter.state, self._previous_state
-        self._previous_state = state
-        if state is previous:
-            return
-        counters = self.pose_filter.counters
-        if previous is TrackState.ACQUIRING and state is TrackState.TRACKING:
-            if counters.acquisitions == 1:
-                text, severity = "tracking markers", SEVERITY_INFO
-            else:
-                text, severity = f"re-acquired (reset {self.pose_filter.reset_counter})", SEVERITY_INFO
-        elif state is TrackState.ACQUIRING:
-            text, severity = "markers lost", SEVERITY_WARNING
-        else:
-            return  # tracking <-> coasting flickers frame to frame: not worth a message
-        log.log(logging.WARNING if severity == SEVERITY_WARNING else logging.INFO, "%s", text)
-        if self.link is not None:
-            self.link.statustext(f"companion: {text}", severity)

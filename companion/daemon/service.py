@@ -11,9 +11,17 @@ Threads::
   estimate from the same thread (no queue between fusion and the socket);
 * ``link`` and ``heartbeat`` (``companion.mavlink.link``) keep the MAVLink
   connection, the origin handshake and TIMESYNC answers;
-* the main thread prints the one-line status, feeds systemd's watchdog and
-  waits for SIGTERM/SIGINT or the end of a replay, then stops everything in
-  order: pipeline, source (camera released), link (socket closed).
+* the main thread judges the health on the wall clock
+  (``companion.daemon.health``: a stalled camera makes the HEARTBEAT
+  CRITICAL and is told by STATUSTEXT), reports the flight controller's
+  parameters, prints the one-line status, feeds systemd's watchdog and waits
+  for SIGTERM/SIGINT, the end of a replay or a second companion on the link,
+  then stops everything in order: pipeline, source (camera released), link
+  (socket closed).
+
+The first frame's size is compared with the camera's calibration: another
+size of the same aspect ratio scales the intrinsics (logged), another aspect
+ratio stops the daemon with an error.
 
 With no ``--config`` it runs the embedded default: the bundled recorded
 sequence and ``maps/warehouse.yaml``, MAVLink to ``udpout:127.0.0.1:14550``.
@@ -28,11 +36,17 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 from companion.geometry import frames
 from companion.daemon.config import Config, ConfigError, ReplayConfig
+from companion.daemon.health import Health, HealthState
 from companion.detect.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter
-from companion.mavlink.link import MavlinkLink
+from companion.geometry.camera import CameraError, CameraModel
+from companion.mavlink import fc_params
+from companion.mavlink.link import LinkState, MavlinkLink
+from companion.mavlink.messages import SEVERITY_CRITICAL, SEVERITY_WARNING
 from companion.daemon.notify import Notifier
 from companion.daemon.map_watch import MapWatch
 from companion.daemon.pipeline import Pipeline
@@ -44,6 +58,7 @@ from companion.capture.replay import replay_source
 from companion.capture.source import FrameSource
 from companion.capture.v4l2 import v4l2_source
 from companion.params import ParamsError
+from companion.types import Frame
 from companion.yaml_input import Where
 
 log = logging.getLogger("companion")
@@ -51,6 +66,10 @@ log = logging.getLogger("companion")
 # The pipeline loop must have turned this recently for the watchdog to be fed.
 PIPELINE_STALL_S = 5.0
 SYSLOG_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
+LOG_LEVELS = ("debug", "info", "warning", "error")
+# The FC's VISO_DELAY_MS is judged against the measured latency: wait this long for SENT_FOR_LATENCY frames.
+PARAMETER_LATENCY_WAIT_S = 10.0
+SENT_FOR_LATENCY = 30
 
 
 def detector_params_for(config: Config) -> DetectorParams:
@@ -68,9 +87,9 @@ def detector_params_for(config: Config) -> DetectorParams:
         raise where.error(error.reason, error.key) from None
 
 
-def make_detector(config: Config) -> Detector:
+def make_detector(config: Config, camera: CameraModel | None = None) -> Detector:
     """The daemon's detector: the config's parameters, the map's layout, the camera's lens for the corners."""
-    return Detector(detector_params_for(config), camera=config.camera)
+    return Detector(detector_params_for(config), camera=camera or config.camera)
 
 
 class Daemon:
@@ -90,11 +109,16 @@ class Daemon:
             T_map_ned=frames.invert_transform(config.facility_map.T_ned_map),
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
+        self.health = Health(self._say)
+        self.pipeline.observers.append(self.health.observe)
         # a marker the pose stage keeps leaving out is said once (docs/survey.md)
         self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
+        self.link.on_parameters = self._on_fc_parameters
         self.notifier = Notifier()
         self.stop_event = threading.Event()
         self.failed = False
+        self._frame_size_checked = False
+        self._fc_parameters: tuple[int, dict, float] | None = None  # (autopilot, values, when they came)
         self._pipeline_alive_s = time.monotonic()
         self._pipeline_thread = threading.Thread(target=self._run_pipeline, name="pipeline", daemon=True)
         self.recorder, self.live_view = self._make_observers()
@@ -161,12 +185,78 @@ class Daemon:
                         self.failed |= self.source.error is not None
                         break
                     continue
+                if not self._frame_size_checked and not self._adopt_frame_size(frame):
+                    self.failed = True
+                    break
                 self.pipeline.process(frame)
         except Exception:
             log.exception("pipeline failed")
             self.failed = True
         finally:
             self.stop_event.set()
+
+    def _adopt_frame_size(self, frame: Frame) -> bool:
+        """The first frame against the calibration: the same size, or scaled intrinsics (the same
+        aspect ratio: said in the log); False (logged) when the calibration cannot describe it."""
+        self._frame_size_checked = True
+        height, width = frame.image.shape[:2]
+        camera = self.config.camera
+        if (width, height) == (camera.width, camera.height):
+            return True
+        try:
+            scaled = camera.scaled_to(width, height)
+        except CameraError as error:
+            log.error("%s: camera: %s; stopping", self.config.path, error)
+            return False
+        log.warning("camera calibrated for %dx%d, frames are %dx%d: intrinsics scaled by %.4g (same aspect ratio)",
+                    camera.width, camera.height, width, height, width / camera.width)
+        self.pipeline.detector = make_detector(self.config, scaled)
+        self.pipeline.solver = PoseSolver(self.config.facility_map, scaled, self.config.pose)
+        return True
+
+    def _say(self, text: str, severity: int) -> None:
+        """A health message: to the log and, as STATUSTEXT, to the flight controller."""
+        level = (logging.ERROR if severity <= SEVERITY_CRITICAL else
+                 logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO)
+        log.log(level, "%s", text)
+        self.link.statustext(f"companion: {text}", severity)
+
+    def _on_fc_parameters(self, autopilot: int, values: dict) -> None:
+        """The link read the FC's parameters (link thread): judged by the main thread, see _report_fc_parameters."""
+        self._fc_parameters = (autopilot, values, time.monotonic())
+
+    def _report_fc_parameters(self, now_s: float) -> None:
+        """Judge the FC's parameters once the latency is measured (or after a while): log and STATUSTEXT
+        each one that stops or degrades vision fusion."""
+        pending = self._fc_parameters
+        if pending is None:
+            return
+        autopilot, values, arrived_s = pending
+        latencies = [r.latency_ns for r in list(self.pipeline.stats.records) if r.latency_ns is not None]
+        if len(latencies) < SENT_FOR_LATENCY and now_s - arrived_s < PARAMETER_LATENCY_WAIT_S:
+            return
+        self._fc_parameters = None
+        latency_ms = float(np.median(latencies)) / 1e6 if len(latencies) >= SENT_FOR_LATENCY else None
+        mavlink = self.config.mavlink
+        expected = fc_params.Expected(lever_arm_m=tuple(float(v) for v in self.config.camera.T_body_camera[:3, 3]),
+                                      sends_velocity=mavlink.send_vision_speed or mavlink.send_odometry,
+                                      latency_ms=latency_ms)
+        checks = fc_params.check_parameters(autopilot, values, expected)
+        if not checks:
+            log.info("flight controller: autopilot %d is neither ArduPilot nor PX4: its parameters are not checked",
+                     autopilot)
+            return
+        problems = fc_params.problems(checks)
+        for check in problems:
+            blocks = check.verdict == fc_params.BLOCKS
+            log.log(logging.ERROR if blocks else logging.WARNING,
+                    "flight controller parameter %s = %s %s vision fusion: %s (expected %s; companion check-fc)",
+                    check.name, check.value_text(), check.verdict, check.why, check.expected)
+            self.link.statustext(f"companion: {check.name}={check.value_text()} {check.verdict} vision",
+                                 SEVERITY_CRITICAL if blocks else SEVERITY_WARNING)
+        if not problems:
+            log.info("flight controller parameters fit what we send: %s",
+                     ", ".join(f"{c.name}={c.value_text()}" for c in checks))
 
     def _supervise(self) -> None:
         interval_s = self.config.status_interval_s
@@ -180,6 +270,12 @@ class Daemon:
                 log.error("link threads ended unexpectedly; stopping")
                 self.failed = True
                 break
+            if self.link.state is LinkState.DUPLICATE:
+                log.error("refusing to run: %s", self.link.duplicate)
+                self.failed = True
+                break
+            self.link.set_critical(self.health.check(lost_reason=self.source.lost_reason).critical)
+            self._report_fc_parameters(now)
             # Feed the watchdog only while the pipeline loop turns (with or without frames).
             if watchdog_s and now >= next_watchdog and now - self._pipeline_alive_s < PIPELINE_STALL_S:
                 self.notifier.watchdog()
@@ -200,13 +296,17 @@ class Daemon:
             self.status_stream.flush()
 
     def status(self) -> DaemonStatus:
-        """The daemon's state over the last second (see ``companion.daemon.status``)."""
-        fps, markers, latency_ms, estimate = recent_activity(self.pipeline.stats)
+        """The daemon's state over the last second of wall-clock time (see ``companion.daemon.status``);
+        any thread may ask."""
+        now_ns = time.monotonic_ns()
+        fps, markers, latency_ms, estimate = recent_activity(self.pipeline.stats, now_ns)
+        health: HealthState = self.health.assess(now_ns, self.source.lost_reason)
         counters = self.pipeline.pose_filter.counters
         return DaemonStatus(fps=fps, markers=markers, latency_ms=latency_ms, estimate=estimate,
-                            track_state=self.pipeline.pose_filter.state.value, link_state=self.link.state.value,
-                            frames=self.pipeline.stats.frames, sent=self.pipeline.stats.sent,
-                            rejected=counters.rejected, resets=counters.resets)
+                            state=health.state, state_s=health.since_s, reasons=health.reasons,
+                            critical=health.critical, track_state=self.pipeline.pose_filter.state.value,
+                            link_state=self.link.state.value, frames=self.pipeline.stats.frames,
+                            sent=self.pipeline.stats.sent, rejected=counters.rejected, resets=counters.resets)
 
     def status_line(self) -> str:
         return self.status().line()
@@ -245,7 +345,8 @@ class _JournalFormatter(logging.Formatter):
         return f"<{SYSLOG_PRIORITY.get(record.levelno, 6)}>{record.name}: {record.getMessage()}"
 
 
-def setup_logging() -> None:
+def setup_logging(level: str = "info") -> None:
+    """Log to stderr at ``level`` (one of LOG_LEVELS); under systemd with journald priorities."""
     handler = logging.StreamHandler(sys.stderr)
     if os.environ.get("JOURNAL_STREAM"):
         handler.setFormatter(_JournalFormatter())
@@ -253,4 +354,4 @@ def setup_logging() -> None:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
-    root.setLevel(logging.INFO)
+    root.setLevel(getattr(logging, level.upper()))

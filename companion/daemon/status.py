@@ -1,7 +1,10 @@
 """What the operator sees of the running daemon: one ``DaemonStatus`` value.
 
 The status line on the terminal, systemd's STATUS and any other view of the
-daemon are formatted from the same value, so they never disagree.
+daemon are formatted from the same value, so they never disagree. It is a
+plain dataclass of plain values (and the newest Estimate), measured on the
+wall clock: a camera that stalls shows 0 fps at once, not the rate of its
+last good second.
 """
 from __future__ import annotations
 
@@ -16,13 +19,19 @@ from companion.types import Estimate
 
 @dataclass(frozen=True)
 class DaemonStatus:
-    """The daemon's state over the last second.
+    """The daemon's state over the last second of wall-clock time.
 
-    fps: frames processed per second; markers: decoded in the newest frame;
-    latency_ms: median capture -> send of the frames sent (None: none sent);
-    estimate: the newest estimate given to the link (None: no pose);
-    track_state: the filter's state ("acquiring", "tracking", "coasting");
-    link_state: the MAVLink link's ("connecting", "handshake", "streaming");
+    fps: frames processed in the last second; markers: decoded in the newest
+    frame of that second (0 if none came); latency_ms: median capture -> send
+    of the frames sent in it (None: none sent); estimate: the newest estimate
+    given to the link in it (None: no pose);
+    state: the health (``companion.daemon.health``: "camera lost", "camera
+    stalled", "starting", "no markers", "no pose", or the filter's
+    "acquiring", "tracking", "coasting"); state_s: how long a problem state
+    has lasted; reasons: what it rests on ("uncertain 42", ...);
+    critical: the HEARTBEAT says CRITICAL (camera stalled or lost);
+    track_state: the filter's state; link_state: the MAVLink link's
+    ("connecting", "handshake", "streaming", "duplicate");
     frames, sent: totals since start; rejected, resets: the filter's counters.
     """
 
@@ -30,6 +39,10 @@ class DaemonStatus:
     markers: int
     latency_ms: float | None
     estimate: Estimate | None
+    state: str
+    state_s: float
+    reasons: tuple[str, ...]
+    critical: bool
     track_state: str
     link_state: str
     frames: int
@@ -37,8 +50,15 @@ class DaemonStatus:
     rejected: int
     resets: int
 
+    def state_text(self) -> str:
+        """``camera stalled 3.2 s: no frame for 3.2 s``; the bare state when all is well."""
+        text = self.state
+        if self.state_s and self.state not in ("acquiring", "tracking", "coasting"):
+            text += f" {self.state_s:.1f} s"
+        return text + (": " + ", ".join(self.reasons) if self.reasons else "")
+
     def line(self) -> str:
-        """fps, markers seen, pose, latency, tracking and link state on one line."""
+        """fps, markers seen, pose, latency, health and link state on one line."""
         latency = f"{self.latency_ms:.1f} ms" if self.latency_ms is not None else "-"
         if self.estimate is not None:
             n, e, d = self.estimate.position_ned_m
@@ -46,14 +66,16 @@ class DaemonStatus:
         else:
             pose = "no pose"
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
-                f"{self.track_state} | link {self.link_state} | "
+                f"{self.state_text()} | link {self.link_state} | "
                 f"sent {self.sent} rejected {self.rejected} resets {self.resets}")
 
 
-def recent_activity(stats: PipelineStats, window_s: float = 1.0) -> tuple[float, int, float | None, Estimate | None]:
-    """(fps, markers in the newest frame, median latency ms, newest estimate) over the newest ``window_s``."""
-    recent = stats.recent(window_s)
-    fps = (len(recent) - 1) / ((recent[-1].t_ns - recent[0].t_ns) * 1e-9) if len(recent) > 1 else 0.0
+def recent_activity(stats: PipelineStats, now_ns: int, window_s: float = 1.0
+                    ) -> tuple[float, int, float | None, Estimate | None]:
+    """(fps, markers in the newest frame, median latency ms, newest estimate) over the ``window_s``
+    of wall-clock (monotonic) time before ``now_ns``."""
+    recent = stats.recent(window_s, now_ns)
+    fps = len(recent) / window_s
     last = recent[-1] if recent else None
     latencies = [r.latency_ns for r in recent if r.latency_ns is not None]
     latency_ms = float(np.median(latencies)) / 1e6 if latencies else None

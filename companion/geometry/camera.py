@@ -22,6 +22,7 @@ Axis conventions come from ``companion.geometry.frames``.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,6 +123,25 @@ class CameraModel:
             inside_x = (p[:, 0] >= -0.5 + margin_px) & (p[:, 0] <= self.width - 0.5 - margin_px)
             inside_y = (p[:, 1] >= -0.5 + margin_px) & (p[:, 1] <= self.height - 0.5 - margin_px)
         return inside_x & inside_y
+
+    def scaled_to(self, width: int, height: int) -> "CameraModel":
+        """The same camera delivering ``width`` x ``height`` frames of the same field of view (a
+        sensor mode that scales the whole image): the intrinsics scaled, the distortion (in
+        normalised coordinates) kept. CameraError when the aspect ratio differs (a crop, another
+        mode: the calibration does not describe those frames)."""
+        sx, sy = width / self.width, height / self.height
+        if abs(sx - sy) > 0.01 * max(sx, sy):
+            raise CameraError(f"the camera is calibrated for {self.width}x{self.height} frames but gets "
+                              f"{width}x{height} (aspect ratio {self.width / self.height:.3f}, not "
+                              f"{width / height:.3f}): calibrate at the resolution you use (companion calibrate), "
+                              f"or set the source to {self.width}x{self.height}")
+        K = np.array(self.K, dtype=float)
+        K[0, :] *= sx
+        K[1, :] *= sy
+        # pixel centres at integers: x' + 0.5 = s (x + 0.5)
+        K[0, 2] = (self.K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (self.K[1, 2] + 0.5) * sy - 0.5
+        return dataclasses.replace(self, K=K, width=int(width), height=int(height))
 
     # ------------------------------------------------------------ loading
 

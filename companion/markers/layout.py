@@ -187,20 +187,32 @@ def symbols_to_bits(symbols: np.ndarray, n: int) -> np.ndarray:
     return ((np.asarray(symbols)[:, None] >> np.arange(n - 1, -1, -1)) & 1).astype(np.uint8)
 
 
-def marker_image(layout: MarkerLayout, marker_id: int, px_per_cell: int, quiet_zone_cells: int = 1) -> np.ndarray:
-    """Render a marker: (H, W) uint8, black 0 on white 255, H = W = (N + 2 q) px_per_cell.
+def marker_image(layout: MarkerLayout, marker_id: int, px_per_cell: float, quiet_zone_cells: int = 1) -> np.ndarray:
+    """Render a marker: (H, W) uint8, black 0 on white 255, H = W = ``cell_edges_px(N + 2 q, ppc)[-1]``.
 
-    Cell (r, c) covers pixels [(q + c) ppc, (q + c + 1) ppc); circles are
-    anti-aliased at their exact (u, v) centres.
+    ``px_per_cell`` may be fractional (a PNG at an exact print resolution):
+    pixel j shows the cell under its centre, ``floor((j + 0.5) / ppc)``, so
+    cell edges fall on whole pixels and n cells are n ppc pixels wide, rounded
+    (exactly, when n ppc is whole). For a whole ppc, cell (r, c) covers pixels
+    [(q + c) ppc, (q + c + 1) ppc). Circles are anti-aliased at their exact
+    (u, v) centres.
     """
-    cells = np.pad(layout.cells(marker_id), quiet_zone_cells)
-    image = np.where(np.kron(cells, np.ones((px_per_cell, px_per_cell), np.uint8)) > 0, 0, 255).astype(np.uint8)
+    cells = np.pad(layout.cells(marker_id), quiet_zone_cells).astype(np.uint8)
+    side = int(cell_edges_px(cells.shape[0], px_per_cell)[-1])
+    index = np.floor((np.arange(side) + 0.5) / px_per_cell).astype(int)
+    image = np.where(cells[np.ix_(index, index)] > 0, 0, 255).astype(np.uint8)
     shift = 4
     for u, v, radius in layout.circles:
         centre = cell_point_to_px(np.array([u, v]), px_per_cell, quiet_zone_cells)
         cv2.circle(image, tuple(int(round(c * (1 << shift))) for c in centre), int(round(radius * px_per_cell * (1 << shift))),
                    0, thickness=-1, lineType=cv2.LINE_AA, shift=shift)
     return image
+
+
+def cell_edges_px(n_cells: int, px_per_cell: float) -> np.ndarray:
+    """(n_cells + 1,) int: the first pixel of each cell boundary 0..n_cells in an image drawn by ``marker_image``."""
+    # the first pixel j with (j + 0.5) / ppc >= k
+    return np.ceil(np.arange(n_cells + 1) * px_per_cell - 0.5).astype(int)
 
 
 def cell_point_to_px(uv: np.ndarray, px_per_cell: float, quiet_zone_cells: float = 0) -> np.ndarray:

@@ -4,18 +4,24 @@ Sizes: ``--size-mm`` is the printed side of the inner black square (the
 ``size_m`` of maps and configs); the whole grid with its quiet zone is
 ``(N + 2 q) / (n + 2)`` times that.
 
-* PNG: one image per marker with an integer number of pixels per cell
-  (``--dpi`` picks it: the nearest integer to the cell's size at that DPI),
-  and a pHYs chunk whose resolution makes the inner square print at
-  ``--size-mm`` (so the stored DPI is near, not exactly, ``--dpi``). Next to
-  it a JSON sidecar with the geometry in the PNG's pixel coordinates
+* PNG: one image per marker at exactly ``--dpi`` (its pHYs chunk, in whole
+  pixels per metre: 300 dpi is stored as 11811 px/m, 299.9994 dpi). The
+  inner square is the whole number of pixels nearest to ``--size-mm`` at that
+  resolution, so a print at ``--dpi`` is within half a pixel of the size;
+  cells are as many pixels wide as that takes (a 35 mm square at 300 dpi is
+  413 px: cells of 51 and 52 px, ``companion.markers.layout.marker_image``).
+  Next to it a JSON sidecar with the geometry in the PNG's pixel coordinates
   (pixel centres at integers, so the black square's outer edge is at half
-  pixels).
+  pixels). A PNG side beyond ``MAX_PNG_SIDE_PX`` is refused (use SVG or PDF).
 * SVG: vector, width and height in mm, cells as rectangles (horizontal runs
   merged), circles as circles.
-* PDF: sheets of markers at exact scale on A4 or Letter with crop marks, the
-  symbol, id, parity and inner-square size below each, and a 50 mm scale bar;
-  drawn with reportlab as vector shapes, labels sized by Helvetica's metrics.
+* PDF: sheets of markers at exact scale on A4, Letter or A3 with crop marks,
+  the symbol, id, parity and inner-square size below each, and a 50 mm scale
+  bar; drawn with reportlab as vector shapes, labels sized by Helvetica's
+  metrics. A marker larger than a page is tiled over several pages
+  (``tile_geometry``): each page holds whole cells of it, with crop marks at
+  the tile's corners and alignment ticks at every cell boundary along its
+  edges; cut along the marks and butt the tiles edge to edge.
 """
 from __future__ import annotations
 
@@ -33,10 +39,13 @@ from reportlab.pdfbase.pdfmetrics import stringWidth
 from reportlab.pdfgen.canvas import FILL_NON_ZERO, Canvas
 
 from companion.markers.dictionary import DictionaryError
-from companion.markers.layout import MarkerLayout, cell_point_to_px, marker_image
+from companion.markers.layout import MarkerLayout, cell_edges_px, cell_point_to_px, marker_image
 
 MM_PER_INCH = 25.4
-PAGES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4)}
+PAGES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 420.0)}
+# A PNG side beyond this (144 MB of pixels) is refused: large markers are for SVG or PDF.
+MAX_PNG_SIDE_PX = 12_000
+MAX_TILED_PAGES = 500
 DEFAULT_DICTIONARY = "6x6"
 
 # PDF sheet geometry (mm)
@@ -117,16 +126,32 @@ def check_size_mm(size_mm: float) -> float:
 
 # --------------------------------------------------------------------- PNG
 
-def png_px_per_cell(cell_mm: float, dpi: float) -> int:
-    """Integer pixels per cell nearest to the cell's size at ``dpi`` (at least 1)."""
-    # px = mm / 25.4 * dpi
-    return max(1, round(cell_mm / MM_PER_INCH * dpi))
+def png_px_per_m(dpi: float) -> int:
+    """pHYs resolution of ``dpi``: whole pixels per metre (the PNG format's unit)."""
+    # px/m = dpi / 0.0254 m per inch
+    return max(1, round(dpi * 1000.0 / MM_PER_INCH))
 
 
-def png_px_per_m(marker: MarkerPrint, px_per_cell: int) -> int:
-    """pHYs resolution (integer pixels per metre) that prints the inner square at ``size_mm``."""
-    # px/m = inner square px / inner square m
-    return max(1, round(marker.layout.inner_cells * px_per_cell / (marker.size_mm / 1000.0)))
+def png_px_per_cell(marker: MarkerPrint, px_per_m: int) -> float:
+    """Pixels per cell so that the inner square is the whole number of pixels nearest to its size."""
+    # inner px = size m * px/m, rounded; a cell is 1 / inner_cells of it
+    inner_px = max(marker.layout.inner_cells, round(marker.size_mm / 1000.0 * px_per_m))
+    return inner_px / marker.layout.inner_cells
+
+
+def png_side_px(marker: MarkerPrint, dpi: float) -> int:
+    """Width and height of the marker's PNG at ``dpi``."""
+    return int(cell_edges_px(marker.outer_cells, png_px_per_cell(marker, png_px_per_m(dpi)))[-1])
+
+
+def check_png_size(marker: MarkerPrint, dpi: float) -> None:
+    """A PrintingError, suggesting SVG/PDF or the highest DPI that fits, for a PNG beyond MAX_PNG_SIDE_PX."""
+    side_px = png_side_px(marker, dpi)
+    if side_px > MAX_PNG_SIDE_PX:
+        max_dpi = int(dpi * MAX_PNG_SIDE_PX / side_px)
+        lower = f", or --dpi {max_dpi} or less" if max_dpi >= 1 else ""
+        raise PrintingError(f"a {num(marker.size_mm)} mm marker at {num(dpi)} dpi is a {side_px} px square PNG "
+                            f"(at most {MAX_PNG_SIDE_PX}): use --format svg or --format pdf (vector, any size){lower}")
 
 
 def png_with_phys(png: bytes, px_per_m: int) -> bytes:
@@ -149,13 +174,16 @@ def png_with_phys(png: bytes, px_per_m: int) -> bytes:
     return signature + chunks[0] + phys + b"".join(chunks[1:])
 
 
-def png_sidecar(marker: MarkerPrint, px_per_cell: int, px_per_m: int, image_shape: tuple[int, ...]) -> dict:
+def png_sidecar(marker: MarkerPrint, px_per_cell: float, px_per_m: int, image_shape: tuple[int, ...]) -> dict:
     """The JSON sidecar of a marker PNG: identity, scale and geometry in PNG pixels."""
     layout, q = marker.layout, marker.quiet_zone_cells
-    corners = cell_point_to_px(layout.inner_corners_cells, px_per_cell, q)
+    edges = cell_edges_px(marker.outer_cells, px_per_cell)
+    # the inner corners lie on cell boundaries: their drawn pixel edges (centres at integers: edge - 0.5)
+    corner_cells = np.round(layout.inner_corners_cells).astype(int) + q
+    corners = edges[corner_cells] - 0.5
     circles = np.asarray(layout.circles, dtype=float).reshape(-1, 3)
     circle_centres = cell_point_to_px(circles[:, :2], px_per_cell, q)
-    inner_px = layout.inner_cells * px_per_cell
+    inner_px = int(edges[q + layout.inner_origin + layout.inner_cells] - edges[q + layout.inner_origin])
     return {
         "symbol": marker.symbol,
         "id": marker.marker_id,
@@ -166,11 +194,12 @@ def png_sidecar(marker: MarkerPrint, px_per_cell: int, px_per_m: int, image_shap
         "inner_origin_cells": layout.inner_origin,
         "px_per_cell": px_per_cell,
         "quiet_zone_cells": q,
-        # printed size from the pHYs resolution: exact for what the file says
+        "inner_px": inner_px,
+        # printed size at the pHYs resolution: exact for what the file says
         "size_mm": inner_px / px_per_m * 1000.0,
         "dpi": px_per_m * MM_PER_INCH / 1000.0,
         "image_px": [int(image_shape[1]), int(image_shape[0])],
-        "inner_corners_px": corners.tolist(),
+        "inner_corners_px": corners.astype(float).tolist(),
         "circles_px": [[float(x), float(y), float(r * px_per_cell)]
                        for (x, y), r in zip(circle_centres, circles[:, 2])],
     }
@@ -178,8 +207,9 @@ def png_sidecar(marker: MarkerPrint, px_per_cell: int, px_per_m: int, image_shap
 
 def write_marker_png(marker: MarkerPrint, dpi: float, out_dir: Path) -> tuple[Path, dict]:
     """Write ``<stem>.png`` and ``<stem>.json`` into ``out_dir``; return the PNG path and sidecar."""
-    px_per_cell = png_px_per_cell(marker.cell_mm, dpi)
-    px_per_m = png_px_per_m(marker, px_per_cell)
+    check_png_size(marker, dpi)
+    px_per_m = png_px_per_m(dpi)
+    px_per_cell = png_px_per_cell(marker, px_per_m)
     image = marker_image(marker.layout, marker.marker_id, px_per_cell, marker.quiet_zone_cells)
     ok, encoded = cv2.imencode(".png", image)
     if not ok:
@@ -315,6 +345,20 @@ def sheet_geometry(markers: list[MarkerPrint], page: str) -> SheetGeometry:
 
     All ``markers`` share layout, size and quiet zone.
     """
+    geometry = _slot_grid(markers, page)
+    if geometry.columns < 1 or geometry.rows < 1:
+        marker = markers[0]
+        page_w, page_h = PAGES_MM[page]
+        usable_w, usable_h = page_w - 2 * PAGE_MARGIN_MM, page_h - 2 * PAGE_MARGIN_MM - FOOTER_MM
+        raise PrintingError(f"a marker with a {num(marker.size_mm)} mm inner square needs a "
+                            f"{num(geometry.slot_mm[0])} x {num(geometry.slot_mm[1])} mm slot, more than a {page} "
+                            f"page offers ({num(usable_w)} x {num(usable_h)} mm inside the margins); the largest "
+                            f"that fits is {largest_on_one_page_mm(marker, page):.1f} mm")
+    return geometry
+
+
+def _slot_grid(markers: list[MarkerPrint], page: str) -> SheetGeometry:
+    """The slots' size and how many fit across and down the page (0 when one does not fit)."""
     marker = markers[0]
     page_w, page_h = PAGES_MM[page]
     mark_reach = CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
@@ -325,11 +369,24 @@ def sheet_geometry(markers: list[MarkerPrint], page: str) -> SheetGeometry:
     # n slots need n w + (n - 1) spacing <= usable
     columns = int((usable_w + SLOT_SPACING_MM) // (slot_w + SLOT_SPACING_MM))
     rows = int((usable_h + SLOT_SPACING_MM) // (slot_h + SLOT_SPACING_MM))
-    if columns < 1 or rows < 1:
-        raise PrintingError(f"a marker with a {num(marker.size_mm)} mm inner square needs a "
-                            f"{num(slot_w)} x {num(slot_h)} mm slot, more than a {page} page offers "
-                            f"({num(usable_w)} x {num(usable_h)} mm inside the margins); use a smaller --size-mm")
     return SheetGeometry((page_w, page_h), (slot_w, slot_h), columns, rows)
+
+
+def fits_one_page(markers: list[MarkerPrint], page: str) -> bool:
+    geometry = _slot_grid(markers, page)
+    return geometry.columns >= 1 and geometry.rows >= 1
+
+
+def largest_on_one_page_mm(marker: MarkerPrint, page: str) -> float:
+    """The largest inner square, in tenths of a mm, whose marker, crop marks and labels fit one ``page``."""
+    def fits(tenths: int) -> bool:
+        return fits_one_page([MarkerPrint(marker.layout, marker.marker_id, tenths / 10, marker.quiet_zone_cells)], page)
+
+    low, high = 0, 10_000  # bisection on the slot check itself, labels (with their printed size) and all
+    while high - low > 1:
+        middle = (low + high) // 2
+        low, high = (middle, high) if fits(middle) else (low, middle)
+    return low / 10
 
 
 def draw_marker(sheet: SheetPage, marker: MarkerPrint, x_mm: float, y_mm: float) -> None:
@@ -346,12 +403,13 @@ def draw_marker(sheet: SheetPage, marker: MarkerPrint, x_mm: float, y_mm: float)
     sheet.canvas.restoreState()
 
 
-def draw_crop_marks(sheet: SheetPage, x_mm: float, y_mm: float, side_mm: float) -> None:
-    """Two short lines outside each corner of the square, along its edges' extensions."""
+def draw_crop_marks(sheet: SheetPage, x_mm: float, y_mm: float, side_mm: float, height_mm: float | None = None) -> None:
+    """Two short lines outside each corner of the square (or rectangle), along its edges' extensions."""
     near, far = CROP_MARK_GAP_MM, CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
+    height_mm = side_mm if height_mm is None else height_mm
     segments = []
     for cx, sx in ((x_mm, -1), (x_mm + side_mm, 1)):
-        for cy, sy in ((y_mm, -1), (y_mm + side_mm, 1)):
+        for cy, sy in ((y_mm, -1), (y_mm + height_mm, 1)):
             segments += [(cx + sx * near, cy, cx + sx * far, cy), (cx, cy + sy * near, cx, cy + sy * far)]
     sheet.lines(segments, CROP_MARK_WIDTH_MM)
 
@@ -366,8 +424,122 @@ def draw_footer(sheet: SheetPage, page_index: int, n_pages: int) -> None:
                page_text, FOOTER_TEXT_PT)
 
 
+@dataclass(frozen=True)
+class TileGeometry:
+    """A marker too large for a page, cut into tiles of whole cells (one per page).
+
+    column_cells, row_cells: the cell boundaries between tiles, from 0 to the
+    marker's outer cells (tile (r, c) holds columns column_cells[c] up to
+    column_cells[c + 1], and rows likewise).
+    """
+
+    page_mm: tuple[float, float]
+    column_cells: tuple[int, ...]
+    row_cells: tuple[int, ...]
+
+    @property
+    def columns(self) -> int:
+        return len(self.column_cells) - 1
+
+    @property
+    def rows(self) -> int:
+        return len(self.row_cells) - 1
+
+    @property
+    def per_marker(self) -> int:
+        return self.columns * self.rows
+
+
+def tile_geometry(marker: MarkerPrint, page: str) -> TileGeometry:
+    """Tiles of whole cells, as even as can be, each with its marks and label inside the page's margins."""
+    page_w, page_h = PAGES_MM[page]
+    mark_reach = CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
+    tile_w = page_w - 2 * PAGE_MARGIN_MM - 2 * mark_reach
+    tile_h = page_h - 2 * PAGE_MARGIN_MM - FOOTER_MM - 2 * mark_reach - LABEL_LINE_MM
+    cells_w, cells_h = int(tile_w // marker.cell_mm), int(tile_h // marker.cell_mm)
+    if cells_w < 1 or cells_h < 1:
+        raise PrintingError(f"one {num(marker.cell_mm)} mm cell does not fit a {page} page; use a smaller --size-mm")
+    n = marker.outer_cells
+    columns, rows = -(-n // cells_w), -(-n // cells_h)
+    # even cuts: tile k starts at round(k n / count) (no tile is wider than cells_w)
+    return TileGeometry((page_w, page_h), tuple(round(k * n / columns) for k in range(columns + 1)),
+                        tuple(round(k * n / rows) for k in range(rows + 1)))
+
+
+def draw_tile(sheet: SheetPage, marker: MarkerPrint, geometry: TileGeometry, row: int, column: int) -> None:
+    """Tile (row, column) of the marker at the page's top-left margin: its cells (the marker clipped
+    to them), crop marks at its corners, an alignment tick at every cell boundary along its
+    edges, and a label saying which tile it is."""
+    cell = marker.cell_mm
+    c0, c1 = geometry.column_cells[column], geometry.column_cells[column + 1]
+    r0, r1 = geometry.row_cells[row], geometry.row_cells[row + 1]
+    mark_reach = CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
+    x, y = PAGE_MARGIN_MM + mark_reach, PAGE_MARGIN_MM + mark_reach
+    width, height = (c1 - c0) * cell, (r1 - r0) * cell
+    canvas = sheet.canvas
+    canvas.saveState()
+    clip = canvas.beginPath()
+    clip.rect(*sheet.point(x, y + height), width * PT_PER_MM, height * PT_PER_MM)
+    canvas.clipPath(clip, stroke=0, fill=0)
+    draw_marker(sheet, marker, x - c0 * cell, y - r0 * cell)
+    canvas.restoreState()
+    draw_crop_marks(sheet, x, y, width, height)
+    near, far = CROP_MARK_GAP_MM, CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM * 2 / 3
+    ticks = []
+    for k in range(1, c1 - c0):  # inner cell boundaries: the corners have crop marks
+        tx = x + k * cell
+        ticks += [(tx, y - near, tx, y - far), (tx, y + height + near, tx, y + height + far)]
+    for k in range(1, r1 - r0):
+        ty = y + k * cell
+        ticks += [(x - near, ty, x - far, ty), (x + width + near, ty, x + width + far, ty)]
+    sheet.lines(ticks, CROP_MARK_WIDTH_MM)
+    layout = marker.layout
+    sheet.text(x, y + height + mark_reach + LABEL_LINE_MM - 0.5,
+               f"{marker.symbol}   id {marker.marker_id}, parity {layout.parity}, {layout.data_size}x{layout.data_size}, "
+               f"inner square {num(marker.size_mm)} mm: tile row {row + 1}/{geometry.rows}, column {column + 1}/"
+               f"{geometry.columns} (cells {c0}-{c1 - 1} x {r0}-{r1 - 1}); cut at the marks, butt the tiles",
+               LABEL_SIZES_PT[1])
+
+
+def tiled_pdf(markers: list[MarkerPrint], page: str) -> bytes:
+    """Each marker on ``tile_geometry`` pages, tile by tile (row by row)."""
+    geometry = tile_geometry(markers[0], page)
+    n_pages = geometry.per_marker * len(markers)
+    if n_pages > MAX_TILED_PAGES:
+        raise PrintingError(f"{len(markers)} marker(s) of {num(markers[0].size_mm)} mm would take {n_pages} {page} "
+                            f"pages (at most {MAX_TILED_PAGES}); use --format svg, or fewer or smaller markers")
+    out, canvas = _pdf_canvas(markers, geometry.page_mm)
+    sheet = SheetPage(canvas, *geometry.page_mm)
+    page_index = 0
+    for marker in markers:
+        for row in range(geometry.rows):
+            for column in range(geometry.columns):
+                draw_tile(sheet, marker, geometry, row, column)
+                draw_footer(sheet, page_index, n_pages)
+                canvas.showPage()
+                page_index += 1
+    canvas.save()
+    return out.getvalue()
+
+
+def _pdf_canvas(markers: list[MarkerPrint], page_mm: tuple[float, float]) -> tuple[io.BytesIO, Canvas]:
+    out = io.BytesIO()
+    # Uncompressed content streams stay readable and checkable; invariant: the same
+    # markers give the same bytes (fixed dates and document id).
+    canvas = Canvas(out, pagesize=(page_mm[0] * PT_PER_MM, page_mm[1] * PT_PER_MM), pageCompression=0, invariant=1)
+    first = markers[0]
+    canvas.setTitle(f"RS markers, parity {first.layout.parity}, {first.layout.data_size}x{first.layout.data_size}, "
+                    f"inner square {num(first.size_mm)} mm")
+    canvas.setCreator("companion markers")
+    canvas.setProducer("companion markers (reportlab)")
+    return out, canvas
+
+
 def markers_pdf(markers: list[MarkerPrint], page: str = "a4") -> bytes:
-    """A PDF of marker sheets (all ``markers`` share layout, size and quiet zone)."""
+    """A PDF of marker sheets (all ``markers`` share layout, size and quiet zone); markers larger
+    than a page are tiled (``tiled_pdf``)."""
+    if not fits_one_page(markers, page):
+        return tiled_pdf(markers, page)
     geometry = sheet_geometry(markers, page)
     n_pages = geometry.page_count(len(markers))
     mark_reach = CROP_MARK_GAP_MM + CROP_MARK_LENGTH_MM
@@ -375,15 +547,7 @@ def markers_pdf(markers: list[MarkerPrint], page: str = "a4") -> bytes:
     slot_w, slot_h = geometry.slot_mm
     # centre the columns on the page
     left_mm = (page_w - geometry.columns * (slot_w + SLOT_SPACING_MM) + SLOT_SPACING_MM) / 2
-    out = io.BytesIO()
-    # Uncompressed content streams stay readable and checkable; invariant: the same
-    # markers give the same bytes (fixed dates and document id).
-    canvas = Canvas(out, pagesize=(page_w * PT_PER_MM, page_h * PT_PER_MM), pageCompression=0, invariant=1)
-    first = markers[0]
-    canvas.setTitle(f"RS markers, parity {first.layout.parity}, {first.layout.data_size}x{first.layout.data_size}, "
-                    f"inner square {num(first.size_mm)} mm")
-    canvas.setCreator("companion markers")
-    canvas.setProducer("companion markers (reportlab)")
+    out, canvas = _pdf_canvas(markers, geometry.page_mm)
     sheet = SheetPage(canvas, page_w, page_h)
     for page_index in range(n_pages):
         start = page_index * geometry.per_page

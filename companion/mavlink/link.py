@@ -5,21 +5,44 @@ Threads (both stop on ``close()``):
 * ``link`` owns the connection: opens it (reopening with backoff after a
   transport error), reads what the flight controller (FC) sends, answers
   TIMESYNC requests, runs the origin handshake and sends pending STATUSTEXTs;
-* ``heartbeat`` sends HEARTBEAT at 1 Hz (type 18, autopilot 8).
+* ``heartbeat`` sends HEARTBEAT at 1 Hz (type 18, autopilot 8), with
+  ``system_status`` STANDBY before streaming, ACTIVE while streaming and
+  CRITICAL while the daemon says so (``set_critical``: camera stalled or lost).
 
 The pipeline thread calls ``publish(estimate)``, which sends at once (lowest
 latency) when the link is streaming, and never faster than ``max_rate_hz``
 (50 Hz at most: ArduPilot drops samples closer than 20 ms), judged on capture
 times with 2 ms of tolerance for a camera running at exactly that rate.
 
-Origin handshake (ArduPilot's EKF settles at a wrong height when the origin
-arrives after vision fusion began): once a FC heartbeat is seen, send
-SET_GPS_GLOBAL_ORIGIN, wait for the FC's GPS_GLOBAL_ORIGIN (asking for it
-with MAV_CMD_REQUEST_MESSAGE and re-sending the origin every
-``origin_retry_s``), and only then stream vision. The wait is bounded by
-``origin_wait_s`` from the start of the handshake: a FC that never confirms
-is logged and the stream starts anyway. A FC seen again after it went silent
-for ``fc_timeout_s`` (a reboot) gets the handshake again.
+Start order, whatever comes up first (see docs/daemon.md, "Start order"):
+
+1. wait for a FC heartbeat (at most ``origin_wait_s``);
+2. ArduPilot: wait until its EKF_STATUS_REPORT says the EKF is initialised
+   (asking for the report every ``origin_retry_s``; at most ``ekf_wait_s``).
+   ArduPilot acknowledges an origin that arrives before, but its EKF drops
+   it when it initialises: the vehicle never gets a global position or home;
+3. send SET_GPS_GLOBAL_ORIGIN, wait for the FC's GPS_GLOBAL_ORIGIN (asking
+   for it with MAV_CMD_REQUEST_MESSAGE and re-sending the origin every
+   ``origin_retry_s``; at most ``origin_wait_s``), and only then stream
+   vision (ArduPilot's EKF settles at a wrong height when the origin arrives
+   after vision fusion began);
+4. while streaming, ask for HOME_POSITION; none after ``home_wait_s``: send
+   MAV_CMD_DO_SET_HOME (here), none after twice that: warn.
+
+Every bounded wait that runs out is logged and told by STATUSTEXT, and the
+stream starts anyway. A FC seen again after it went silent for
+``fc_timeout_s`` (a reboot) gets all of it again.
+
+Parameters: when a FC appears, the few parameters that decide whether it
+fuses vision (``companion.mavlink.fc_params``) are read with
+PARAM_REQUEST_READ; ``on_parameters(autopilot, values)`` gets them.
+
+Two daemons: our HEARTBEAT carries a token of this process (its start time)
+in ``custom_mode``. A HEARTBEAT with our system and component id and another
+token is another companion on the same vehicle: the one started later
+refuses to stream (state DUPLICATE, ``duplicate`` says why), and vision is
+held for ``duplicate_listen_s`` after the connection opens so that it never
+sends before it could have heard the other.
 """
 from __future__ import annotations
 
@@ -30,10 +53,12 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 from companion.mavlink import messages as mm  # sets MAVLINK20 before pymavlink loads
 from pymavlink import mavutil  # noqa: E402  (after mavlink_messages on purpose)
 
+from companion.mavlink import fc_params
 from companion.types import Estimate
 
 log = logging.getLogger(__name__)
@@ -43,10 +68,14 @@ MAX_VISION_RATE_HZ = 50.0
 MIN_VISION_SPACING_NS = 20_000_000
 # Capture stamps of a camera at exactly max_rate_hz jitter by a little: let them through.
 RATE_JITTER_NS = 2_000_000
-SEVERITY_INFO = mm.mavlink2.MAV_SEVERITY_INFO
-SEVERITY_WARNING = mm.mavlink2.MAV_SEVERITY_WARNING
+SEVERITY_INFO = mm.SEVERITY_INFO
+SEVERITY_WARNING = mm.SEVERITY_WARNING
 NETWORK_PREFIXES = ("udpout:", "udpin:", "udp:", "tcp:", "tcpin:")
 SERIAL_PREFIXES = ("/dev/", "COM")
+PARAMETER_ATTEMPTS = 3  # PARAM_REQUEST_READ sent this many times before a parameter counts as absent
+STATUSTEXT_QUEUE = 16   # STATUSTEXTs waiting for their turn; the oldest is dropped beyond
+ARDUPILOT = mm.mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
+PX4 = mm.mavlink2.MAV_AUTOPILOT_PX4
 
 
 class LinkError(ValueError):
@@ -55,8 +84,9 @@ class LinkError(ValueError):
 
 class LinkState(enum.Enum):
     CONNECTING = "connecting"
-    HANDSHAKE = "handshake"      # waiting for the FC and its origin confirmation
+    HANDSHAKE = "handshake"      # waiting for the FC, its EKF and its origin confirmation
     STREAMING = "streaming"
+    DUPLICATE = "duplicate"      # another companion with our ids is on this link: we do not send
 
 
 @dataclass(frozen=True)
@@ -74,6 +104,9 @@ class LinkParams:
     origin: Origin | None = None
     origin_wait_s: float = 5.0
     origin_retry_s: float = 1.0
+    ekf_wait_s: float = 30.0
+    home_wait_s: float = 5.0
+    duplicate_listen_s: float = 1.5
     fc_timeout_s: float = 3.0
     max_rate_hz: float = 30.0
     statustext_interval_s: float = 1.0
@@ -92,7 +125,8 @@ class LinkParams:
             raise LinkError(f"component_id must be 1..255, got {self.component_id}")
         if not 0 < self.max_rate_hz <= MAX_VISION_RATE_HZ:
             raise LinkError(f"max_rate_hz must be in (0, {MAX_VISION_RATE_HZ:g}], got {self.max_rate_hz}")
-        for name in ("origin_wait_s", "origin_retry_s", "fc_timeout_s", "statustext_interval_s",
+        for name in ("origin_wait_s", "origin_retry_s", "ekf_wait_s", "home_wait_s", "duplicate_listen_s",
+                     "fc_timeout_s", "statustext_interval_s",
                      "heartbeat_interval_s", "reconnect_initial_s", "reconnect_max_s"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
@@ -135,6 +169,7 @@ class LinkCounters:
     handshakes: int = 0
     origin_confirmed: int = 0
     origin_timeouts: int = 0
+    ekf_timeouts: int = 0
 
 
 class _TransportLost(ConnectionError):
@@ -142,26 +177,52 @@ class _TransportLost(ConnectionError):
 
 
 class MavlinkLink:
-    """Owns the connection to the FC; see the module docstring for the threads."""
+    """Owns the connection to the FC; see the module docstring for the threads.
 
-    def __init__(self, params: LinkParams):
+    stream: False for a tool that only reads the FC (``companion check-fc``):
+    no origin handshake, no home check, no vision.
+    """
+
+    def __init__(self, params: LinkParams, stream: bool = True):
         self.params = params
+        self.stream = stream
         self.counters = LinkCounters()
         self.state = LinkState.CONNECTING
         self.fc_system_id: int | None = None
         self.fc_component_id: int | None = None
+        self.fc_autopilot: int | None = None
         self.confirmed_origin: Origin | None = None
+        self.home: Origin | None = None
+        self.ekf_flags: int | None = None
+        self.duplicate: str | None = None
+        # (autopilot, {name: value or None if the FC did not answer}) once read; see companion.mavlink.fc_params
+        self.on_parameters: Callable[[int, dict[str, float | None]], None] | None = None
+        # This process's token in our HEARTBEAT: its start time in ms (mod 2^32), to tell another companion apart.
+        self.instance = time.time_ns() // 1_000_000 & 0xFFFFFFFF
+        self._critical = False
         self._connection = None
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._transport_broken = threading.Event()
-        self._statustexts: collections.deque = collections.deque(maxlen=4)
+        self._statustexts: collections.deque = collections.deque(maxlen=STATUSTEXT_QUEUE)
         # (wall time s, severity, text) of the latest STATUSTEXTs, for the live view
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
+        self._connected_s = 0.0
         self._handshake_started_s = 0.0
+        self._fc_seen_in_handshake_s: float | None = None
+        self._last_ekf_request_s = -math.inf
+        self._ekf_ready = False
+        self._origin_first_sent_s: float | None = None
         self._last_origin_sent_s = -math.inf
+        self._home_check_pending = False  # the home check starts with the first vision sent
+        self._home_check_started_s: float | None = None
+        self._last_home_request_s = -math.inf
+        self._home_set_requested = False
+        self._parameters: dict[str, float | None] = {}
+        self._parameter_attempts = 0
+        self._last_parameter_request_s = -math.inf
         self._last_vision_t_ns: int | None = None
         self._threads = [
             threading.Thread(target=self._run_link, name="link", daemon=True),
@@ -192,7 +253,8 @@ class MavlinkLink:
 
     def publish(self, estimate: Estimate) -> bool:
         """Send the vision messages for one estimate now; False if held back."""
-        if self.state is not LinkState.STREAMING or self._connection is None:
+        if (self.state is not LinkState.STREAMING or self._connection is None or not self.stream
+                or time.monotonic() - self._connected_s < self.params.duplicate_listen_s):
             self.counters.held_back += 1
             return False
         min_interval_ns = max(MIN_VISION_SPACING_NS, 1e9 / self.params.max_rate_hz - RATE_JITTER_NS)
@@ -207,12 +269,30 @@ class MavlinkLink:
             messages.append(mm.vision_speed_estimate(estimate))
         if self.params.send_odometry:
             messages.append(mm.odometry(estimate))
-        return all(self._send(message) for message in messages)
+        sent = all(self._send(message) for message in messages)
+        if sent and self._home_check_pending:
+            # the FC can set home only once it has a position: from our first vision sample on
+            self._home_check_pending = False
+            self._last_home_request_s = -math.inf
+            self._home_set_requested = False
+            self._home_check_started_s = time.monotonic()
+        return sent
 
     def statustext(self, text: str, severity: int = SEVERITY_INFO) -> None:
         """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``."""
         self._statustexts.append((severity, text))
         self.statustext_history.append((time.time(), severity, text))
+
+    def set_critical(self, critical: bool) -> None:
+        """HEARTBEAT system_status CRITICAL while ``critical`` (the daemon's health: camera stalled or lost)."""
+        self._critical = critical
+
+    @property
+    def system_status(self) -> int:
+        """MAV_STATE of our HEARTBEAT: CRITICAL, else ACTIVE while streaming, else STANDBY."""
+        if self._critical:
+            return mm.mavlink2.MAV_STATE_CRITICAL
+        return mm.mavlink2.MAV_STATE_ACTIVE if self.state is LinkState.STREAMING else mm.mavlink2.MAV_STATE_STANDBY
 
     # ----------------------------------------------------------- sending
 
@@ -235,7 +315,8 @@ class MavlinkLink:
         # The first beat goes out as soon as the connection is open: a FC that has
         # not heard from us yet (udpout) does not know where to answer.
         while not self._stop.is_set():
-            sent = self._send(mm.heartbeat(active=self.state is LinkState.STREAMING))
+            # A companion that refuses to run as a duplicate says nothing more on the link.
+            sent = self.state is not LinkState.DUPLICATE and self._send(mm.heartbeat(self.system_status, self.instance))
             self._stop.wait(self.params.heartbeat_interval_s if sent else 0.05)
 
     # ------------------------------------------------------- connection
@@ -243,7 +324,7 @@ class MavlinkLink:
     def _open_connection(self):
         device, baud = parse_connection(self.params.connection)
         kwargs = dict(source_system=self.params.system_id, source_component=self.params.component_id,
-                      dialect="common", autoreconnect=False)
+                      dialect="ardupilotmega", autoreconnect=False)
         if baud is not None:
             kwargs["baud"] = baud
         if device.startswith(("tcp:", "tcpin:")):
@@ -268,17 +349,23 @@ class MavlinkLink:
 
     def _run_link(self) -> None:
         backoff_s = self.params.reconnect_initial_s
+        said = None  # the last "cannot open" reason logged: a new reason is logged, a repeat is not
         while not self._stop.is_set():
             try:
                 connection = self._open_connection()
             except Exception as error:  # pymavlink raises OSError, serial errors, ValueError
                 self.counters.transport_errors += 1
-                log.warning("link %s: cannot open (%s); retrying in %.1f s", self.params.connection, error, backoff_s)
+                log.log(logging.WARNING if str(error) != said else logging.DEBUG,
+                        "link %s: cannot open (%s); retrying with backoff (%.1f s, up to %.0f s)",
+                        self.params.connection, error, backoff_s, self.params.reconnect_max_s)
+                said = str(error)
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
                 continue
+            said = None
             with self._send_lock:
                 self._connection = connection
+            self._connected_s = time.monotonic()
             self.counters.connects += 1
             self._transport_broken.clear()
             log.info("link %s: open", self.params.connection)
@@ -291,7 +378,8 @@ class MavlinkLink:
                 log.warning("link %s: lost (%s); reconnecting in %.1f s", self.params.connection, error, backoff_s)
             finally:
                 self._close_connection()
-                self.state = LinkState.CONNECTING
+                if self.state is not LinkState.DUPLICATE:
+                    self.state = LinkState.CONNECTING
             if not self._stop.is_set():
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
@@ -314,11 +402,28 @@ class MavlinkLink:
         self.counters.received[kind] += 1
         if kind == "HEARTBEAT" and message.autopilot != mm.mavlink2.MAV_AUTOPILOT_INVALID:
             self._on_fc_heartbeat(message)
+        elif kind == "HEARTBEAT":
+            self._on_companion_heartbeat(message)
         elif mm.is_timesync_request(message):
             self._send(mm.timesync_reply(message.ts1, time.monotonic_ns()))
             self.counters.timesync_replies += 1
         elif kind == "GPS_GLOBAL_ORIGIN":
             self._on_origin(message)
+        elif message.get_srcSystem() == self.fc_system_id:
+            self._on_fc_report(kind, message)
+
+    def _on_fc_report(self, kind: str, message) -> None:
+        """What the start order and the parameter check wait for, from the FC's system."""
+        if kind == "EKF_STATUS_REPORT":
+            self._on_ekf_status(message)
+        elif kind == "HOME_POSITION":
+            self._on_home(message)
+        elif kind == "PARAM_VALUE":
+            self._on_parameter(message)
+        elif kind == "COMMAND_ACK" and message.command == mm.mavlink2.MAV_CMD_DO_SET_HOME:
+            accepted = message.result == mm.mavlink2.MAV_RESULT_ACCEPTED
+            log.log(logging.INFO if accepted else logging.WARNING, "link: MAV_CMD_DO_SET_HOME %s by the flight "
+                    "controller (result %d)", "accepted" if accepted else "refused", message.result)
 
     def _on_fc_heartbeat(self, message) -> None:
         now_s = time.monotonic()
@@ -326,13 +431,34 @@ class MavlinkLink:
         self._last_fc_heartbeat_s = now_s
         if returning:
             self.fc_system_id, self.fc_component_id = message.get_srcSystem(), message.get_srcComponent()
+            self.fc_autopilot = message.autopilot
             log.info("link: flight controller %d/%d seen (autopilot %d, type %d)",
                      self.fc_system_id, self.fc_component_id, message.autopilot, message.type)
             if self.fc_system_id != self.params.system_id:
                 log.warning("link: flight controller has system id %d but we send as %d",
                             self.fc_system_id, self.params.system_id)
+            self._begin_parameter_read()
             # A FC that appears (or reappears after a reboot) gets the origin before any vision.
             self._begin_handshake(now_s)
+
+    def _on_companion_heartbeat(self, message) -> None:
+        """A HEARTBEAT of a non-autopilot: another process with our ids is a second companion."""
+        if (message.get_srcSystem(), message.get_srcComponent()) != (self.params.system_id, self.params.component_id):
+            return
+        if message.custom_mode == self.instance or self.duplicate is not None:
+            return  # our own, routed back; or already said
+        # Tokens are start times in ms mod 2^32: the signed difference says which started first.
+        started_before_us_ms = (self.instance - message.custom_mode + 2**31) % 2**32 - 2**31
+        self.duplicate = (f"another companion sends as system {self.params.system_id} component "
+                          f"{self.params.component_id} on {self.params.connection} (started "
+                          f"{abs(started_before_us_ms) / 1000:.1f} s {'before' if started_before_us_ms >= 0 else 'after'} "
+                          "this one)")
+        if started_before_us_ms >= 0:
+            log.error("link: %s: refusing to stream; stop the other one, or give one of them another "
+                      "mavlink.component_id", self.duplicate)
+            self.state = LinkState.DUPLICATE
+        else:
+            log.warning("link: %s; it should refuse to stream, this one goes on", self.duplicate)
 
     def _on_origin(self, message) -> None:
         origin = Origin(message.latitude * 1e-7, message.longitude * 1e-7, message.altitude * 1e-3)
@@ -343,33 +469,104 @@ class MavlinkLink:
             log.warning("link: flight controller's origin %.7f, %.7f differs from ours %.7f, %.7f "
                         "(an origin is accepted once: reboot the FC to change it)",
                         origin.latitude_deg, origin.longitude_deg, wanted.latitude_deg, wanted.longitude_deg)
-        if self.state is LinkState.HANDSHAKE:
+        if self.state is LinkState.HANDSHAKE and self._origin_first_sent_s is not None:
             self.counters.origin_confirmed += 1
             log.info("link: origin confirmed by the flight controller; streaming vision")
-            self.state = LinkState.STREAMING
+            self._start_streaming()
+
+    def _on_ekf_status(self, message) -> None:
+        self.ekf_flags = message.flags
+        if not self._ekf_ready and mm.ekf_ready(message.flags):
+            self._ekf_ready = True
+            if self.state is LinkState.HANDSHAKE:
+                log.info("link: the flight controller's EKF is initialised (flags 0x%x): sending the origin",
+                         message.flags)
+
+    def _on_home(self, message) -> None:
+        home = Origin(message.latitude * 1e-7, message.longitude * 1e-7, message.altitude * 1e-3)
+        if self.home is None:
+            log.info("link: the flight controller has home at %.7f, %.7f, %.1f m", *vars(home).values())
+        self.home = home
+
+    # ------------------------------------------------------- parameters
+
+    def _begin_parameter_read(self) -> None:
+        self._parameters = dict.fromkeys(fc_params.parameter_names(self.fc_autopilot))
+        self._parameter_attempts = 0
+        self._last_parameter_request_s = -math.inf
+        if not self._parameters:  # an autopilot whose parameters we do not know
+            self._finish_parameter_read()
+
+    def _on_parameter(self, message) -> None:
+        name, value = mm.param_value(message, bytewise=self.fc_autopilot == PX4)
+        if name in self._parameters and self._parameters[name] is None:
+            self._parameters[name] = value
+            if all(v is not None for v in self._parameters.values()):
+                self._finish_parameter_read()
+
+    def _parameter_step(self, now_s: float) -> None:
+        """Ask for the parameters not yet answered every ``origin_retry_s``, PARAMETER_ATTEMPTS times."""
+        if not self._parameters:
+            return
+        if now_s - self._last_parameter_request_s < self.params.origin_retry_s:
+            return
+        if self._parameter_attempts >= PARAMETER_ATTEMPTS:
+            self._finish_parameter_read()
+            return
+        for name, value in self._parameters.items():
+            if value is None:
+                self._send(mm.param_request_read(self.fc_system_id, self.fc_component_id, name))
+        self._parameter_attempts += 1
+        self._last_parameter_request_s = now_s
+
+    def _finish_parameter_read(self) -> None:
+        values, self._parameters, self._parameter_attempts = self._parameters, {}, 0
+        if self.on_parameters is not None:
+            self.on_parameters(self.fc_autopilot, values)
 
     # ------------------------------------------------------- periodic
 
     def _begin_handshake(self, now_s: float | None = None) -> None:
         self.counters.handshakes += 1
         self._handshake_started_s = time.monotonic() if now_s is None else now_s
+        self._fc_seen_in_handshake_s = None
+        self._last_ekf_request_s = -math.inf
+        self._ekf_ready = False
+        self._origin_first_sent_s = None
         self._last_origin_sent_s = -math.inf
-        if self.params.origin is None:
+        self._home_check_pending = False
+        self._home_check_started_s = None
+        if self.state is LinkState.DUPLICATE:
+            return
+        if not self.stream:
+            self.state = LinkState.HANDSHAKE  # reading only: never streams
+        elif self.params.origin is None:
             log.warning("link: no geodetic origin configured: streaming without SET_GPS_GLOBAL_ORIGIN "
                         "(home, RTL and auto modes need one)")
             self.state = LinkState.STREAMING
         else:
             self.state = LinkState.HANDSHAKE
 
+    def _start_streaming(self) -> None:
+        """Stream vision; with an origin, check the FC's home from the first vision sample on."""
+        self.state = LinkState.STREAMING
+        self._home_check_pending = self.params.origin is not None and self.fc_system_id is not None
+
     def _tick(self) -> None:
         now_s = time.monotonic()
+        if self.state is LinkState.DUPLICATE:
+            return
+        if self.fc_system_id is not None:
+            self._parameter_step(now_s)
         if self.state is LinkState.STREAMING and self._fc_went_silent():
             # Hold vision until it is back (bounded like at start): a rebooted FC must get the origin first.
             log.warning("link: flight controller silent for %.1f s; holding vision until it returns (at most %.1f s)",
                         self.params.fc_timeout_s, self.params.origin_wait_s)
             self._begin_handshake(now_s)
-        if self.state is LinkState.HANDSHAKE:
+        if self.state is LinkState.HANDSHAKE and self.stream:
             self._handshake_step(now_s)
+        if self.state is LinkState.STREAMING and self._home_check_started_s is not None:
+            self._home_step(now_s)
         if self._statustexts and now_s - self._last_statustext_s >= self.params.statustext_interval_s:
             severity, text = self._statustexts.popleft()
             if self._send(mm.statustext(severity, text)):
@@ -381,17 +578,73 @@ class MavlinkLink:
                 and not self.fc_seen)
 
     def _handshake_step(self, now_s: float) -> None:
-        if self.fc_seen and now_s - self._last_origin_sent_s >= self.params.origin_retry_s:
-            first = self._last_origin_sent_s == -math.inf
+        """FC, then (ArduPilot) its EKF, then the origin confirmed: each wait bounded, then stream anyway."""
+        if not self.fc_seen:
+            if now_s - self._handshake_started_s > self.params.origin_wait_s:
+                self._give_up(f"no flight controller seen after {self.params.origin_wait_s:.1f} s",
+                              "companion: no FC heard")
+            return
+        if self._fc_seen_in_handshake_s is None:
+            self._fc_seen_in_handshake_s = now_s
+        if not self._ekf_ready and self.fc_autopilot == ARDUPILOT:
+            self._ekf_step(now_s)
+            return
+        self._origin_step(now_s)
+
+    def _ekf_step(self, now_s: float) -> None:
+        """Ask for EKF_STATUS_REPORT until it says initialised; give up after ``ekf_wait_s``."""
+        if now_s - self._fc_seen_in_handshake_s > self.params.ekf_wait_s:
+            self.counters.ekf_timeouts += 1
+            log.warning("link: the flight controller's EKF did not report initialised within %.1f s (flags %s); "
+                        "sending the origin anyway: if it is dropped the vehicle gets no home (see HOME below)",
+                        self.params.ekf_wait_s, "none" if self.ekf_flags is None else f"0x{self.ekf_flags:x}")
+            self.statustext("companion: EKF not ready, origin sent", SEVERITY_WARNING)
+            self._ekf_ready = True
+            return
+        if now_s - self._last_ekf_request_s >= self.params.origin_retry_s:
+            self._send(mm.request_ekf_status(self.fc_system_id, self.fc_component_id))
+            self._last_ekf_request_s = now_s
+
+    def _origin_step(self, now_s: float) -> None:
+        if now_s - self._last_origin_sent_s >= self.params.origin_retry_s:
             origin = self.params.origin
             self._send(mm.set_gps_global_origin(self.fc_system_id, origin.latitude_deg, origin.longitude_deg,
                                                 origin.altitude_m, time.monotonic_ns()))
-            if not first:
+            if self._origin_first_sent_s is None:
+                self._origin_first_sent_s = now_s
+            else:
                 self._send(mm.request_gps_global_origin(self.fc_system_id, self.fc_component_id))
             self._last_origin_sent_s = now_s
-        if now_s - self._handshake_started_s > self.params.origin_wait_s:
-            self.counters.origin_timeouts += 1
-            what = "no flight controller seen" if not self.fc_seen else "origin not confirmed"
-            log.warning("link: %s after %.1f s; streaming vision anyway", what, self.params.origin_wait_s)
-            self.statustext("companion: origin unconfirmed", SEVERITY_WARNING)
-            self.state = LinkState.STREAMING
+        if now_s - self._origin_first_sent_s > self.params.origin_wait_s:
+            self._give_up(f"origin not confirmed after {self.params.origin_wait_s:.1f} s",
+                          "companion: origin unconfirmed")
+
+    def _give_up(self, what: str, text: str) -> None:
+        self.counters.origin_timeouts += 1
+        log.warning("link: %s; streaming vision anyway", what)
+        self.statustext(text, SEVERITY_WARNING)
+        self._start_streaming()
+
+    def _home_step(self, now_s: float) -> None:
+        """From the first vision sent: ask for HOME_POSITION; none after home_wait_s: set home here;
+        none after twice that: warn."""
+        waited_s = now_s - self._home_check_started_s
+        if self.home is not None:
+            self._home_check_started_s = None
+            return
+        if waited_s > 2 * self.params.home_wait_s:
+            log.warning("link: the flight controller reports no home %.1f s after the origin (EKF flags %s): "
+                        "GUIDED take-off, RTL and fences will be refused; if the origin reached it before its EKF "
+                        "was initialised, reboot the flight controller", waited_s,
+                        "unknown" if self.ekf_flags is None else f"0x{self.ekf_flags:x}")
+            self.statustext("companion: FC has no home; reboot the FC", SEVERITY_WARNING)
+            self._home_check_started_s = None
+            return
+        if waited_s > self.params.home_wait_s and not self._home_set_requested:
+            log.info("link: no HOME_POSITION from the flight controller after %.1f s: asking it to set home here",
+                     waited_s)
+            self._send(mm.set_home_here(self.fc_system_id, self.fc_component_id))
+            self._home_set_requested = True
+        if now_s - self._last_home_request_s >= self.params.origin_retry_s:
+            self._send(mm.request_home_position(self.fc_system_id, self.fc_component_id))
+            self._last_home_request_s = now_s

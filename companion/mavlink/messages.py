@@ -1,7 +1,9 @@
 """Pure builders of the MAVLink 2 messages the daemon sends (no sockets).
 
 Each function returns a pymavlink message object from the MAVLink 2
-``common`` dialect; ``companion.mavlink.link`` packs and sends them. MAVLink 2
+``common`` dialect; ``companion.mavlink.link`` packs and sends them. The
+link reads with the ``ardupilotmega`` dialect (``common`` plus ArduPilot's
+messages, such as EKF_STATUS_REPORT), whose constants are ``ardupilot``. MAVLink 2
 is required: ``covariance`` and ``reset_counter`` are extension fields that
 MAVLink 1 silently drops, so ``MAVLINK20`` is set before pymavlink is
 imported anywhere in the process through this module.
@@ -17,7 +19,10 @@ import os
 
 os.environ["MAVLINK20"] = "1"
 
+import struct  # noqa: E402
+
 import numpy as np  # noqa: E402
+from pymavlink.dialects.v20 import ardupilotmega as ardupilot  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 from companion.geometry import frames  # noqa: E402
@@ -28,6 +33,19 @@ STATUSTEXT_MAX_CHARS = 50
 UPPER_TRIANGLE_6 = np.triu_indices(6)
 # ODOMETRY.quality is 0 at this position standard deviation and 100 at zero.
 QUALITY_ZERO_STD_M = 1.0
+
+SEVERITY_CRITICAL = mavlink2.MAV_SEVERITY_CRITICAL
+SEVERITY_WARNING = mavlink2.MAV_SEVERITY_WARNING
+SEVERITY_INFO = mavlink2.MAV_SEVERITY_INFO
+# EKF_STATUS_REPORT: the EKF has an attitude and has been healthy once (ArduPilot accepts an origin then).
+EKF_READY_FLAG = ardupilot.EKF_ATTITUDE
+EKF_UNINITIALIZED_FLAG = ardupilot.EKF_UNINITIALIZED
+PARAM_ID_MAX_CHARS = 16
+# MAV_PARAM_TYPE values whose PARAM_VALUE.param_value carries an integer's bytes when the
+# autopilot encodes parameters bytewise (PX4), instead of the integer's value as a float (ArduPilot).
+INTEGER_PARAM_TYPES = {mavlink2.MAV_PARAM_TYPE_UINT8: "<B", mavlink2.MAV_PARAM_TYPE_INT8: "<b",
+                       mavlink2.MAV_PARAM_TYPE_UINT16: "<H", mavlink2.MAV_PARAM_TYPE_INT16: "<h",
+                       mavlink2.MAV_PARAM_TYPE_UINT32: "<I", mavlink2.MAV_PARAM_TYPE_INT32: "<i"}
 
 Message = mavlink2.MAVLink_message
 
@@ -116,14 +134,19 @@ def odometry(estimate: Estimate) -> Message:
     )
 
 
-def heartbeat(active: bool) -> Message:
-    """HEARTBEAT of an onboard controller (type 18) that is no autopilot (8)."""
+def heartbeat(system_status: int, instance: int = 0) -> Message:
+    """HEARTBEAT of an onboard controller (type 18) that is no autopilot (8).
+
+    system_status: MAV_STATE_STANDBY, ACTIVE or CRITICAL. instance: this
+    process's token in ``custom_mode`` (free for a non-autopilot): another
+    process sending our ids has a different one (``companion.mavlink.link``).
+    """
     return mavlink2.MAVLink_heartbeat_message(
         type=mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
         autopilot=mavlink2.MAV_AUTOPILOT_INVALID,
         base_mode=0,
-        custom_mode=0,
-        system_status=mavlink2.MAV_STATE_ACTIVE if active else mavlink2.MAV_STATE_STANDBY,
+        custom_mode=int(instance) & 0xFFFFFFFF,
+        system_status=system_status,
         mavlink_version=3,
     )
 
@@ -151,6 +174,50 @@ def request_message(target_system: int, target_component: int, message_id: int) 
 
 def request_gps_global_origin(target_system: int, target_component: int) -> Message:
     return request_message(target_system, target_component, mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+
+
+def request_home_position(target_system: int, target_component: int) -> Message:
+    return request_message(target_system, target_component, mavlink2.MAVLINK_MSG_ID_HOME_POSITION)
+
+
+def request_ekf_status(target_system: int, target_component: int) -> Message:
+    """MAV_CMD_REQUEST_MESSAGE for ArduPilot's EKF_STATUS_REPORT (193), streamed only on some ports."""
+    return request_message(target_system, target_component, ardupilot.MAVLINK_MSG_ID_EKF_STATUS_REPORT)
+
+
+def set_home_here(target_system: int, target_component: int) -> Message:
+    """COMMAND_LONG MAV_CMD_DO_SET_HOME (179) with param1 = 1: home at the vehicle's current position."""
+    return mavlink2.MAVLink_command_long_message(
+        target_system=target_system, target_component=target_component,
+        command=mavlink2.MAV_CMD_DO_SET_HOME, confirmation=0,
+        param1=1, param2=0, param3=0, param4=0, param5=0, param6=0, param7=0,
+    )
+
+
+def ekf_ready(flags: int) -> bool:
+    """An EKF_STATUS_REPORT's flags say the EKF has its attitude and has been initialised."""
+    return bool(flags & EKF_READY_FLAG) and not flags & EKF_UNINITIALIZED_FLAG
+
+
+def param_request_read(target_system: int, target_component: int, name: str) -> Message:
+    """PARAM_REQUEST_READ (20) of one parameter by name (param_index -1)."""
+    return mavlink2.MAVLink_param_request_read_message(
+        target_system=target_system, target_component=target_component,
+        param_id=name.encode("ascii")[:PARAM_ID_MAX_CHARS], param_index=-1,
+    )
+
+
+def param_value(message, bytewise: bool) -> tuple[str, float]:
+    """(name, value) of a PARAM_VALUE. ``bytewise``: the autopilot puts an integer parameter's
+    bytes into the float field (PX4); otherwise the float is the value (ArduPilot)."""
+    name = message.param_id
+    name = (name.decode("ascii", "replace") if isinstance(name, bytes) else str(name)).rstrip("\x00")
+    value = float(message.param_value)
+    fmt = INTEGER_PARAM_TYPES.get(message.param_type)
+    if bytewise and fmt is not None:
+        raw = struct.pack("<f", value)
+        value = float(struct.unpack(fmt, raw[:struct.calcsize(fmt)])[0])
+    return name, value
 
 
 def statustext(severity: int, text: str) -> Message:

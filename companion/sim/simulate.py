@@ -11,14 +11,18 @@ body poses or a built-in pattern) moves the vehicle; the configured camera
 Output: a sequence folder as ``docs/simulator.md`` (and the project
 conventions) describe::
 
-    SEQ/sequence.yaml, frames/NNNNNN.png (or video.avi), timestamps.csv,
+    SEQ/sequence.yaml, map.yaml (a copy of the map: the folder can be copied
+    and still localized), frames/NNNNNN.png (or video.avi), timestamps.csv,
     groundtruth.csv, markers.csv (per-frame marker corners in pixels)
+
+Simulating again into the same folder replaces all of that (no stale frame
+of a longer earlier run is left); a folder holding anything else is refused.
 """
 from __future__ import annotations
 
 import csv
 import math
-import os
+import shutil
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,6 +32,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
+from companion.capture.replay import sequence_map_path
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
@@ -50,6 +55,11 @@ MARKERS_COLUMNS = ("frame", "t_ns", "marker_id", "tl_x", "tl_y", "tr_x", "tr_y",
 PX_PER_CELL = 16
 TILE_M = 1.5
 PROGRESS_MIN_FRAMES = 60  # longer renders show a progress bar unless told otherwise
+MAX_FRAMES = 1_000_000   # 9 hours at 30 fps: more is a typo (a duration in ms, say)
+MAP_COPY = "map.yaml"
+# What a simulation writes into its folder (frames/ holds NNNNNN.png besides).
+GENERATED_FILES = ("sequence.yaml", MAP_COPY, "timestamps.csv", "groundtruth.csv", "markers.csv", "video.avi")
+GENERATOR = "companion simulate"
 
 
 class SimulationError(ValueError):
@@ -399,8 +409,32 @@ def progress_bar(total: int, progress: bool | None) -> tqdm:
 
 def frame_times_ns(duration_s: float, fps: float) -> list[int]:
     """Capture times from 0 at ``fps`` up to ``duration_s`` inclusive, integer ns."""
+    if not (math.isfinite(duration_s) and duration_s >= 0 and math.isfinite(fps) and fps > 0):
+        raise SimulationError(f"a trajectory of {duration_s} s at {fps} fps has no frames: both must be positive")
     n = int(math.floor(duration_s * fps + 1e-9)) + 1
+    if n > MAX_FRAMES:
+        raise SimulationError(f"{duration_s:g} s at {fps:g} fps is {n} frames, more than {MAX_FRAMES}")
     return [int(round(i * 1e9 / fps)) for i in range(n)]
+
+
+def prepare_folder(out: Path) -> None:
+    """Make ``out`` ready for a sequence: created, or emptied of an earlier simulation's output.
+    SimulationError for a file, or a folder with other content (nothing is deleted then)."""
+    if out.exists() and not out.is_dir():
+        raise SimulationError(f"{out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        info = out / "sequence.yaml"
+        earlier = info.is_file() and read_yaml(info, SimulationError, "sequence info").get("generator") == GENERATOR
+        if not earlier:
+            raise SimulationError(f"{out}: not empty and not a sequence written by {GENERATOR}: give a new or "
+                                  "empty folder")
+        for name in GENERATED_FILES:
+            (out / name).unlink(missing_ok=True)
+        frames_dir = out / "frames"
+        if frames_dir.is_dir():
+            for frame in frames_dir.glob("[0-9]*.png"):
+                frame.unlink()
+    out.mkdir(parents=True, exist_ok=True)
 
 
 VIDEO_CODECS = {"mp4v": "small, lossy (MPEG-4 part 2)", "ffv1": "lossless, large"}
@@ -414,8 +448,9 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     progress: a progress bar on stderr (None: for more than ``PROGRESS_MIN_FRAMES`` frames).
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     times = frame_times_ns(simulator.trajectory.duration_s, fps)
+    prepare_folder(out)
+    shutil.copyfile(map_path, out / MAP_COPY)
     cam = simulator.camera
     writer = None
     if video:
@@ -452,8 +487,9 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     if writer is not None:
         writer.release()
     info = {
-        "generator": "companion simulate",
-        "map": os.path.relpath(Path(map_path).resolve(), out.resolve()),
+        "generator": GENERATOR,
+        "map": MAP_COPY,
+        "map_source": str(Path(map_path).resolve()),
         "camera": cam.to_config(),
         "fps": fps,
         "frames": len(times),
@@ -530,9 +566,14 @@ class RecordedSequence:
             yield index, image
 
     def map_path(self) -> Path:
-        """The map file, resolved against the sequence folder (or the current directory)."""
-        candidate = self.path / self.info["map"]
-        return candidate if candidate.exists() else Path(self.info["map"])
+        """The map file (``companion.capture.replay.sequence_map_path``)."""
+        try:
+            path = sequence_map_path(self.path, self.info)
+        except ValueError as error:
+            raise SimulationError(str(error)) from None
+        if path is None:
+            raise SimulationError(f"{self.path / 'sequence.yaml'}: names no map")
+        return path
 
 
 def read_sequence(path) -> RecordedSequence:

@@ -1,0 +1,46 @@
+"""Where the commands write, checked before any work: a one-line error naming the option and the path.
+
+A folder is created if needed and a file is written and removed in it (the
+only honest test of "may I write here": permissions, read-only mounts,
+``/proc``); a file's folder must exist and take a file the same way.
+"""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+
+class OutputError(ValueError):
+    """An output path that cannot be written; the message names the option and the path."""
+
+
+def output_dir(path: Path, option: str) -> Path:
+    """The folder ``path`` (created with its parents), known to be writable."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{option} {path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise OutputError(f"{option} {path}: cannot create the folder: {error.strerror}") from None
+    _probe(path, option, path)
+    return path
+
+
+def output_file(path: Path, option: str) -> Path:
+    """The file ``path`` to be (over)written, whose folder exists and is writable."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"{option} {path}: is a folder, not a file name")
+    if not path.parent.is_dir():
+        raise OutputError(f"{option} {path}: the folder {path.parent} does not exist")
+    _probe(path.parent, option, path)
+    return path
+
+
+def _probe(folder: Path, option: str, named: Path) -> None:
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".companion-write-test-"):
+            pass
+    except OSError as error:
+        raise OutputError(f"{option} {named}: cannot write in {folder}: {error.strerror}") from None

@@ -1,0 +1,177 @@
+"""The daemon's health judged from frame records and the wall clock (a clock we step by hand)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.daemon.health import Health
+from companion.daemon.pipeline import FrameRecord
+from companion.daemon.status import DaemonStatus
+from companion.geometry.pose import PoseSolution
+from companion.mavlink import fc_params
+from companion.types import Detection, Estimate
+
+PERIOD_NS = 66_666_667  # 15 fps
+
+
+class Clock:
+    def __init__(self):
+        self.now_ns = 1_000_000_000
+
+    def __call__(self) -> int:
+        return self.now_ns
+
+
+def detection() -> Detection:
+    return Detection(symbol="A", id=0, corners_px=np.zeros((4, 2)), path="square", corrected=0, quality=1.0)
+
+
+def estimate(t_ns: int, tracking: bool = True, reset_counter: int = 0) -> Estimate:
+    return Estimate(t_ns=t_ns, position_ned_m=np.zeros(3), velocity_ned_m_s=np.zeros(3), roll_rad=0.0,
+                    pitch_rad=0.0, yaw_rad=0.0, covariance_ned=np.eye(6) * 1e-4, reset_counter=reset_counter,
+                    tracking=tracking)
+
+
+def record(t_ns: int, markers: int = 2, status: str | None = "ok", tracking: bool | None = True,
+           reset_counter: int = 0) -> FrameRecord:
+    solution = None
+    if markers:
+        measurement = object() if status == "ok" else None
+        solution = PoseSolution(measurement, status)
+    est = None if tracking is None else estimate(t_ns, tracking, reset_counter)
+    return FrameRecord(index=0, t_ns=t_ns, stage_ns=(0, 0, 0, 0), latency_ns=None,
+                       detections=tuple(detection() for _ in range(markers)), solution=solution, estimate=est)
+
+
+@pytest.fixture
+def health():
+    clock = Clock()
+    said = []
+    monitor = Health(lambda text, severity: said.append((text, severity)), clock_ns=clock)
+    return monitor, clock, said
+
+
+def play(monitor, clock, count: int, **kwargs) -> None:
+    """``count`` frames at 15 fps, each processed when captured."""
+    for _ in range(count):
+        clock.now_ns += PERIOD_NS
+        monitor.observe(None, record(clock.now_ns, **kwargs))
+
+
+def test_a_stall_is_reported_within_a_second_once_and_cleared_when_frames_return(health):
+    monitor, clock, said = health
+    play(monitor, clock, 30)
+    assert monitor.check().state == "tracking" and said == [("tracking markers", 6)]
+    # 3 frame periods at 15 fps are 0.2 s: the threshold is its floor, 0.5 s
+    clock.now_ns += 400_000_000
+    assert monitor.check().state == "tracking"
+    clock.now_ns += 200_000_000
+    state = monitor.check()
+    assert state.state == "camera stalled" and state.critical and state.since_s == pytest.approx(0.6)
+    for _ in range(20):  # it stays stalled: said once
+        clock.now_ns += 100_000_000
+        monitor.check()
+    assert [text for text, _ in said].count("camera stalled: no frame for 0.6 s") == 1
+    assert said[1][1] == 2  # MAV_SEVERITY_CRITICAL
+    play(monitor, clock, 1)
+    assert not monitor.check().critical
+    assert said[-1] == ("camera delivers frames again", 6)
+
+
+def test_a_slow_camera_is_no_stall_but_one_second_without_frames_is(health):
+    monitor, clock, _ = health
+    for _ in range(10):  # 2.5 fps: 3 periods are 1.2 s, the threshold its ceiling of 1 s
+        clock.now_ns += 400_000_000
+        monitor.observe(None, record(clock.now_ns))
+    clock.now_ns += 900_000_000
+    assert monitor.check().state == "tracking"
+    clock.now_ns += 200_000_000
+    assert monitor.check().state == "camera stalled"
+
+
+def test_a_lost_source_is_critical_and_names_its_reason(health):
+    monitor, clock, said = health
+    play(monitor, clock, 5)
+    state = monitor.check(lost_reason="camera /dev/video0: cannot open: /dev/video0 does not exist")
+    assert state.state == "camera lost" and state.critical
+    assert said[-1][0] == "camera lost: camera /dev/video0: cannot open: /dev/video0 does not exist"
+
+
+def test_markers_without_a_pose_for_two_seconds_name_the_reasons(health):
+    monitor, clock, said = health
+    play(monitor, clock, 20, status="uncertain", tracking=None)
+    play(monitor, clock, 10, status="reprojection", tracking=None)
+    # 30 frames = 2.0 s since the first: not yet
+    assert monitor.check().state == "acquiring"
+    play(monitor, clock, 2, status="uncertain", tracking=None)
+    state = monitor.check()
+    assert state.state == "no pose" and state.reasons == ("uncertain 22", "reprojection 10")
+    assert said == [("no pose for 2.1 s: uncertain 22, reprojection 10", 4)]
+    # a pose clears it (and the count)
+    play(monitor, clock, 3)
+    assert monitor.check().state == "tracking"
+
+
+def test_no_markers_is_shown_and_the_filter_says_lost_and_reacquired(health):
+    monitor, clock, said = health
+    play(monitor, clock, 10)
+    play(monitor, clock, 3, markers=0, tracking=False)   # coasting: no message
+    play(monitor, clock, 6, markers=0, tracking=None)    # acquiring: markers lost
+    assert monitor.check().state == "no markers"
+    play(monitor, clock, 3, tracking=True, reset_counter=1)
+    assert [text for text, _ in said] == ["tracking markers", "markers lost", "re-acquired (reset 1)"]
+
+
+def test_the_status_line_says_the_state_with_its_reasons():
+    status = DaemonStatus(fps=0.0, markers=0, latency_ms=None, estimate=None, state="camera stalled", state_s=3.24,
+                          reasons=("no frame for 3.2 s",), critical=True, track_state="acquiring",
+                          link_state="streaming", frames=40, sent=30, rejected=0, resets=0)
+    assert status.line() == ("  0.0 fps | markers 0 | no pose | latency - | camera stalled 3.2 s: no frame for 3.2 s"
+                             " | link streaming | sent 30 rejected 0 resets 0")
+
+
+# ---------------------------------------------------------------- parameters
+
+GOOD = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 1, "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_YAW": 6,
+        "EK3_SRC1_VELXY": 0, "VISO_DELAY_MS": 20, "VISO_POS_X": 0.0, "VISO_POS_Y": 0.0, "VISO_POS_Z": 0.0}
+LEVER_ARM = (0.1, 0.0, 0.05)
+
+
+def verdicts(values, **expected) -> dict[str, str]:
+    checks = fc_params.check_parameters(fc_params.ARDUPILOT, values, fc_params.Expected(**expected))
+    return {c.name: c.verdict for c in checks}
+
+
+def test_a_vision_setup_by_the_docs_passes():
+    assert set(verdicts(GOOD, lever_arm_m=LEVER_ARM, latency_ms=14.0).values()) == {"ok"}
+
+
+@pytest.mark.parametrize("name, value, verdict", [
+    ("VISO_TYPE", 0, "blocks"), ("VISO_TYPE", None, "blocks"), ("VISO_TYPE", 2, "degrades"),
+    ("AHRS_EKF_TYPE", 2, "blocks"), ("EK3_SRC1_POSXY", 3, "blocks"), ("EK3_SRC1_POSZ", 1, "degrades"),
+    ("EK3_SRC1_YAW", 1, "degrades"), ("EK3_SRC1_YAW", 0, "blocks"), ("EK3_SRC1_VELXY", 6, "degrades"),
+    ("VISO_POS_X", 0.1, "degrades"), ("VISO_POS_Z", 0.05, "degrades"), ("VISO_DELAY_MS", 0, "degrades"),
+    ("VISO_DELAY_MS", 80, "degrades"), ("VISO_DELAY_MS", 25, "ok"),
+])
+def test_each_ardupilot_parameter_is_judged_against_what_we_send(name, value, verdict):
+    assert verdicts({**GOOD, name: value}, lever_arm_m=LEVER_ARM, latency_ms=20.0)[name] == verdict
+
+
+def test_velocity_source_follows_the_messages_sent():
+    assert verdicts({**GOOD, "EK3_SRC1_VELXY": 6}, sends_velocity=True)["EK3_SRC1_VELXY"] == "ok"
+    assert verdicts({**GOOD, "EK3_SRC1_VELXY": 0}, sends_velocity=True)["EK3_SRC1_VELXY"] == "degrades"
+
+
+def test_px4_vision_control_bits():
+    def px4(ctrl):
+        values = {"EKF2_EV_CTRL": ctrl, "EKF2_HGT_REF": 3, "EKF2_EV_DELAY": 15, "EKF2_EV_POS_X": 0,
+                  "EKF2_EV_POS_Y": 0, "EKF2_EV_POS_Z": 0}
+        checks = fc_params.check_parameters(fc_params.PX4, values, fc_params.Expected(latency_ms=12.0))
+        return {c.name: c for c in checks}["EKF2_EV_CTRL"]
+    assert px4(15).verdict == "ok" and px4(11).verdict == "ok"
+    assert px4(14).verdict == "blocks"                       # bit 0 (horizontal position) off
+    assert px4(9).verdict == "degrades" and "height" in px4(9).why
+
+
+def test_an_unknown_autopilot_has_nothing_to_check():
+    assert fc_params.parameter_names(12345) == () and fc_params.check_parameters(12345, {}, fc_params.Expected()) == []
