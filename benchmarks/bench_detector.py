@@ -104,6 +104,21 @@ class AprilTag:
     def __call__(self, image: np.ndarray) -> list[tuple[int, np.ndarray]]:
         return [(int(d.tag_id), np.asarray(d.corners, float)) for d in self._detector.detect(image)]
 
+    def close(self) -> None:
+        """Free the C detector, then its tag family. pupil_apriltags 1.0.4's own ``__del__`` frees them the
+        other way round, and the detector's destroy then reads the freed family: the heap corruption that
+        ended some runs at exit (pupil-labs/apriltags issue 46, PR 65)."""
+        detector, self._detector = self._detector, None
+        if detector is None or detector.tag_detector_ptr is None:
+            return
+        detector.libc.apriltag_detector_destroy.restype = None
+        detector.libc.apriltag_detector_destroy(detector.tag_detector_ptr)
+        for family, pointer in detector.tag_families.items():
+            destroy = getattr(detector.libc, f"{family}_destroy")
+            destroy.restype = None
+            destroy(pointer)
+        detector.tag_detector_ptr = None  # its __del__ does nothing now
+
 
 
 
@@ -541,6 +556,7 @@ def main(argv=None) -> int:
                                            "median_ms": median(s.ms)} for k, s in r.scores.items()},
                             "aruco_same_frames_ms": median([f[0] for f in r.aruco_same_frames])} for r in results],
             "false_positives": free_rows}, indent=1))
+    detectors["apriltag"].close()
     return 0
 
 
