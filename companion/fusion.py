@@ -19,7 +19,10 @@ Losing and re-acquiring the markers:
 * ACQUIRING: before the first fix, and once coasting has run out: nothing is
   returned (the daemon stops sending; the flight controller's own IMU
   prediction is better than ours). A fix needs ``confirm_frames`` mutually
-  consistent poses, so a lone ambiguous pose (a yaw flip) never gets through.
+  consistent poses, so a lone ambiguous pose (a yaw flip) never gets through,
+  unless the pose stage ruled out every other pose itself
+  (``PoseMeasurement.unambiguous``: by the image or the flight controller's
+  attitude): then that one pose is the fix.
   If the re-acquired pose is more than ``reset_distance_m`` or
   ``reset_yaw_rad`` away from the last estimate returned, ``reset_counter``
   is incremented so the flight controller snaps to it instead of dragging.
@@ -300,7 +303,8 @@ class PoseFilter:
             else:
                 self.counters.rejected += 1
                 self._start_candidate(measurement)
-        if self._candidate_count < self.params.confirm_frames:
+        needed = 1 if measurement.unambiguous else self.params.confirm_frames
+        if self._candidate_count < needed:
             return None
         return self._promote_candidate()
 

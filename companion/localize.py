@@ -6,7 +6,10 @@ table, or JSON lines with ``--json``. The map and camera default to the ones
 named in the sequence's ``sequence.yaml``; the detector reads the map's
 markers (its parity and dictionary) and aligns corners through the camera's
 lens. When the folder has a ``groundtruth.csv`` the error against it is
-printed too, so the pose stage can be checked on its own. Exit status: 0, or
+printed too, so the pose stage can be checked on its own. When it has an
+``attitude.csv`` (the flight controller's roll and pitch), each frame's pose
+uses the attitude at its capture time, as the daemon does (``--no-attitude``
+leaves it out). Exit status: 0, or
 1 when the replay failed or skipped unreadable frames (the frames read are
 still printed, then a one-line error), 2 when the sequence, map or camera
 cannot be used.
@@ -23,8 +26,10 @@ import numpy as np
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
+from companion.geometry.attitude import DEFAULT_MAX_AGE_S, history_of
 from companion.geometry.pose import PoseSolution, PoseSolver
 from companion.capture.replay import ReplaySource, open_recording, read_sequence_info, sequence_map_path
+from companion.types import AttitudeSample
 
 GET_TIMEOUT_S = 1.0
 
@@ -40,7 +45,8 @@ class ReplayFailed(LocalizeError):
 @dataclass(frozen=True)
 class FrameResult:
     """One frame's outcome: recorded time, detections seen, the solver's decision,
-    and the error against ground truth when known (position m, yaw deg)."""
+    the error against ground truth when known (position m, yaw deg), and the
+    flight controller's attitude at the frame (None: none recorded, or stale)."""
 
     frame: int
     t_ns: int
@@ -48,6 +54,7 @@ class FrameResult:
     solution: PoseSolution
     error_m: float | None = None
     yaw_error_deg: float | None = None
+    attitude: AttitudeSample | None = None
 
 
 # ------------------------------------------------------------------ inputs
@@ -98,12 +105,15 @@ def map_detector(facility_map: FacilityMap, camera: CameraModel):
 
 
 def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | None = None,
-             fps: float | None = None, detector=None, fps_option: str = "--fps"):
+             fps: float | None = None, detector=None, fps_option: str = "--fps", use_attitude: bool = True,
+             attitude_max_age_s: float = DEFAULT_MAX_AGE_S):
     """Yield a FrameResult per frame of the recording, in order.
 
     Frames come from ``companion.capture`` (as fast as they are consumed);
     the recorded capture time, not the replay time, stamps each result. The
     detector defaults to ``map_detector`` of the solver's map and camera.
+    The recording's attitude (if any, and ``use_attitude``) is looked up at
+    each frame's recorded time, stale beyond ``attitude_max_age_s``.
     Raises ``ReplayFailed`` at the end when the replay failed or skipped
     frames it could not read.
     """
@@ -111,6 +121,7 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
         detector = map_detector(solver.facility_map, solver.camera)
     recording = open_recording(sequence, fps, fps_option)
     recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
+    attitude = history_of(recording.attitude, attitude_max_age_s) if use_attitude and recording.attitude else None
     source = ReplaySource(recording, realtime=False)
     source.start()
     try:
@@ -122,8 +133,9 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
                 continue
             t_ns = int(recorded_t_ns[frame.index])
             detections = detector.detect(frame.image)
-            solution = solver.solve_detailed(detections, t_ns)
-            yield frame_result(frame.index, t_ns, detections, solution, solver.facility_map, truth)
+            sample = attitude.at(t_ns) if attitude is not None else None
+            solution = solver.solve_detailed(detections, t_ns, attitude=sample)
+            yield frame_result(frame.index, t_ns, detections, solution, solver.facility_map, truth, sample)
     finally:
         source.close()
     if source.error is not None:
@@ -134,12 +146,12 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
 
 
 def frame_result(index: int, t_ns: int, detections, solution: PoseSolution, facility_map: FacilityMap,
-                 truth: dict[int, np.ndarray] | None) -> FrameResult:
+                 truth: dict[int, np.ndarray] | None, attitude: AttitudeSample | None = None) -> FrameResult:
     error_m = yaw_error_deg = None
     m = solution.measurement
     if m is not None and truth is not None and index in truth:
         error_m, yaw_error_deg = pose_errors(m.T_map_body, truth[index], facility_map.T_ned_map)
-    return FrameResult(index, t_ns, tuple(d.id for d in detections), solution, error_m, yaw_error_deg)
+    return FrameResult(index, t_ns, tuple(d.id for d in detections), solution, error_m, yaw_error_deg, attitude)
 
 
 def pose_errors(T_map_body: np.ndarray, T_map_body_true: np.ndarray, T_ned_map: np.ndarray) -> tuple[float, float]:

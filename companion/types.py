@@ -1,6 +1,7 @@
 """The small typed values that flow one way through the pipeline.
 
     Frame -> [Detection] -> PoseMeasurement -> Estimate -> MAVLink message
+                         ^ AttitudeSample (the flight controller's roll and pitch at the frame)
 
 Conventions stated once, here, for every stage:
 
@@ -57,6 +58,10 @@ class Detection:
         were used (empty for the square path).
     circle_ids: (K,) int, the index of each of those circles in the
         marker layout's circle table (``companion.markers.layout.MarkerLayout.circles``).
+    corner_sigma_px: standard deviation of each reported point's x and y
+        (corners and circle centres), estimated by the detector from how
+        well the marker fitted the image; None when the detector does not
+        say (the pose stage then assumes ``PoseParams.corner_sigma_px``).
     """
 
     symbol: str
@@ -67,6 +72,22 @@ class Detection:
     quality: float
     circles_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     circle_ids: np.ndarray = field(default_factory=lambda: np.zeros((0,), dtype=int))
+    corner_sigma_px: float | None = None
+
+
+@dataclass(frozen=True)
+class AttitudeSample:
+    """The vehicle's roll and pitch from the flight controller at one instant.
+
+    Body FRD relative to the local level frame (NED), Z-Y-X (3-2-1) Euler
+    angles as MAVLink's ATTITUDE (``companion.geometry.frames``); yaw is not
+    used. t_ns: when the autopilot measured it, on our monotonic clock (or on
+    the time base of the recording it was read from).
+    """
+
+    t_ns: int
+    roll_rad: float
+    pitch_rad: float
 
 
 @dataclass(frozen=True)
@@ -81,6 +102,9 @@ class PoseMeasurement:
         axes), derived from the reprojection residuals and geometry.
     marker_ids: ids of the map markers used.
     reprojection_rms_px: RMS reprojection error of the accepted fit.
+    unambiguous: the pose stage ruled out every other pose on its own (by
+        the image or the flight controller's attitude), without a prior: a
+        fix that needs no confirmation by further frames.
     """
 
     t_ns: int
@@ -89,6 +113,7 @@ class PoseMeasurement:
     covariance_ned: np.ndarray
     marker_ids: tuple[int, ...]
     reprojection_rms_px: float
+    unambiguous: bool = False
 
 
 @dataclass(frozen=True)

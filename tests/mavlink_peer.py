@@ -34,11 +34,24 @@ It behaves like ArduCopter (master of 2026-03) in the start order
 
 Events (kind "event"): listening, connected, ekf initialised, origin set,
 origin lost, home set.
+
+Attitude (``--attitude``): once asked with MAV_CMD_SET_MESSAGE_INTERVAL for
+ATTITUDE, it streams ATTITUDE at the asked rate on its own time base
+(``time_boot_ms`` counted from a boot ``--boot-age`` seconds before it
+started), each message sent a random 0..``--attitude-jitter-ms`` after it was
+stamped, and records every one it sends with its stamp time on the shared
+monotonic clock (the truth the tests compare against). Roll and pitch come
+from ``--attitude-csv`` (a sequence's attitude.csv whose t_ns 0 is monotonic
+``--attitude-start-ns``), or a slow sine. ``--attitude-pause START,LENGTH``
+(seconds after streaming began) stops it for a while.
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import math
+import random
 import signal
 import threading
 import time
@@ -58,6 +71,8 @@ EKF_UNINITIALIZED = 1024
 EKF_INITIALISED = 1 | 2 | 4 | 8 | 32  # attitude, horizontal and vertical velocity, relative position, height
 MAV_RESULT_ACCEPTED, MAV_RESULT_FAILED = 0, 4
 MAV_PARAM_TYPE_REAL32 = 9
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+ATTITUDE_ID = 30
 
 
 def main() -> None:
@@ -68,6 +83,12 @@ def main() -> None:
     parser.add_argument("--origin-reply", choices=["never", "on_set", "on_request"], default="on_set")
     parser.add_argument("--timesync-period", type=float, default=0.0)
     parser.add_argument("--duration", type=float, default=30.0)
+    parser.add_argument("--attitude", action="store_true", help="stream ATTITUDE once asked for it")
+    parser.add_argument("--boot-age", type=float, default=1234.5, help="seconds since the pretend boot")
+    parser.add_argument("--attitude-jitter-ms", type=float, default=0.0)
+    parser.add_argument("--attitude-csv", help="t_ns,roll_deg,pitch_deg to stream (t_ns 0 at --attitude-start-ns)")
+    parser.add_argument("--attitude-start-ns", type=int, default=0)
+    parser.add_argument("--attitude-pause", help="START,LENGTH seconds after streaming began: a gap")
     parser.add_argument("--ekf-init-s", type=float, default=0.0)
     parser.add_argument("--home", choices=["auto", "command", "never"], default="auto")
     parser.add_argument("--params", default="{}", help="JSON object: parameter name -> value")
@@ -157,6 +178,8 @@ def main() -> None:
             ekf_report(connection)
         elif command == MAV_CMD_REQUEST_MESSAGE and param1 == HOME_POSITION_ID and vehicle["home"] is not None:
             send(connection, "HOME_POSITION", vehicle["home"])
+        elif command == MAV_CMD_SET_MESSAGE_INTERVAL and param1 == ATTITUDE_ID and args.attitude:
+            streamer.ask(fields["param2"] * 1e-6)
         elif command == MAV_CMD_DO_SET_HOME:
             done = args.home != "never" and set_home(connection)
             send(connection, "COMMAND_ACK", {"command": command,
@@ -178,6 +201,7 @@ def main() -> None:
                                              "param_type": MAV_PARAM_TYPE_REAL32, "param_count": len(parameters),
                                              "param_index": list(parameters).index(fields["param_id"])})
 
+    streamer = AttitudeStreamer(args, messages, connection, record)
     connection.add_message_callback(on_message)
     connection.send(heartbeat)  # at once, not at the runtime's next 1 Hz beat
     next_timesync = next_ekf_report = time.monotonic()
@@ -200,10 +224,70 @@ def main() -> None:
             next_ekf_report += 0.5
         if args.home == "auto" and vehicle["home"] is None:
             set_home(connection)
-        stop.wait(0.01)
+        streamer.step()
+        stop.wait(0.001 if args.attitude else 0.01)
     connection.remove_all_callbacks()
     runtime.stop()
     out.close()
+
+
+class AttitudeStreamer:
+    """ATTITUDE on the pretend autopilot's clock, at the asked interval, with send jitter (see the docstring)."""
+
+    def __init__(self, args, messages, connection, record):
+        self.args, self.messages, self.connection, self.record = args, messages, connection, record
+        self.boot_ns = time.monotonic_ns() - int(args.boot_age * 1e9)
+        self.interval_s = None
+        self.started_s = self.next_s = 0.0
+        self.track = _read_track(args.attitude_csv) if args.attitude_csv else None
+        self.pause = tuple(float(v) for v in args.attitude_pause.split(",")) if args.attitude_pause else None
+        self.rng = random.Random(7)
+
+    def ask(self, interval_s: float) -> None:
+        if self.interval_s is None:
+            self.started_s = self.next_s = time.monotonic()
+        self.interval_s = interval_s
+
+    def step(self) -> None:
+        now_s = time.monotonic()
+        if self.interval_s is None or now_s < self.next_s:
+            return
+        self.next_s += self.interval_s
+        since_s = now_s - self.started_s
+        if self.pause and self.pause[0] <= since_s < self.pause[0] + self.pause[1]:
+            return
+        stamp_ns = time.monotonic_ns()
+        attitude = self._attitude(stamp_ns)
+        if attitude is None:
+            return
+        roll, pitch = attitude
+        fields = {"time_boot_ms": (stamp_ns - self.boot_ns) // 1_000_000, "roll": roll, "pitch": pitch, "yaw": 0.5,
+                  "rollspeed": 0.0, "pitchspeed": 0.0, "yawspeed": 0.0}
+        time.sleep(self.rng.uniform(0.0, self.args.attitude_jitter_ms) * 1e-3)
+        self.connection.send(self.messages.create("ATTITUDE").set_from_dict(fields))
+        self.record("sent", "ATTITUDE", fields, stamp_ns=stamp_ns)
+
+    def _attitude(self, stamp_ns: int):
+        """(roll, pitch) radians at the stamp: the track's (None outside it) or a slow sine."""
+        if self.track is None:
+            t_s = stamp_ns * 1e-9
+            return 0.05 * math.sin(2.0 * t_s), -0.03 * math.cos(1.3 * t_s)
+        t_ns = stamp_ns - self.args.attitude_start_ns
+        times = self.track[0]
+        if not times[0] <= t_ns <= times[-1]:
+            return None
+        i = max(k for k in range(len(times)) if times[k] <= t_ns)
+        j = min(i + 1, len(times) - 1)
+        f = 0.0 if j == i else (t_ns - times[i]) / (times[j] - times[i])
+        return tuple(math.radians(v[i] + f * (v[j] - v[i])) for v in self.track[1:])
+
+
+def _read_track(path):
+    """(t_ns list, roll_deg list, pitch_deg list) of an attitude.csv."""
+    with open(path, newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    return ([int(r["t_ns"]) for r in rows], [float(r["roll_deg"]) for r in rows],
+            [float(r["pitch_deg"]) for r in rows])
 
 
 if __name__ == "__main__":

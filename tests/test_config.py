@@ -103,7 +103,8 @@ def test_commented_raspberry_pi_example_is_a_valid_config(site):
     storage.write("image_height", 480)
     storage.release()
     config = load_config(example)
-    assert config.pose.corner_sigma_px == 0.2
+    assert config.pose.corner_sigma_px == 0.5 and config.pose.attitude_sd_deg == 0.5
+    assert config.attitude.source == "auto" and config.attitude.max_age_s == 0.1 and config.attitude.rate_hz == 50
     assert isinstance(config.source, V4L2Config) and config.source.pixel_format == "MJPG"
     assert config.mavlink.connection == "/dev/ttyAMA0,921600"
     assert config.camera.K[0, 0] == 600.0

@@ -488,23 +488,23 @@ def test_frames_of_a_scaled_size_scale_the_intrinsics_and_the_pose_is_right(tmp_
 
 
 def test_markers_but_no_pose_say_why_in_the_status_line_and_the_log(tmp_path, peers):
-    """Every pose is withheld as too uncertain: after 2 s the status line and the log say
-    'no pose' with the pose stage's reason counted, instead of a silent 'sent 0'."""
+    """Every pose is rejected (a reprojection bound no fit meets): after 2 s the status line and the log
+    say 'no pose' with the pose stage's reason counted, instead of a silent 'sent 0'."""
     port = free_port()
     peers(port, "--origin-reply", "on_set")
     notify = NotifyListener(tmp_path / "notify.sock")
-    config = write_config(tmp_path, HOVER, port, source={"loop": True}, pose={"max_position_sd_m": 1e-6})
+    config = write_config(tmp_path, HOVER, port, source={"loop": True}, pose={"max_rms_px": 1e-6})
     process = start_daemon(config, env={"NOTIFY_SOCKET": notify.path})
     deadline = time.monotonic() + 20
-    while not any("no pose" in s and "uncertain" in s for s in notify.statuses()) and time.monotonic() < deadline:
+    while not any("no pose" in s and "reprojection" in s for s in notify.statuses()) and time.monotonic() < deadline:
         time.sleep(0.1)
     process.send_signal(signal.SIGTERM)
     code, _, stderr = finish(process)
     notify.close()
     assert code == 0, stderr
-    line = next(s for s in notify.statuses() if "| no pose" in s and "uncertain" in s)
-    assert re.search(r"markers [1-9]\d* \| no pose \| latency - \| no pose \d+\.\d s: uncertain \d+", line), line
-    assert re.search(r"no pose for 2\.\d s: uncertain \d+", stderr)
+    line = next(s for s in notify.statuses() if "| no pose" in s and "reprojection" in s)
+    assert re.search(r"markers [1-9]\d* \| no pose \| latency - \| no pose \d+\.\d s: reprojection \d+", line), line
+    assert re.search(r"no pose for 2\.\d s: reprojection \d+", stderr)
 
 
 def test_a_parameter_that_blocks_vision_is_logged_and_told(tmp_path, peers):

@@ -240,3 +240,21 @@ def test_process_noise_is_the_white_noise_acceleration_closed_form(dt, accel, ya
         G[axis], G[axis + 4] = dt ** 2 / 2, dt
         expected += np.outer(G, G) * sigma ** 2
     np.testing.assert_allclose(Q, expected, rtol=1e-12, atol=0)
+
+
+def test_a_pose_the_pose_stage_found_unambiguous_is_a_fix_at_once():
+    """confirm_frames guards against a lone flipped pose; one the pose stage ruled every rival out for needs none."""
+    from dataclasses import replace
+
+    pf = PoseFilter(FusionParams(confirm_frames=3))
+    assert pf.step(0, measurement(0.0, straight_line(0.0), 0.3)) is None          # an ordinary pose waits
+    pf = PoseFilter(FusionParams(confirm_frames=3))
+    first = replace(measurement(0.0, straight_line(0.0), 0.3), unambiguous=True)
+    estimate = pf.step(0, first)
+    assert estimate is not None and pf.state is TrackState.TRACKING
+    np.testing.assert_allclose(estimate.position_ned_m, straight_line(0.0))
+    # lost for a second, then an unambiguous pose 2 m away: a fix at once, and a reset
+    pf.step(int(1.2e9), None)
+    later = replace(measurement(1.2, straight_line(0.0) + [2.0, 0.0, 0.0], 0.3), unambiguous=True)
+    again = pf.step(int(1.3e9), replace(later, t_ns=int(1.3e9)))
+    assert again is not None and again.reset_counter == 1

@@ -175,3 +175,38 @@ def test_px4_vision_control_bits():
 
 def test_an_unknown_autopilot_has_nothing_to_check():
     assert fc_params.parameter_names(12345) == () and fc_params.check_parameters(12345, {}, fc_params.Expected()) == []
+
+
+def test_the_attitude_is_judged_beside_the_state_and_each_change_said_once():
+    """Frames without attitude at first, then with, then a gap, then back: 'waiting', 'ok', 'stale', 'ok'
+    in the health and the status line, one message per change; no attitude expected: nothing said or shown."""
+    import dataclasses
+
+    from companion.mavlink.messages import SEVERITY_INFO, SEVERITY_WARNING
+    from companion.types import AttitudeSample
+
+    clock, said = Clock(), []
+    monitor = Health(lambda text, severity: said.append((text, severity)), clock_ns=clock, attitude_expected=True)
+    states = []
+    for attitude_present in [False] * 3 + [True] * 5 + [False] * 4 + [True] * 3:
+        clock.now_ns += PERIOD_NS
+        frame = record(clock.now_ns)
+        if attitude_present:
+            frame = dataclasses.replace(frame, attitude=AttitudeSample(clock.now_ns, 0.01, -0.02))
+        monitor.observe(None, frame)
+        states.append(monitor.assess(clock.now_ns).attitude)
+    assert states == ["waiting"] * 3 + ["ok"] * 5 + ["stale"] * 4 + ["ok"] * 3
+    attitude_said = [(t, s) for t, s in said if "attitude" in t]
+    assert attitude_said == [("no attitude yet: poses without it", SEVERITY_WARNING),
+                             ("flight controller attitude in use", SEVERITY_INFO),
+                             ("attitude stale: poses without it", SEVERITY_WARNING),
+                             ("attitude back: poses use it", SEVERITY_INFO)]
+    status = DaemonStatus(fps=15.0, markers=2, latency_ms=None, estimate=None, state="tracking", state_s=0.0,
+                          reasons=(), critical=False, track_state="tracking", link_state="streaming", frames=15,
+                          sent=0, rejected=0, resets=0, attitude="stale")
+    assert "| tracking | attitude stale | link streaming |" in status.line()
+
+    quiet, quiet_said = Health(lambda text, severity: quiet_said.append(text), clock_ns=clock), []
+    quiet.observe(None, record(clock.now_ns + PERIOD_NS))
+    assert quiet.assess(clock.now_ns + PERIOD_NS).attitude == "off" and not any("attitude" in t for t in quiet_said)
+    assert "attitude" not in dataclasses.replace(status, attitude="off").line()

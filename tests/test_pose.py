@@ -1,5 +1,6 @@
 """Pose solver on synthetic projections of the example map: accuracy against truth."""
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -24,6 +25,8 @@ CAMERA_SECTION = {
     "mount": {"lever_arm_m": [0.12, 0.02, 0.05], "facing": "forward", "tilt_down_deg": 10.0},
 }
 CAMERA = CameraModel.from_config(CAMERA_SECTION, "test")
+# The detections below are projections of the map itself: an exact map.
+EXACT_MAP = PoseParams(map_sd_m=0.0, map_sd_deg=0.0)
 
 
 def body_pose(position_map, look_at_map, pitch_deg=0.0, roll_deg=0.0):
@@ -78,7 +81,7 @@ def test_views_see_what_the_tests_need():
 # -------------------------------------------------------------------- exact
 
 def test_single_marker_exact():
-    solver = PoseSolver(FACILITY, CAMERA)
+    solver = PoseSolver(FACILITY, CAMERA, EXACT_MAP)
     solution = solver.solve_detailed(detections_for(B_VIEW), t_ns=5)
     assert solution.status == "ok" and not solution.ambiguous
     m = solution.measurement
@@ -89,7 +92,7 @@ def test_single_marker_exact():
 
 
 def test_several_markers_exact_and_ned_output():
-    m = PoseSolver(FACILITY, CAMERA).solve(detections_for(AISLE_VIEW), t_ns=0)
+    m = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve(detections_for(AISLE_VIEW), t_ns=0)
     assert len(m.marker_ids) >= 3
     assert position_error_m(m, AISLE_VIEW) < 1e-6
     np.testing.assert_allclose(m.T_ned_body, FACILITY.T_ned_map @ m.T_map_body, atol=1e-12)
@@ -101,7 +104,7 @@ def test_several_markers_exact_and_ned_output():
 @pytest.mark.parametrize("seed", range(5))
 def test_noisy_views_at_1_to_6_m(seed):
     rng = np.random.default_rng(seed)
-    solver = PoseSolver(FACILITY, CAMERA)
+    solver = PoseSolver(FACILITY, CAMERA, EXACT_MAP)
     x = rng.uniform(5.0, 12.0)
     T = body_pose(np.array([x, rng.uniform(4.5, 5.5), rng.uniform(1.0, 2.0)]), [x + 3.0, rng.choice([3.5, 6.5]), 1.4], pitch_deg=rng.uniform(-5, 5), roll_deg=rng.uniform(-5, 5))
     detections = detections_for(T, noise_px=0.3, rng=rng)
@@ -115,7 +118,7 @@ def test_noisy_views_at_1_to_6_m(seed):
 
 def test_noisy_aisle_view_is_accurate():
     rng = np.random.default_rng(7)
-    solver = PoseSolver(FACILITY, CAMERA)
+    solver = PoseSolver(FACILITY, CAMERA, EXACT_MAP)
     errors, yaw_errors = [], []
     for _ in range(20):
         m = solver.solve(detections_for(AISLE_VIEW, noise_px=0.3, rng=rng), t_ns=0)
@@ -127,8 +130,8 @@ def test_noisy_aisle_view_is_accurate():
 
 def test_joint_beats_single_marker():
     rng = np.random.default_rng(11)
-    joint = PoseSolver(FACILITY, CAMERA)
-    single = PoseSolver(FACILITY, CAMERA, PoseParams(max_markers=1, max_position_sd_m=10.0))
+    joint = PoseSolver(FACILITY, CAMERA, EXACT_MAP)
+    single = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, max_markers=1))
     # The single marker's IPPE branches are ambiguous at this range: a prior near
     # the truth picks the branch, so only accuracy is compared.
     prior = AISLE_VIEW @ frames.make_transform(frames.rot_z(0.05), [0.1, 0.1, 0.0])
@@ -152,7 +155,7 @@ def test_one_moved_marker_among_several_is_left_out():
     detections = detections_for(AISLE_VIEW)
     assert len(detections) >= 3
     detections[1] = moved(detections[1], [25.0, -10.0])
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
     assert solution.status == "ok"
     assert solution.rejected_ids == (detections[1].id,)
     assert detections[1].id not in solution.measurement.marker_ids
@@ -162,7 +165,7 @@ def test_one_moved_marker_among_several_is_left_out():
 def test_two_disagreeing_markers_give_no_pose():
     detections = detections_for(AISLE_VIEW)[:2]
     detections[1] = moved(detections[1], [30.0, 0.0])
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
     assert solution.measurement is None
     assert solution.status == "inconsistent markers"
 
@@ -171,7 +174,7 @@ def test_distorted_corners_fail_reprojection():
     d = detections_for(B_VIEW)[0]
     corners = d.corners_px.copy()
     corners[0] += [6.0, 6.0]  # a corner off by 8.5 px: no rigid pose fits
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed([Detection(d.symbol, d.id, corners, "square", 0, 1.0)], t_ns=0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed([Detection(d.symbol, d.id, corners, "square", 0, 1.0)], t_ns=0)
     assert solution.measurement is None and solution.status == "reprojection"
 
 
@@ -179,14 +182,14 @@ def test_unmapped_and_duplicate_detections_are_ignored():
     detections = detections_for(AISLE_VIEW)
     unmapped = Detection("STAR", 49, detections[0].corners_px + 50.0, "square", 0, 1.0)
     twice = [detections[0], moved(detections[0], [40.0, 0.0])]
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections[1:] + [unmapped] + twice, t_ns=0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections[1:] + [unmapped] + twice, t_ns=0)
     assert solution.status == "ok"
     assert set(solution.unmapped_ids) == {49, detections[0].id}
     assert position_error_m(solution.measurement, AISLE_VIEW) < 1e-5
 
 
 def test_no_markers():
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed([], t_ns=0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed([], t_ns=0)
     assert solution.measurement is None and solution.status == "no mapped markers"
 
 
@@ -206,14 +209,13 @@ def test_upside_down_body_is_implausible():
 # Marker N (north wall, 0.20 m) seen nearly head-on from 5 m: IPPE's two poses
 # reproject within a fraction of a pixel of each other.
 FAR_N_VIEW = body_pose(np.array([9.0, 5.5, 1.3]), [9.5, 10.5, 1.5])
-# Accept uncertain poses, to test the ambiguity logic on its own.
-LENIENT = PoseParams(max_position_sd_m=10.0)
+LENIENT = PoseParams(map_sd_m=0.0, map_sd_deg=0.0)
 
 
 def test_far_single_marker_is_ambiguous_without_prior():
     detections = detections_for(FAR_N_VIEW, symbols={"N"})
     assert len(detections) == 1
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
     assert solution.status == "ambiguous" and solution.ambiguous
     assert solution.measurement is None
     assert len(solution.fits) >= 2
@@ -221,23 +223,36 @@ def test_far_single_marker_is_ambiguous_without_prior():
 
 def test_ambiguity_resolved_by_prior():
     detections = detections_for(FAR_N_VIEW, symbols={"N"})
-    wrong_fit_positions = []
     for prior_offset in ([0.1, -0.1, 0.05], [-0.1, 0.05, 0.0]):
         prior = FAR_N_VIEW @ frames.make_transform(frames.rot_z(math.radians(3)), prior_offset)
         solution = PoseSolver(FACILITY, CAMERA, LENIENT).solve_detailed(detections, t_ns=0, prior_T_map_body=prior)
-        assert solution.status == "ok" and solution.ambiguous and solution.used_prior
+        assert solution.status == "ok" and solution.used_prior
         assert position_error_m(solution.measurement, FAR_N_VIEW) < 1e-3
-    # The rejected branch really is far away: choosing it would have been a gross error.
-    for fit in solution.fits:
+    # The other branch really is far away: choosing it would have been a gross error.
+    unresolved = PoseSolver(FACILITY, CAMERA, LENIENT).solve_detailed(detections, t_ns=0)
+    wrong_fit_positions = []
+    for fit in unresolved.fits:
         T_map_body = frames.invert_transform(fit.T_camera_map) @ CAMERA.T_camera_body
         wrong_fit_positions.append(np.linalg.norm(T_map_body[:3, 3] - FAR_N_VIEW[:3, 3]))
     assert max(wrong_fit_positions) > 0.1
 
 
-def test_far_single_marker_is_too_uncertain_even_with_a_prior():
-    detections = detections_for(FAR_N_VIEW, symbols={"N"})
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0, prior_T_map_body=FAR_N_VIEW)
-    assert solution.measurement is None and solution.status == "uncertain"
+def test_far_single_marker_with_a_prior_is_sent_with_its_large_covariance():
+    """Nothing consistent is withheld for being uncertain: the covariance says how little one far marker fixes."""
+    rng = np.random.default_rng(12)
+    detections = detections_for(FAR_N_VIEW, symbols={"N"}, noise_px=0.5, rng=rng)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0, prior_T_map_body=FAR_N_VIEW)
+    assert solution.status == "ok"
+    m = solution.measurement
+    near = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve(detections_for(B_VIEW, noise_px=0.5, rng=rng), t_ns=0)
+    # 0.20 m at 5 m: decimetres along the line of sight (the old 0.10 m cut withheld it)
+    assert math.sqrt(np.linalg.eigvalsh(m.covariance_ned[:3, :3])[-1]) > 0.10
+    assert np.trace(m.covariance_ned[:3, :3]) > 20 * np.trace(near.covariance_ned[:3, :3])
+
+
+def test_removed_max_position_sd_key_is_explained():
+    with pytest.raises(ConfigError, match=r"^site.yaml: pose.max_position_sd_m: replaced by the covariance sent"):
+        config_from_dict(config_with("pose", {"max_position_sd_m": 0.1}), "site.yaml")
 
 
 def test_last_accepted_pose_is_the_prior():
@@ -256,17 +271,21 @@ def test_last_accepted_pose_is_the_prior():
 def test_noise_beyond_the_expected_corner_noise_is_rejected():
     rng = np.random.default_rng(3)
     detections = detections_for(AISLE_VIEW, noise_px=2.0, rng=rng)
-    solution = PoseSolver(FACILITY, CAMERA).solve_detailed(detections, t_ns=0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
     assert solution.measurement is None and solution.status in ("reprojection", "inconsistent markers")
-    assert PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=2.0, max_rms_px=10.0)).solve(detections, t_ns=0) is not None
+    assert PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=2.0, max_rms_px=10.0)).solve(detections, t_ns=0) is not None
+
+
+def with_sigma(detections, sigma_px):
+    return [replace(d, corner_sigma_px=sigma_px) for d in detections]
 
 
 def test_covariance_grows_with_noise_and_range():
     rng = np.random.default_rng(3)
-    # Chi-square gates off (gate_probability 1): the residual variance alone scales the covariance.
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=0.2, gate_probability=1.0, max_rms_px=10.0, max_position_sd_m=1.0))
-    quiet = solver.solve(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), t_ns=0)
-    loud = solver.solve(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), t_ns=0)
+    # Each detection states its own corner noise (as the detector does): the covariance follows it.
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, max_rms_px=10.0))
+    quiet = solver.solve(with_sigma(detections_for(AISLE_VIEW, noise_px=0.15, rng=rng), 0.15), t_ns=0)
+    loud = solver.solve(with_sigma(detections_for(AISLE_VIEW, noise_px=1.5, rng=rng), 1.5), t_ns=0)
     assert np.trace(loud.covariance_ned[:3, :3]) > 10 * np.trace(quiet.covariance_ned[:3, :3])
     near = solver.solve(detections_for(body_pose(np.array([6.0, 5.0, 1.4]), [7.0, 3.5, 1.4]), symbols={"B"}), t_ns=0)
     far = solver.solve(detections_for(body_pose(np.array([7.0, 6.3, 1.4]), [7.0, 3.5, 1.4]), symbols={"B"}), t_ns=0)
@@ -280,7 +299,7 @@ def test_covariance_grows_with_noise_and_range():
 def test_covariance_matches_the_scatter_of_errors():
     """Normalised errors e^T C^-1 e over many noisy solves average about 6 (chi-square, 6 dof)."""
     rng = np.random.default_rng(21)
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0))
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=1.0))
     truth_ned = FACILITY.T_ned_map @ AISLE_VIEW
     scores = []
     for _ in range(150):
@@ -302,7 +321,7 @@ def test_position_covariance_matches_scatter_in_ned_axes():
     The same covariance on map axes instead of NED ones fails by a factor of ten.
     """
     rng = np.random.default_rng(5)
-    solver = PoseSolver(FACILITY, CAMERA)
+    solver = PoseSolver(FACILITY, CAMERA, EXACT_MAP)
     truth_ned = FACILITY.T_ned_map @ B_VIEW
     errors, covariances = [], []
     for _ in range(150):
@@ -351,16 +370,16 @@ def test_pose_jacobian_matches_finite_differences(camera, view):
     points_map = np.vstack([o.points_map for o in observations])
     # Away from the pose the points were seen from, with a rotation part that matters.
     T = T_map_body @ frames.make_transform(cv2.Rodrigues(np.array([0.02, -0.03, 0.05]))[0], [0.03, -0.02, 0.01])
-    analytic = solver._pose_jacobian(T, observations)
+    analytic = solver._pose_jacobian(T, points_map)
     numeric = finite_difference_jacobian(camera, T, points_map)
     assert analytic.shape == numeric.shape == (2 * len(points_map), 6)
     np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-8 * np.abs(numeric).max())
 
 
-def test_covariance_is_sigma2_times_the_inverse_normal_matrix():
+def test_covariance_is_the_inverse_weighted_normal_matrix():
     """The covariance sent, recomputed here from a finite-difference Jacobian on map axes."""
     rng = np.random.default_rng(4)
-    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5))
+    solver = PoseSolver(FACILITY, FISHEYE_CAMERA, PoseParams(corner_sigma_px=0.5, model_sigma_px=0.0, map_sd_m=0.0, map_sd_deg=0.0))
     for _ in range(3):
         detections = detections_for(AISLE_VIEW, noise_px=0.5, rng=rng, camera=FISHEYE_CAMERA)
         solution = solver.solve_detailed(detections, t_ns=0)
@@ -371,9 +390,9 @@ def test_covariance_is_sigma2_times_the_inverse_normal_matrix():
         points_px = np.vstack([d.corners_px for d in used])
         J = finite_difference_jacobian(FISHEYE_CAMERA, m.T_map_body, points_map)
         residuals = FISHEYE_CAMERA.project_from(FISHEYE_CAMERA.T_camera_body @ np.linalg.inv(m.T_map_body), points_map) - points_px
-        # sigma^2 = r.r / (2K - 6), at least corner_sigma_px^2
-        sigma2 = max(float(np.sum(residuals ** 2)) / (residuals.size - 6), 0.5 ** 2)
-        covariance_map = sigma2 * np.linalg.inv(J.T @ J)
+        # every point's sigma is corner_sigma_px (the detections state none): C = sigma^2 (J^T J)^-1
+        assert np.sqrt(np.mean(residuals ** 2)) < 1.0
+        covariance_map = 0.5 ** 2 * np.linalg.inv(J.T @ J)
         B = np.kron(np.eye(2), FACILITY.T_ned_map[:3, :3])
         np.testing.assert_allclose(m.covariance_ned, B @ covariance_map @ B.T, rtol=1e-5, atol=1e-12)
 
@@ -420,7 +439,7 @@ def with_circles(detection, T_map_body, noise_px, rng, circle_ids=None):
 
 def test_circle_centres_join_the_fit():
     rng = np.random.default_rng(17)
-    solver = PoseSolver(FACILITY, CAMERA, PoseParams(corner_sigma_px=1.0, max_position_sd_m=1.0))
+    solver = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=1.0))
     plain_errors, circle_errors = [], []
     for _ in range(20):
         detections = detections_for(B_VIEW, noise_px=1.0, rng=rng)
@@ -436,11 +455,11 @@ def test_circle_ids_select_the_circles():
     detection = detections_for(B_VIEW)[0]
     some = [0, 3, 4, 7, 9]
     good = with_circles(detection, B_VIEW, 0.0, rng, circle_ids=some)
-    m = PoseSolver(FACILITY, CAMERA).solve([good], t_ns=0)
+    m = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve([good], t_ns=0)
     assert position_error_m(m, B_VIEW) < 1e-5
     # The same centres labelled as other circles cannot be fitted.
     wrong = Detection(good.symbol, good.id, good.corners_px, "circles", 0, 1.0, good.circles_px, np.array([1, 2, 5, 6, 8]))
-    assert PoseSolver(FACILITY, CAMERA).solve([wrong], t_ns=0) is None
+    assert PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve([wrong], t_ns=0) is None
 
 
 # ------------------------------------------- other dictionaries, rendered
@@ -498,7 +517,7 @@ def test_circle_centres_of_every_dictionary_fit_the_rendered_truth(dictionary, p
     rng = np.random.default_rng(8)
     facility = wall_map(dictionary, parity)
     marker = next(iter(facility.markers.values()))
-    solver = PoseSolver(facility, CAMERA, PoseParams(corner_sigma_px=0.3))
+    solver = PoseSolver(facility, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.3))
     errors, rotation_errors_deg = [], []
     for _, T_map_body, truth in rendered_views(facility, 4, rng):
         assert truth.corners_visible.all() and truth.circles_visible.all()
@@ -520,7 +539,7 @@ def test_detector_circles_path_poses_of_every_dictionary(dictionary):
     rng = np.random.default_rng(3)
     facility = wall_map(dictionary, 2)
     detector = Detector(DetectorParams(parity=2, dictionary=dictionary))
-    solver = PoseSolver(facility, CAMERA, PoseParams(corner_sigma_px=0.3))
+    solver = PoseSolver(facility, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.3))
     errors = []
     for side in ("left", "top", "right", "bottom"):
         for image, T_map_body, _ in rendered_views(facility, 1, rng, strip_side=side):
@@ -530,3 +549,100 @@ def test_detector_circles_path_poses_of_every_dictionary(dictionary):
             assert m is not None
             errors.append(position_error_m(m, T_map_body))
     assert np.median(errors) < 0.02 and max(errors) < 0.05
+
+
+# ----------------------------------------------------------------- attitude
+
+def attitude_of(T_map_body, roll_error_deg=0.0, pitch_error_deg=0.0):
+    """The flight controller's roll and pitch for a body pose (the truth), plus errors."""
+    from companion.types import AttitudeSample
+
+    roll, pitch = frames.roll_pitch_321(FACILITY.T_ned_map[:3, :3] @ T_map_body[:3, :3])
+    return AttitudeSample(0, roll + math.radians(roll_error_deg), pitch + math.radians(pitch_error_deg))
+
+
+def test_roll_pitch_jacobian_matches_finite_differences():
+    R = frames.rotation_from_euler_321(0.3, -0.4, 2.0)
+    numeric = []
+    for k in range(3):
+        step = np.zeros(3)
+        step[k] = 1e-7
+        plus = frames.roll_pitch_321(cv2.Rodrigues(step)[0] @ R)
+        minus = frames.roll_pitch_321(cv2.Rodrigues(-step)[0] @ R)
+        numeric.append((np.array(plus) - np.array(minus)) / 2e-7)
+    np.testing.assert_allclose(frames.roll_pitch_321_jacobian(R), np.column_stack(numeric), atol=1e-6)
+    assert frames.roll_pitch_321(R) == pytest.approx(frames.euler_321_from_rotation(R)[:2])
+
+
+def test_attitude_picks_the_ippe_branch_of_a_far_single_marker():
+    """The far, head-on N view is ambiguous from the corners alone; the measured roll and pitch pick the branch."""
+    rng = np.random.default_rng(30)
+    detections = detections_for(FAR_N_VIEW, symbols={"N"}, noise_px=0.05, rng=rng)
+    plain = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.05)).solve_detailed(detections, t_ns=0)
+    assert plain.status == "ambiguous"
+    solution = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.05)).solve_detailed(
+        detections, t_ns=0, attitude=attitude_of(FAR_N_VIEW, 0.2, -0.3))
+    assert solution.status == "ok" and solution.used_attitude and not solution.ambiguous
+    # one 0.20 m marker head-on at 5 m: decimetres along the wall, and the covariance says so
+    error_m = position_error_m(solution.measurement, FAR_N_VIEW)
+    assert error_m < 0.3
+    assert error_m < 3.0 * math.sqrt(np.linalg.eigvalsh(solution.measurement.covariance_ned[:3, :3])[-1])
+    # the branch the attitude ruled out is the far one
+    assert max(np.linalg.norm((frames.invert_transform(f.T_camera_map) @ CAMERA.T_camera_body)[:3, 3]
+                              - FAR_N_VIEW[:3, 3]) for f in plain.fits) > 0.3
+
+
+def test_attitude_disagreeing_with_many_markers_is_left_out():
+    """Ten degrees off (a wrong mount, a bad estimate): the markers win and the pose is solved without it."""
+    detections = detections_for(AISLE_VIEW, noise_px=0.05, rng=np.random.default_rng(2))
+    solution = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.05)).solve_detailed(
+        detections, t_ns=0, attitude=attitude_of(AISLE_VIEW, 10.0, 0.0))
+    assert solution.status == "ok" and not solution.used_attitude
+    assert position_error_m(solution.measurement, AISLE_VIEW) < 0.02
+
+
+def test_covariance_with_attitude_matches_the_scatter():
+    """Corner noise and attitude noise at their stated sigmas: the normalised 6-dof errors average about 6,
+    and the roll/pitch variances are at most the attitude's."""
+    rng = np.random.default_rng(8)
+    params = PoseParams(map_sd_m=0.0, map_sd_deg=0.0, corner_sigma_px=0.3, attitude_sd_deg=0.5, model_sigma_px=0.0)
+    truth_ned = FACILITY.T_ned_map @ B_VIEW
+    scores, with_attitude = [], []
+    for _ in range(200):
+        detections = detections_for(B_VIEW, noise_px=0.3, rng=rng)
+        errors_deg = rng.normal(0.0, 0.5, 2)
+        m = PoseSolver(FACILITY, CAMERA, params).solve(detections, t_ns=0, prior_T_map_body=B_VIEW,
+                                                       attitude=attitude_of(B_VIEW, *errors_deg))
+        if m is None:
+            continue
+        dp = m.T_ned_body[:3, 3] - truth_ned[:3, 3]
+        dtheta = frames.rotvec_from_rotation(m.T_ned_body[:3, :3] @ truth_ned[:3, :3].T)
+        error = np.concatenate([dp, dtheta])
+        scores.append(error @ np.linalg.solve(m.covariance_ned, error))
+        with_attitude.append(np.trace(m.covariance_ned[:3, :3]))
+        assert m.covariance_ned[3, 3] <= math.radians(0.5) ** 2 * 1.0001
+    plain = PoseSolver(FACILITY, CAMERA, params).solve(detections_for(B_VIEW), t_ns=0, prior_T_map_body=B_VIEW)
+    assert len(scores) >= 190
+    assert 4.5 < np.mean(scores) < 8.0
+    assert np.mean(with_attitude) < np.trace(plain.covariance_ned[:3, :3])
+
+
+def test_the_maps_error_lets_markers_disagree_by_it_and_widens_the_covariance():
+    """A tape-measured map (2 cm): markers that disagree by a couple of centimetres are still consistent,
+    and the covariance grows; an exact map rejects the same frame."""
+    import dataclasses
+
+    detections = detections_for(AISLE_VIEW)
+    first = FACILITY.markers[detections[0].id]
+    # the marker hangs 2 cm from where the map says: its detection is where the real one is
+    real = dataclasses.replace(first, T_map_marker=first.T_map_marker @ frames.make_transform(np.eye(3), [0.02, 0.0, 0.0]))
+    T_camera_map = CAMERA.T_camera_body @ frames.invert_transform(AISLE_VIEW)
+    detections[0] = Detection(first.symbol, first.id, CAMERA.project_from(T_camera_map, real.corners_map()), "square", 0, 1.0,
+                              corner_sigma_px=0.02)
+    detections = [d if d.corner_sigma_px else dataclasses.replace(d, corner_sigma_px=0.02) for d in detections]
+    exact = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.0, map_sd_deg=0.0)).solve_detailed(detections, t_ns=0)
+    assert exact.rejected_ids == (first.id,)  # the exact map's gate leaves the moved marker out
+    taped = PoseSolver(FACILITY, CAMERA, PoseParams(map_sd_m=0.02)).solve_detailed(detections, t_ns=0)
+    assert taped.status == "ok" and taped.rejected_ids == () and first.id in taped.measurement.marker_ids
+    assert np.trace(taped.measurement.covariance_ned[:3, :3]) > 10 * np.trace(exact.measurement.covariance_ned[:3, :3])
+    assert position_error_m(taped.measurement, AISLE_VIEW) < 0.03

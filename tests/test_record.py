@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import datetime
+import math
 import shutil
 import subprocess
 import sys
@@ -128,8 +129,11 @@ def test_a_recorded_replay_replays_from_a_copy_with_the_same_frames_and_poses(tm
     assert run.returncode == 0, run.stderr
     second_poses = measured_poses(second)
     assert sorted(second_poses) == sorted(first_poses)
+    # half a millimetre apart at most (the poses' errors are millimetres): the pose stage weighs each marker
+    # at its starting pose, which follows the filter's prior, and the filter's steps follow the pace of a
+    # replay as fast as possible (measured: up to 0.11 mm on a loaded machine)
     for frame, pose in first_poses.items():
-        np.testing.assert_allclose(second_poses[frame], pose, atol=2e-6, err_msg=f"frame {frame}")
+        np.testing.assert_allclose(second_poses[frame], pose, atol=5e-4, err_msg=f"frame {frame}")
 
 
 def test_mjpg_recording_is_high_quality_and_replays(tmp_path):
@@ -258,19 +262,21 @@ def test_recorder_refuses_a_file_in_the_way(tmp_path):
 
 def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
     """attitude.csv (t_ns,roll_deg,pitch_deg) with t_ns on the time base of timestamps.csv (0 = first frame);
-    samples from before the first frame have no place on it and are left out."""
+    samples from before the first frame have no place on it and are left out, and so is one that is not
+    after the last (replay needs rising times)."""
     from companion.daemon.pipeline import FrameRecord
-    from companion.types import Frame
+    from companion.types import AttitudeSample, Frame
     recorder = Recorder(RecordParams(path=tmp_path / "flight"), CameraModel.from_config(
         yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover"), MAP)
     recorder.start()
     start_ns = 5_000_000_000
-    recorder.attitude(start_ns - 10_000_000, 9.0, 9.0)
+    recorder.attitude(AttitudeSample(start_ns - 10_000_000, math.radians(9.0), math.radians(9.0)))
     for index in range(3):
         t_ns = start_ns + index * 33_000_000
         record = FrameRecord(index, t_ns, (0, 0, 0, 0), None, (), None, None)
         recorder(Frame(np.zeros((480, 640), np.uint8), t_ns, index), record)
-        recorder.attitude(t_ns + 5_000_000, 1.5 + index, -2.25)
+        recorder.attitude(AttitudeSample(t_ns + 5_000_000, math.radians(1.5 + index), math.radians(-2.25)))
+        recorder.attitude(AttitudeSample(t_ns + 4_000_000, math.radians(7.0), math.radians(7.0)))
     recorder.close()
     rows = read_rows(tmp_path / "flight" / "attitude.csv")
     assert [(int(r["t_ns"]), float(r["roll_deg"]), float(r["pitch_deg"])) for r in rows] == \

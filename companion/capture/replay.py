@@ -1,4 +1,10 @@
-"""Replay of recorded frames: a sequence folder, a video file or a folder of images."""
+"""Replay of recorded frames: a sequence folder, a video file or a folder of images.
+
+A sequence folder may also hold the flight controller's attitude
+(``attitude.csv``, ``companion.capture.attitude_csv``): ``ReplaySource.attitude_lookup``
+gives the pipeline each frame's roll and pitch at its recorded capture time,
+as the live link gives them at the camera's.
+"""
 from __future__ import annotations
 
 import csv
@@ -11,8 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from companion.capture.attitude_csv import AttitudeFileError, sequence_attitude
 from companion.capture.source import LogThrottle, SourceError, ThreadedSource, to_gray
-from companion.types import Frame
+from companion.geometry.attitude import DEFAULT_MAX_AGE_S, AttitudeLookup, history_of
+from companion.types import AttitudeSample, Frame
 from companion.yaml_input import read_yaml
 
 log = logging.getLogger(__name__)
@@ -38,7 +46,9 @@ class Recording:
     """What a replay plays: frame numbers, recorded times and where the pixels are.
 
     frames: (N,) frame numbers; t_ns: (N,) recorded capture times (ns, rising);
-    files: N image paths, or None when ``video`` holds the frames in order.
+    files: N image paths, or None when ``video`` holds the frames in order;
+    attitude: the flight controller's roll and pitch (``attitude.csv``, on the
+    time base of ``t_ns``), or None.
     """
 
     path: Path
@@ -46,6 +56,7 @@ class Recording:
     t_ns: np.ndarray
     files: list[Path] | None
     video: Path | None
+    attitude: tuple[AttitudeSample, ...] | None = None
 
     @property
     def period_ns(self) -> int:
@@ -113,12 +124,17 @@ def _read_sequence_folder(folder: Path) -> Recording:
     if np.any(np.diff(t_ns) <= 0):
         raise SourceError(f"{csv_path}: t_ns must rise from row to row")
     names = [r["file"] for r in rows]
+    try:
+        attitude = sequence_attitude(folder)
+    except AttitudeFileError as error:
+        raise SourceError(str(error)) from None
+    attitude = tuple(attitude) if attitude is not None else None
     if all(names):
-        return Recording(folder, frames, t_ns, [folder / n for n in names], video=None)
+        return Recording(folder, frames, t_ns, [folder / n for n in names], video=None, attitude=attitude)
     videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if any(names) or not videos:
         raise SourceError(f"{csv_path}: column 'file' must name every frame, or be empty with one video in {folder}")
-    return Recording(folder, frames, t_ns, None, video=videos[0])
+    return Recording(folder, frames, t_ns, None, video=videos[0], attitude=attitude)
 
 
 def read_sequence_info(folder) -> dict:
@@ -197,6 +213,26 @@ class ReplaySource(ThreadedSource):
     def start(self) -> None:
         super().start()
         self._started.wait(timeout=5.0)
+
+    def attitude_lookup(self, max_age_s: float = DEFAULT_MAX_AGE_S) -> AttitudeLookup | None:
+        """The recording's attitude at each replayed frame's recorded capture time; None without attitude.csv.
+
+        A frame's ``index`` (loops included) names its recorded time, so the
+        lookup is exact whatever the pace (real time, or as fast as possible,
+        when the frames are stamped as they are read).
+        """
+        rec = self.recording
+        if rec.attitude is None:
+            return None
+        history = history_of(rec.attitude, max_age_s)
+        recorded_t_ns = dict(zip(rec.frames.tolist(), rec.t_ns.tolist()))
+        frames_per_loop = int(rec.frames[-1]) + 1
+
+        def lookup(frame: Frame) -> AttitudeSample | None:
+            t_ns = recorded_t_ns.get(frame.index % frames_per_loop)
+            return None if t_ns is None else history.at(t_ns)
+
+        return lookup
 
     def _run(self) -> None:
         rec = self.recording

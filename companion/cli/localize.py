@@ -27,6 +27,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fps", type=float, help="frame rate of a video or image folder without timestamps")
     parser.add_argument("--max-markers", type=int, default=None,
                         help="use at most this many markers per frame (1: single-marker PnP)")
+    parser.add_argument("--no-attitude", dest="attitude", action="store_false",
+                        help="leave out the sequence's attitude.csv (the flight controller's roll and pitch)")
 
 
 def main(args) -> int:
@@ -43,7 +45,7 @@ def main(args) -> int:
         facility_map, camera = resources(Path(args.sequence), args.map_path, args.camera_path)
         truth = groundtruth(Path(args.sequence))
         solver = PoseSolver(facility_map, camera, PoseParams(max_markers=args.max_markers))
-        for result in localize(Path(args.sequence), solver, truth, fps=args.fps):
+        for result in localize(Path(args.sequence), solver, truth, fps=args.fps, use_attitude=args.attitude):
             results.append(result)
             print(json.dumps(result_json(result, facility_map)) if args.json else table_row(result, len(results) == 1))
     except ReplayFailed as error:
@@ -63,7 +65,10 @@ def result_json(result: FrameResult, facility_map: FacilityMap) -> dict:
     line = {
         "frame": result.frame, "t_ns": result.t_ns, "status": s.status, "detected_ids": list(result.detected_ids),
         "marker_ids": list(s.marker_ids), "rejected_ids": list(s.rejected_ids), "ambiguous": s.ambiguous,
+        "attitude_used": s.used_attitude,
     }
+    if result.attitude is not None:
+        line["attitude_roll_pitch_deg"] = _round(np.degrees([result.attitude.roll_rad, result.attitude.pitch_rad]), 4)
     m = s.measurement
     if m is not None:
         roll, pitch, yaw = frames.euler_321_from_rotation(m.T_ned_body[:3, :3])
@@ -88,8 +93,9 @@ def table_row(result: FrameResult, header: bool) -> str:
     head = f"{'frame':>6} {'t_ms':>9} {'seen':>4} {'used':>4} {'status':<20} {'x_m':>7} {'y_m':>7} {'z_m':>6} " \
            f"{'yaw_deg':>8} {'rms_px':>6} {'sd_m':>6} {'err_m':>6} {'yaw_err':>7}"
     s, m = result.solution, result.solution.measurement
+    notes = (" (amb.)" if s.ambiguous and m is not None else "") + (" +att" if s.used_attitude else "")
     row = f"{result.frame:>6} {result.t_ns / 1e6:>9.1f} {len(result.detected_ids):>4} {len(s.marker_ids):>4} " \
-          f"{s.status + (' (amb.)' if s.ambiguous and m is not None else ''):<20}"
+          f"{s.status + notes:<20}"
     if m is not None:
         yaw = math.degrees(frames.euler_321_from_rotation(m.T_ned_body[:3, :3])[2])
         sd_m = math.sqrt(float(np.trace(m.covariance_ned[:3, :3])))
@@ -104,6 +110,9 @@ def summary(results: list[FrameResult]) -> str:
     """Frames with a pose, and median / max errors when ground truth was known."""
     posed = [r for r in results if r.solution.measurement is not None]
     text = f"{len(posed)}/{len(results)} frames with a pose"
+    with_attitude = sum(r.solution.used_attitude for r in posed)
+    if any(r.attitude is not None for r in results):
+        text += f" ({with_attitude} with the flight controller's attitude)"
     errors = [r.error_m for r in posed if r.error_m is not None]
     if errors:
         yaw_errors = [r.yaw_error_deg for r in posed if r.yaw_error_deg is not None]

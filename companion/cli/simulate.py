@@ -11,8 +11,8 @@ from companion.cli.output import output_dir
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.sim import trajectory as trajectories
-from companion.sim.simulate import (DEFAULT_CAMERA, DEFAULT_DEGRADATIONS, VIDEO_CODECS, SimulationError, Simulator,
-                                    build_world, frame_times_ns, write_sequence)
+from companion.sim.simulate import (DEFAULT_CAMERA, DEFAULT_DEGRADATIONS, VIDEO_CODECS, AttitudeNoise, SimulationError,
+                                    Simulator, build_world, frame_times_ns, write_sequence)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -68,6 +68,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     r.add_argument("--exposure-wander", type=float, default=d.exposure_wander,
                    help="slow exposure changes, log amplitude (default 0: off; 0.3 is noticeable)")
     r.add_argument("--occluders", type=int, default=0, help="people/boxes crossing the view (default 0)")
+
+    a = parser.add_argument_group("attitude.csv (the flight controller's roll and pitch: the truth, noise, bias)")
+    noise = AttitudeNoise()
+    a.add_argument("--attitude", action=argparse.BooleanOptionalAction, default=True,
+                   help="write attitude.csv (default on)")
+    a.add_argument("--attitude-noise", type=float, default=noise.noise_deg,
+                   help="noise sd on each roll and pitch sample, deg (default %(default)s)")
+    a.add_argument("--attitude-bias", type=float, default=noise.bias_deg,
+                   help="bias added to every roll and pitch, deg (default %(default)s)")
+    a.add_argument("--attitude-rate", type=float, default=noise.rate_hz,
+                   help="samples per second (default %(default)s)")
 
 
 def _floats(n: int):
@@ -143,13 +154,14 @@ def main(args) -> int:
             exposure_ms=args.exposure_ms, motion_blur=args.motion_blur, optics_blur_sigma_px=args.blur,
             read_noise_dn=args.read_noise, shot_noise_gain=args.shot_noise, jpeg_quality=args.jpeg,
             vignette_strength=args.vignette, exposure_wander=args.exposure_wander)
+        attitude = AttitudeNoise(args.attitude_rate, args.attitude_noise, args.attitude_bias) if args.attitude else None
         world = build_world(facility_map, args.seed)
         simulator = Simulator(world, camera, traj, degradations, args.seed, args.supersample, args.occluders)
         options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
         frame_count = len(frame_times_ns(traj.duration_s, args.fps))
         output_dir(args.out, "OUT")
         out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
-                             {"options": options}, args.codec)
+                             {"options": options}, args.codec, attitude)
     except ValueError as error:
         print(f"companion simulate: {error}", file=sys.stderr)
         return 2

@@ -25,7 +25,7 @@ from companion.capture.replay import SEQUENCE_FILE, read_sequence_info, sequence
 from companion.daemon.record import RecordParams
 from companion.yaml_input import Where, read_yaml
 
-TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status", "record"}
+TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status", "record", "attitude"}
 SOURCE_KINDS = ("replay", "v4l2")
 REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
 V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
@@ -36,6 +36,8 @@ MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
 MAVLINK_SPECIAL_KEYS = {"messages", "origin"}
 LINK_FIELDS = {f.name for f in dataclasses.fields(LinkParams)} - {"origin"} - set(MESSAGES.values())
 STATUS_KEYS = {"interval_s", "http"}
+ATTITUDE_KEYS = {"source", "max_age_s", "rate_hz"}
+ATTITUDE_SOURCES = ("auto", "link", "none")
 DEFAULT_CONFIG = "default.yaml"
 
 
@@ -62,6 +64,24 @@ class V4L2Config:
 
 
 @dataclass(frozen=True)
+class AttitudeConfig:
+    """Where the flight controller's roll and pitch come from, and when they are too old.
+
+    source: "auto" (a camera: the flight controller's ATTITUDE over MAVLink;
+        a replay: its sequence's attitude.csv, if any), "link" (the FC's
+        ATTITUDE over MAVLink whatever the source: a replay on a bench, whose
+        frames have nothing to do with the live vehicle's attitude) or "none".
+    max_age_s: at a frame's capture time, attitude older than this is stale:
+        the pose is solved without it (and the daemon says so once).
+    rate_hz: the rate ATTITUDE is requested at (MAV_CMD_SET_MESSAGE_INTERVAL).
+    """
+
+    source: str = "auto"
+    max_age_s: float = 0.1
+    rate_hz: float = 50.0
+
+
+@dataclass(frozen=True)
 class Config:
     path: Path
     source: ReplayConfig | V4L2Config
@@ -74,6 +94,7 @@ class Config:
     status_interval_s: float = 0.5
     http: tuple[str, int] | None = None     # status.http: the live view's (host, port); None: off
     record: RecordParams | None = None      # record: the flight recording; None: off
+    attitude: AttitudeConfig = AttitudeConfig()
 
 
 def default_config_path() -> Path:
@@ -122,6 +143,7 @@ def config_from_dict(data, path) -> Config:
         status_interval_s=status_where.number(status, "interval_s", 0.5, minimum=0.05),
         http=http_address(status.get("http"), status_where),
         record=_record(data.get("record"), where.sub("record")),
+        attitude=_attitude(data.get("attitude"), where.sub("attitude")),
     )
 
 
@@ -157,6 +179,19 @@ def _record(section, where: Where) -> RecordParams | None:
         return RecordParams(path=where.path(section, "path"), **values)
     except (TypeError, ValueError) as error:
         raise where.error(str(error)) from None
+
+
+def _attitude(section, where: Where) -> AttitudeConfig:
+    section = where.mapping(section, "source, max_age_s, rate_hz")
+    where.reject_unknown(section, ATTITUDE_KEYS)
+    source = section.get("source", "auto")
+    if source not in ATTITUDE_SOURCES:
+        raise where.error(f"must be one of {', '.join(ATTITUDE_SOURCES)}, got {source!r}", "source")
+    rate_hz = where.number(section, "rate_hz", 50.0, minimum=1.0)
+    if rate_hz > 500.0:
+        raise where.error(f"must be <= 500, got {rate_hz:g}", "rate_hz")
+    return AttitudeConfig(source=source, max_age_s=where.number(section, "max_age_s", 0.1, minimum=0.005),
+                          rate_hz=rate_hz)
 
 
 def _source(section, where: Where) -> ReplayConfig | V4L2Config:

@@ -28,10 +28,19 @@ STATUSTEXT), one per change: the camera lost, stalled, and delivering again;
 no pose with its reasons; and the filter's own changes (tracking markers,
 markers lost, re-acquired with its reset counter). "no markers" is shown,
 not sent: the filter's "markers lost" already says it.
+
+The flight controller's attitude (when the daemon expects one,
+``attitude_expected``) is judged beside the state, from each frame's
+``FrameRecord.attitude`` (``HealthState.attitude``: "waiting" before the
+first sample, "ok", "stale"; "off" when none is expected). Each change is
+said once: "flight controller attitude in use" (or "no attitude yet: poses
+without it" when the first frame has none), "attitude stale: poses without
+it", "attitude back: poses use it".
 """
 from __future__ import annotations
 
 import collections
+import dataclasses
 import threading
 import time
 from dataclasses import dataclass
@@ -51,19 +60,29 @@ STALL_MAX_S = 1.0
 
 Emit = Callable[[str, int], None]
 
+# (previous, new) attitude state -> what is said; "start": the first frame
+ATTITUDE_MESSAGES = {
+    ("start", "ok"): ("flight controller attitude in use", SEVERITY_INFO),
+    ("start", "waiting"): ("no attitude yet: poses without it", SEVERITY_WARNING),
+    ("waiting", "ok"): ("flight controller attitude in use", SEVERITY_INFO),
+    ("ok", "stale"): ("attitude stale: poses without it", SEVERITY_WARNING),
+    ("stale", "ok"): ("attitude back: poses use it", SEVERITY_INFO),
+}
+
 
 @dataclass(frozen=True)
 class HealthState:
     """The daemon's health at one moment.
 
     state: see the module docstring; since_s: how long it has lasted (0 when
-    not measured); reasons: what the state rests on ("uncertain 42", the
+    not measured); reasons: what the state rests on ("reprojection 42", the
     source's lost reason), most frequent first.
     """
 
     state: str
     since_s: float = 0.0
     reasons: tuple[str, ...] = ()
+    attitude: str = "off"
 
     @property
     def critical(self) -> bool:
@@ -74,7 +93,7 @@ class Health:
     """Judges the daemon's health from its frames and the wall clock; see the module docstring."""
 
     def __init__(self, emit: Emit, no_markers_after_s: float = 0.5, no_pose_after_s: float = 2.0,
-                 clock_ns: Callable[[], int] = time.monotonic_ns):
+                 clock_ns: Callable[[], int] = time.monotonic_ns, attitude_expected: bool = False):
         self._emit = emit
         self.no_markers_after_s = no_markers_after_s
         self.no_pose_after_s = no_pose_after_s
@@ -90,6 +109,8 @@ class Health:
         self._track = "acquiring"
         self._acquisitions = 0
         self._reported = "starting"
+        self._attitude = "waiting" if attitude_expected else "off"
+        self._frames_seen = False
 
     # ------------------------------------------------- the pipeline's side
 
@@ -111,6 +132,7 @@ class Health:
                     self._markers_without_pose_ns = now_ns
                 self._pose_statuses[record.solution.status] += 1
         self._follow_the_filter(record)
+        self._follow_the_attitude(record)
 
     def _follow_the_filter(self, record: FrameRecord) -> None:
         """The filter's state from its estimate, and a message when it acquires or loses the markers."""
@@ -129,6 +151,21 @@ class Health:
             self._emit("markers lost", SEVERITY_WARNING)
         # tracking <-> coasting flickers frame to frame: not worth a message
 
+    def _follow_the_attitude(self, record: FrameRecord) -> None:
+        """The attitude's state from this frame's, and a message when it changes (pipeline thread)."""
+        previous = self._attitude
+        if previous == "off":
+            return
+        if record.attitude is not None:
+            state = "ok"
+        else:
+            state = "stale" if previous in ("ok", "stale") else "waiting"
+        self._attitude = state
+        message = ATTITUDE_MESSAGES.get((previous if self._frames_seen else "start", state))
+        self._frames_seen = True
+        if message is not None:
+            self._emit(*message)
+
     # ---------------------------------------------- the supervisor's side
 
     def check(self, now_ns: int | None = None, lost_reason: str | None = None) -> HealthState:
@@ -140,6 +177,9 @@ class Health:
 
     def assess(self, now_ns: int, lost_reason: str | None = None) -> HealthState:
         """The health at ``now_ns`` (monotonic), without reporting it."""
+        return dataclasses.replace(self._assess_state(now_ns, lost_reason), attitude=self._attitude)
+
+    def _assess_state(self, now_ns: int, lost_reason: str | None) -> HealthState:
         with self._lock:
             last_frame_ns, last_markers_ns = self._last_frame_ns, self._last_markers_ns
             no_pose_since_ns = self._markers_without_pose_ns

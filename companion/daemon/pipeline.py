@@ -1,5 +1,11 @@
 """The pipeline of the daemon: per frame, detect -> solve -> fuse -> publish, timing each stage.
 
+The pose stage gets the flight controller's roll and pitch at the frame's
+capture time (an ``AttitudeLookup``: the link's history, or a replay's
+attitude.csv). When it is stale or missing the pose is solved without it
+(``FrameRecord.attitude`` is None); the health judge says so once
+(``companion.daemon.health``), and again when it comes back.
+
 Each frame gives one ``FrameRecord``. Observers (``Pipeline.observers``) get
 every frame with its record right after it was sent; they run on the pipeline
 thread, so an observer only takes what it needs and hands slow work (encoding,
@@ -16,9 +22,10 @@ import numpy as np
 
 from companion.fusion import PoseFilter
 from companion.geometry import frames
+from companion.geometry.attitude import AttitudeLookup
 from companion.geometry.pose import PoseSolution
 from companion.mavlink.link import MavlinkLink
-from companion.types import Detection, Estimate, Frame, PoseMeasurement
+from companion.types import AttitudeSample, Detection, Estimate, Frame, PoseMeasurement
 
 STAGES = ("detect", "pose", "fuse", "send")
 
@@ -32,6 +39,8 @@ class FrameRecord:
         pose); None when no marker was seen.
     estimate: what the filter gave to send (None while acquiring).
     latency_ns: capture -> sent; None if nothing was sent.
+    attitude: the flight controller's roll and pitch at the capture time
+        (None: no attitude source, or it was stale or missing).
     """
 
     index: int
@@ -41,6 +50,7 @@ class FrameRecord:
     detections: tuple[Detection, ...]
     solution: PoseSolution | None
     estimate: Estimate | None
+    attitude: AttitudeSample | None = None
 
     @property
     def markers(self) -> int:
@@ -100,12 +110,14 @@ def _median_p99(values: np.ndarray) -> tuple[float, float]:
 class Pipeline:
     """Per frame: detect -> solve -> fuse -> publish, timing each stage."""
 
-    def __init__(self, detector, solver, pose_filter: PoseFilter, link: MavlinkLink | None, T_map_ned: np.ndarray):
+    def __init__(self, detector, solver, pose_filter: PoseFilter, link: MavlinkLink | None, T_map_ned: np.ndarray,
+                 attitude: AttitudeLookup | None = None):
         self.detector = detector
         self.solver = solver
         self.pose_filter = pose_filter
         self.link = link
         self.T_map_ned = T_map_ned
+        self.attitude = attitude
         self.stats = PipelineStats()
         self.observers: list[FrameObserver] = []
 
@@ -113,7 +125,8 @@ class Pipeline:
         t0 = time.perf_counter_ns()
         detections = self.detector.detect(frame.image)
         t1 = time.perf_counter_ns()
-        solution = self.solver.solve_detailed(detections, frame.t_ns, self._prior()) if detections else None
+        attitude = self._attitude_at(frame)
+        solution = self.solver.solve_detailed(detections, frame.t_ns, self._prior(), attitude) if detections else None
         measurement = None if solution is None else solution.measurement
         t2 = time.perf_counter_ns()
         estimate = self.pose_filter.step(frame.t_ns, measurement)
@@ -124,7 +137,7 @@ class Pipeline:
         t4 = time.perf_counter_ns()
         latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
         record = FrameRecord(frame.index, frame.t_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), latency_ns,
-                             tuple(detections), solution, estimate)
+                             tuple(detections), solution, estimate, attitude)
         self.stats.add(record)
         for observer in self.observers:
             observer(frame, record)
@@ -137,3 +150,7 @@ class Pipeline:
             return None
         R = frames.rotation_from_euler_321(estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)
         return self.T_map_ned @ frames.make_transform(R, estimate.position_ned_m)
+
+    def _attitude_at(self, frame: Frame) -> AttitudeSample | None:
+        """The attitude at the frame's capture time; None without a source or when it is stale or missing."""
+        return None if self.attitude is None else self.attitude(frame)

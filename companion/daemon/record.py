@@ -7,7 +7,8 @@
     DIR/timestamps.csv   frame,t_ns,file   one row per recorded frame (t_ns: capture time, 0 = first frame)
     DIR/estimates.csv    one row per pipeline frame: the verdict, the raw pose, what was sent, covariance
     DIR/detections.csv   one row per decoded marker: symbol, path, corrections, corners
-    DIR/attitude.csv     t_ns,roll_deg,pitch_deg  the flight controller's attitude, when the link has it
+    DIR/attitude.csv     t_ns,roll_deg,pitch_deg  the flight controller's attitude (when there is one:
+                         each sample from the link; a replay's at each frame), same time base
     DIR/groundtruth.csv  copied from a replayed sequence that has one (same frame numbers)
     DIR/map.yaml         a copy of the facility map
     DIR/sequence.yaml    camera, map (map.yaml), rate, counts, why the recording stopped
@@ -39,18 +40,18 @@ import cv2
 import numpy as np
 import yaml
 
+from companion.capture.attitude_csv import ATTITUDE_FILE, COLUMNS as ATTITUDE_COLUMNS, attitude_row
 from companion.capture.replay import SEQUENCE_FILE, TIMESTAMPS_FILE
 from companion.daemon.pipeline import FrameRecord
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
-from companion.types import Frame
+from companion.types import AttitudeSample, Frame
 
 log = logging.getLogger("companion")
 
 VIDEO_FILE = "video.avi"
 ESTIMATES_FILE = "estimates.csv"
 DETECTIONS_FILE = "detections.csv"
-ATTITUDE_FILE = "attitude.csv"
 GROUNDTRUTH_FILE = "groundtruth.csv"
 MAP_FILE = "map.yaml"
 
@@ -75,7 +76,6 @@ ESTIMATE_COLUMNS = (
 )
 DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "quality",
                      "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y")
-ATTITUDE_COLUMNS = ("t_ns", "roll_deg", "pitch_deg")
 
 # rows (estimates, detections) waiting for the writer beyond which even rows are dropped
 MAX_QUEUED_ROWS = 2000
@@ -186,11 +186,14 @@ class Recorder:
 
     camera, map_path: written into sequence.yaml (the map copied beside it);
     groundtruth: a groundtruth.csv to copy (a replayed sequence's), or None;
-    source: a description of the source for sequence.yaml.
+    source: a description of the source for sequence.yaml;
+    attitude_of_frames: record each frame's attitude (``FrameRecord.attitude``:
+        a replay's, which has no stream of its own); otherwise the samples
+        come through ``attitude`` (the link's, as they arrive).
     """
 
     def __init__(self, params: RecordParams, camera: CameraModel, map_path: Path,
-                 groundtruth: Path | None = None, source: str = ""):
+                 groundtruth: Path | None = None, source: str = "", attitude_of_frames: bool = False):
         self.params = params
         self.folder = expand_folder(params.path)
         if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
@@ -205,11 +208,13 @@ class Recorder:
             raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
         self.camera = camera
         self.source = source
+        self.attitude_of_frames = attitude_of_frames
         self.counters = RecordCounters()
         self.stop_reason: str | None = None
         self._started_utc = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
         self._t0_ns: int | None = None
         self._last_t_ns: int | None = None
+        self._last_attitude_t_ns: int | None = None
         self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
         self._image_budget = threading.Semaphore(params.queue_frames)
         self._stopped = threading.Event()   # no more rows taken (limit reached, error, close)
@@ -238,13 +243,16 @@ class Recorder:
             self.counters.dropped_rows += 1
             if image is not None:
                 self._image_budget.release()
+        if self.attitude_of_frames and record.attitude is not None:
+            self.attitude(AttitudeSample(record.t_ns, record.attitude.roll_rad, record.attitude.pitch_rad))
 
-    def attitude(self, t_ns: int, roll_deg: float, pitch_deg: float) -> None:
-        """Record one attitude sample of the flight controller (capture clock, like frames)."""
+    def attitude(self, sample: AttitudeSample) -> None:
+        """Record one attitude sample of the flight controller, ``t_ns`` on the frames' (monotonic) clock;
+        never blocks (the link's thread calls it for each ATTITUDE)."""
         if self._stopped.is_set():
             return
         try:
-            self._rows.put_nowait(("attitude", None, (t_ns, roll_deg, pitch_deg)))
+            self._rows.put_nowait(("attitude", None, sample))
         except queue.Full:
             pass
 
@@ -298,10 +306,8 @@ class Recorder:
         return self._stopped.is_set() and self.stop_reason != "the daemon stopped"
 
     def _write(self, kind: str, image: np.ndarray | None, payload) -> None:
-        if kind == "attitude":          # payload: (t_ns, roll_deg, pitch_deg)
-            if self._t0_ns is not None:
-                t_ns, roll_deg, pitch_deg = payload
-                self._csv[ATTITUDE_FILE].writerow((t_ns - self._t0_ns, f"{roll_deg:.4f}", f"{pitch_deg:.4f}"))
+        if kind == "attitude":
+            self._write_attitude(payload)
             return
         record: FrameRecord = payload
         if self._t0_ns is None:
@@ -315,6 +321,14 @@ class Recorder:
             finally:
                 self._image_budget.release()
         self._check_limits(record.t_ns)
+
+    def _write_attitude(self, sample: AttitudeSample) -> None:
+        """One attitude.csv row; samples before the first frame have no place on its time base, and one
+        not after the last written (the link's clock filter can step back) would stop replay reading it."""
+        if self._t0_ns is None or (self._last_attitude_t_ns is not None and sample.t_ns <= self._last_attitude_t_ns):
+            return
+        self._last_attitude_t_ns = sample.t_ns
+        self._csv[ATTITUDE_FILE].writerow(attitude_row(sample, self._t0_ns))
 
     def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:
         if self._last_t_ns is not None and record.t_ns <= self._last_t_ns:

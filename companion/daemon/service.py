@@ -43,8 +43,10 @@ from companion.daemon.config import Config, ConfigError, ReplayConfig
 from companion.daemon.health import Health, HealthState
 from companion.detect.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter
+from companion.geometry.attitude import AttitudeHistory, AttitudeLookup
 from companion.geometry.camera import CameraError, CameraModel
 from companion.mavlink import fc_params
+from companion.mavlink.attitude import AttitudeStream
 from companion.mavlink.link import LinkState, MavlinkLink
 from companion.mavlink.messages import SEVERITY_CRITICAL, SEVERITY_WARNING
 from companion.daemon.notify import Notifier
@@ -100,16 +102,18 @@ class Daemon:
         self.status_stream = status_stream
         detector = make_detector(config)
         self.source = make_source(config)
-        self.link = MavlinkLink(config.mavlink)
+        self.attitude_stream, attitude, self._attitude_text = attitude_source(config, self.source)
+        self.link = MavlinkLink(config.mavlink, attitude=self.attitude_stream)
         self.pipeline = Pipeline(
             detector,
             PoseSolver(config.facility_map, config.camera, config.pose),
             PoseFilter(config.fusion),
             self.link,
             T_map_ned=frames.invert_transform(config.facility_map.T_ned_map),
+            attitude=attitude,
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
-        self.health = Health(self._say)
+        self.health = Health(self._say, attitude_expected=attitude is not None)
         self.pipeline.observers.append(self.health.observe)
         # a marker the pose stage keeps leaving out is said once (docs/survey.md)
         self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
@@ -136,8 +140,11 @@ class Daemon:
             replayed = config.source.path if isinstance(config.source, ReplayConfig) else None
             groundtruth = replayed / GROUNDTRUTH_FILE if replayed is not None and replayed.is_dir() else None
             recorder = Recorder(config.record, config.camera, Path(config.facility_map.path), groundtruth,
-                                source=describe_source(config))
+                                source=describe_source(config),
+                                attitude_of_frames=self.attitude_stream is None and self.pipeline.attitude is not None)
             self.pipeline.observers.append(recorder)
+            if self.attitude_stream is not None:   # the FC's samples as they arrive (link thread)
+                self.attitude_stream.on_sample = recorder.attitude
         return recorder, live_view
 
     def run(self) -> int:
@@ -154,6 +161,7 @@ class Daemon:
         self.notifier.ready(status="running")
         log.info("running: source %s, map %s, MAVLink %s", describe_source(self.config),
                  self.config.facility_map.path, self.config.mavlink.connection)
+        log.info("attitude: %s", self._attitude_text)
         try:
             self._supervise()
         finally:
@@ -306,7 +314,8 @@ class Daemon:
                             state=health.state, state_s=health.since_s, reasons=health.reasons,
                             critical=health.critical, track_state=self.pipeline.pose_filter.state.value,
                             link_state=self.link.state.value, frames=self.pipeline.stats.frames,
-                            sent=self.pipeline.stats.sent, rejected=counters.rejected, resets=counters.resets)
+                            sent=self.pipeline.stats.sent, rejected=counters.rejected, resets=counters.resets,
+                            attitude=health.attitude)
 
     def status_line(self) -> str:
         return self.status().line()
@@ -318,6 +327,28 @@ class Daemon:
                  dict(self.link.counters.sent))
         for name, median_ms, p99_ms in stats.stage_table():
             log.info("stage %-14s median %7.2f ms  p99 %7.2f ms", name, median_ms, p99_ms)
+
+
+def attitude_source(config: Config, source: FrameSource
+                    ) -> tuple[AttitudeStream | None, AttitudeLookup | None, str]:
+    """(the link's attitude stream, the pipeline's attitude lookup, what it is for the log) the config asks for.
+
+    A camera: the flight controller's ATTITUDE over MAVLink. A replay: its
+    recording's attitude.csv (a live autopilot's attitude has nothing to do
+    with recorded frames), or none; unless ``attitude.source: link`` asks
+    for the link's whatever the source.
+    """
+    settings = config.attitude
+    if settings.source == "none":
+        return None, None, "off (attitude.source: none): poses without the flight controller's roll and pitch"
+    if isinstance(config.source, ReplayConfig) and settings.source == "auto":
+        lookup = source.attitude_lookup(settings.max_age_s)
+        if lookup is None:
+            return None, None, "the replay has no attitude.csv: poses without the flight controller's roll and pitch"
+        return None, lookup, "from the replay's attitude.csv"
+    history = AttitudeHistory(settings.max_age_s)
+    return (AttitudeStream(history, settings.rate_hz), history.lookup,
+            f"ATTITUDE from the flight controller at {settings.rate_hz:g} Hz, stale after {settings.max_age_s:g} s")
 
 
 def make_source(config: Config) -> FrameSource:

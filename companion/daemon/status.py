@@ -28,11 +28,13 @@ class DaemonStatus:
     state: the health (``companion.daemon.health``: "camera lost", "camera
     stalled", "starting", "no markers", "no pose", or the filter's
     "acquiring", "tracking", "coasting"); state_s: how long a problem state
-    has lasted; reasons: what it rests on ("uncertain 42", ...);
+    has lasted; reasons: what it rests on ("reprojection 42", ...);
     critical: the HEARTBEAT says CRITICAL (camera stalled or lost);
     track_state: the filter's state; link_state: the MAVLink link's
     ("connecting", "handshake", "streaming", "duplicate");
-    frames, sent: totals since start; rejected, resets: the filter's counters.
+    frames, sent: totals since start; rejected, resets: the filter's counters;
+    attitude: the flight controller's attitude in the pose stage ("ok",
+    "stale", "waiting"; "off" when none is expected, and then not shown).
     """
 
     fps: float
@@ -49,6 +51,7 @@ class DaemonStatus:
     sent: int
     rejected: int
     resets: int
+    attitude: str = "off"
 
     def state_text(self) -> str:
         """``camera stalled 3.2 s: no frame for 3.2 s``; the bare state when all is well."""
@@ -58,15 +61,16 @@ class DaemonStatus:
         return text + (": " + ", ".join(self.reasons) if self.reasons else "")
 
     def line(self) -> str:
-        """fps, markers seen, pose, latency, health and link state on one line."""
+        """fps, markers seen, pose, latency, health, attitude and link state on one line."""
         latency = f"{self.latency_ms:.1f} ms" if self.latency_ms is not None else "-"
         if self.estimate is not None:
             n, e, d = self.estimate.position_ned_m
             pose = f"N {n:+.2f} E {e:+.2f} D {d:+.2f} m yaw {math.degrees(self.estimate.yaw_rad):+.1f} deg"
         else:
             pose = "no pose"
+        attitude = "" if self.attitude == "off" else f"attitude {self.attitude} | "
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
-                f"{self.state_text()} | link {self.link_state} | "
+                f"{self.state_text()} | {attitude}link {self.link_state} | "
                 f"sent {self.sent} rejected {self.rejected} resets {self.resets}")
 
 

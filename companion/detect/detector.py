@@ -164,11 +164,22 @@ class Detector:
         return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
 
     def _aligned(self, gray: np.ndarray, detection: Detection) -> Detection:
-        """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``); where that
-        does not hold, the corners of the inner square's edge lines."""
+        """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``), with their noise;
+        where the alignment does not hold, the corners of the inner square's edge lines."""
         fit = self.refiner.refine(gray, detection.id, detection.corners_px)
-        corners = fit.corners_px if fit.refined else self._edge_corners(gray, detection.corners_px[None])[0]
-        return replace(detection, corners_px=corners)
+        corners_px = fit.corners_px if fit.refined else self._edge_corners(gray, detection.corners_px[None])[0]
+        sigma_px = square_corner_sigma_px(fit.residual, _cell_px(corners_px, self.layout.inner_cells))
+        if sigma_px is not None and not self._pattern_inside(corners_px, gray.shape):
+            sigma_px *= CUT_SIGMA_FACTOR
+        return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px)
+
+    def _pattern_inside(self, corners_px: np.ndarray, shape: tuple[int, int]) -> bool:
+        """Whether the marker's whole printed grid lies inside the frame (the alignment saw all of it)."""
+        n = self.layout.n_cells
+        H = homography.from_quad(self.layout.inner_corners_cells, corners_px)
+        outline = homography.project(H, np.array([[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]))
+        height, width = shape
+        return bool(np.all((outline >= -0.5) & (outline <= [width - 0.5, height - 0.5])))
 
     def _read_grids(self, gray: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, sampling.GridLevels]:
         """(M, N, N) int8 classified grids of M homographies, and their levels."""
@@ -289,11 +300,42 @@ class Detector:
             k, candidate = result.rotation, candidates[i]
             inner = homography.project(H[i], self.layout.inner_corners_cells)
             corner, slot = divmod(candidate.circle_ids, 3)
+            sigma_px = circles_corner_sigma_px(fits[good[i]].rms_cells, _cell_px(inner, self.layout.inner_cells))
             detections.append(Detection(
                 symbol=result.symbol, id=result.id, corners_px=np.roll(inner, -k, axis=0), path="circles",
                 corrected=result.corrected, quality=result.quality, circles_px=candidate.circles_px.copy(),
-                circle_ids=3 * ((corner - k) % 4) + slot))
+                circle_ids=3 * ((corner - k) % 4) + slot, corner_sigma_px=sigma_px))
         return detections
+
+
+# Point noise of a detection from what the detector measured, calibrated on rendered scenes against
+# their ground truth (benchmarks/bench_corner_sigma.py prints both constants again from new scenes):
+# square path: the whole-pattern alignment's misfit (MarkerFit.residual, a share of the contrast);
+# circles path: the RMS misfit of the edge-refined homography (EdgeFit.rms_cells).
+SQUARE_SIGMA_PER_RESIDUAL = 0.043
+CIRCLES_SIGMA_PER_MISFIT = 2.5
+# A square-path marker whose printed grid the frame's border cuts is aligned on what is visible:
+# its corners are 2-3 times worse than its misfit says (rendered flights and cropped scenes).
+CUT_SIGMA_FACTOR = 2.5
+
+
+def square_corner_sigma_px(residual: float, cell_px: float) -> float | None:
+    """Square path: sigma_px = k residual cell_px^(1/3) (None when the misfit was not measured)."""
+    if not (np.isfinite(residual) and residual > 0):
+        return None
+    return float(SQUARE_SIGMA_PER_RESIDUAL * residual * np.cbrt(cell_px))
+
+
+def circles_corner_sigma_px(rms_cells: float, cell_px: float) -> float | None:
+    """Circles path: sigma_px = k rms_cells cell_px, the edge fit's misfit in pixels (None if unknown)."""
+    if not (np.isfinite(rms_cells) and rms_cells > 0):
+        return None
+    return float(CIRCLES_SIGMA_PER_MISFIT * rms_cells * cell_px)
+
+
+def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:
+    """Mean side of the inner square in the image over its cells."""
+    return float(np.mean(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)) / inner_cells)
 
 
 def _unique(detections: list[Detection], offset_fraction: float) -> list[Detection]:

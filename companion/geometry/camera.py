@@ -102,6 +102,18 @@ class CameraModel:
         # columns: rvec (3), tvec (3), focal lengths (2), principal point (2), distortion
         return jacobian[:, 3:6].reshape(-1, 2, 3)
 
+    def project_with_jacobian(self, points_camera) -> tuple[np.ndarray, np.ndarray]:
+        """((N, 2) pixels, (N, 2, 3) their derivatives by the camera-frame points) in one OpenCV call.
+
+        ``project`` and ``projection_jacobian`` together, for the pose
+        stage's iterations (points behind the camera give NaN pixels).
+        """
+        p = np.asarray(points_camera, dtype=float).reshape(-1, 3)
+        px, jacobian = cv2.projectPoints(p, np.zeros(3), np.zeros(3), self.K, self.dist)
+        px = px.reshape(-1, 2)
+        px[p[:, 2] <= 0.0] = np.nan
+        return px, jacobian[:, 3:6].reshape(-1, 2, 3)
+
     def project_from(self, T_camera_x: np.ndarray, points_x) -> np.ndarray:
         """(N, 2) pixel positions of (N, 3) points given in frame x."""
         return self.project(frames.transform_points(T_camera_x, points_x))

@@ -95,6 +95,33 @@ def euler_321_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
     return float(roll), float(pitch), float(yaw)
 
 
+def roll_pitch_321(R: np.ndarray) -> tuple[float, float]:
+    """(roll_rad, pitch_rad) of a (3, 3) rotation, Z-Y-X order, as ``euler_321_from_rotation``.
+
+    Closed form (the pose stage calls it per hypothesis): with
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)``, ``R[2, 0] = -sin(pitch)``,
+    ``R[2, 1] = cos(pitch) sin(roll)``, ``R[2, 2] = cos(pitch) cos(roll)``.
+    """
+    pitch = -math.asin(max(-1.0, min(1.0, float(R[2, 0]))))
+    roll = math.atan2(float(R[2, 1]), float(R[2, 2]))
+    return roll, pitch
+
+
+def roll_pitch_321_jacobian(R: np.ndarray) -> np.ndarray:
+    """(2, 3) derivative of (roll, pitch) of ``R`` by a small rotation ``theta`` applied as ``R' = exp(theta) R``.
+
+    ``theta`` is on the axes of the ``to`` frame (NED for ``R_ned_body``). With
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)`` the rotation rate on those axes is
+    ``w = roll' R e_x + pitch' Rz(yaw) e_y + yaw' e_z``, so
+    ``roll' = (w_x cos yaw + w_y sin yaw) / cos pitch`` and
+    ``pitch' = -w_x sin yaw + w_y cos yaw`` (undefined at pitch = +-90 degrees).
+    """
+    yaw = math.atan2(float(R[1, 0]), float(R[0, 0]))
+    cos_pitch = math.hypot(float(R[0, 0]), float(R[1, 0]))
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c / cos_pitch, s / cos_pitch, 0.0], [-s, c, 0.0]])
+
+
 def rotation_from_quaternion(q_wxyz) -> np.ndarray:
     """(3, 3) rotation from a quaternion (w, x, y, z); normalised first.
 

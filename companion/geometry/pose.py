@@ -1,38 +1,55 @@
 """Vehicle pose from the mapped markers seen in one frame (no filtering).
 
-``PoseSolver(facility_map, camera).solve(detections, t_ns)`` returns a
-``PoseMeasurement`` or None. The steps:
+``PoseSolver(facility_map, camera).solve_detailed(detections, t_ns, prior, attitude)``
+returns a ``PoseSolution`` whose ``measurement`` is the pose (or None, with
+the reason in ``status``). The steps:
 
 1. Correspondences: for every detection of a mapped marker, its four inner
    corners and, for the circles path, its corner-circle centres, as map-frame
-   points against image points.
-2. Hypotheses: ``SOLVEPNP_IPPE_SQUARE`` on each marker's corners gives its
-   two IPPE camera poses; ``SOLVEPNP_SQPNP`` over all points of all markers
-   gives one more. Each hypothesis gathers the markers it reprojects
-   loosely, is refined jointly over all their points (Levenberg-Marquardt),
-   and keeps the markers whose own squared errors then pass a chi-square
-   test at the expected corner noise ``corner_sigma_px``: this is the
-   per-marker pose-disagreement test, done in the image where the noise is
-   known rather than in metres where it grows with range.
-3. Choice: most agreeing markers, then the lowest squared error. Markers
+   points against image points. Each point's noise is the detection's own
+   ``corner_sigma_px`` (what the detector measured), else
+   ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` added in
+   quadrature; the map's own error (``map_sd_m``, ``map_sd_deg``) moves all
+   of a marker's points together, so a marker's errors are weighed by the
+   inverse of their joint covariance. Every squared error below is in those
+   units (chi-square).
+2. Attitude: the flight controller's roll and pitch at the capture time
+   (``companion.geometry.attitude``), when given, join every fit as a prior
+   of standard deviation ``attitude_sd_deg``: two more residuals, so a
+   weakly constrained fit (one small or far marker) is in effect solved for
+   x, y, z and yaw, and a fit that tilts the body away from the measured
+   attitude costs what it should.
+3. Hypotheses: with a recent prior pose (the caller's or the last accepted
+   one), one fit refined from it, kept if it explains every marker. Else
+   ``SOLVEPNP_IPPE_SQUARE`` on each marker's corners gives its two IPPE
+   poses, the second kept only if it is not clearly worse (its squared
+   error, attitude included, within ``ambiguity_chi2`` of the first), and
+   ``SOLVEPNP_SQPNP`` over all points of all markers gives one more. Each
+   hypothesis gathers the markers it reprojects loosely, is refined jointly
+   over all their points (Gauss-Newton with Levenberg-Marquardt damping and
+   the analytic Jacobian), and keeps the markers whose own squared errors
+   then pass a chi-square test: the per-marker pose-disagreement test.
+4. Choice: most agreeing markers, then the lowest squared error. Markers
    left out must be a minority of at least two agreeing markers, else the
    frame is rejected as inconsistent; the whole fit must pass the same
    chi-square test and ``max_rms_px``. A pose whose body is tilted beyond
    ``max_tilt_deg`` is implausible for a flying vehicle and never chosen.
-4. Ambiguity: a distinct pose (another IPPE branch) whose squared error is
-   within ``ambiguity_chi2`` sigma^2 of the best makes the result ambiguous;
-   then the candidate nearest a prior pose is taken (the caller's, or the
-   solver's last accepted pose if recent), and without a prior the frame is
-   rejected (a flipped single-marker pose is typically metres and tens of
-   degrees off).
-5. Covariance: ``sigma^2 (J^T J)^-1``, J the Jacobian of the reprojection
-   residuals with respect to the body pose, sigma^2 the residual variance,
-   floored at ``corner_sigma_px^2``: part of a detector's corner error moves
-   the pose instead of showing as residual (with one marker, 8 residuals fit
-   6 parameters), so the residuals alone understate it. Rotated into NED.
-6. Uncertainty: a pose whose position standard deviation (largest axis)
-   exceeds ``max_position_sd_m`` is rejected: a small far marker fits its
-   corners well yet fixes the pose to within metres.
+   If the fit with the attitude fails these tests, the frame is solved again
+   without it (an attitude that disagrees with the markers is not trusted).
+5. Ambiguity: a distinct pose (another IPPE branch) whose squared error is
+   within ``ambiguity_chi2`` of the best makes the result ambiguous; then
+   the candidate nearest a prior pose is taken, and without a prior the
+   frame is rejected (a flipped single-marker pose is metres and tens of
+   degrees off). With the attitude most flips cost far more than that. A
+   pose chosen with every rival ruled out and no prior is marked
+   ``unambiguous``: the Kalman filter takes it as a fix without waiting for
+   more frames.
+6. Covariance: ``(J^T W J + A^T W_a A)^-1``, J the Jacobian of the
+   reprojection residuals with respect to the body pose, W the points'
+   inverse covariance (their noise and the map's error), A and W_a the
+   attitude prior's: it includes the attitude's uncertainty. Rotated into
+   NED. Nothing consistent is withheld for being uncertain: the covariance
+   says how good the pose is.
 
 All axis conventions come from ``companion.geometry.frames``.
 """
@@ -50,28 +67,40 @@ from scipy.stats import chi2
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap, MapMarker
-from companion.types import Detection, PoseMeasurement
+from companion.types import AttitudeSample, Detection, PoseMeasurement
 
 NS_PER_S = 1_000_000_000
+MAX_ITERATIONS = 12
+STEP_TOLERANCE = 1e-9  # radians and metres: a smaller step ends the refinement
+ATTITUDE_DOF = 2
 
 
 @dataclass(frozen=True)
 class PoseParams:
     """Thresholds of the pose solver (pixels, degrees, metres, seconds).
 
-    corner_sigma_px: expected standard deviation of a detected point's x and
-        y (detector noise); the consistency gates are chi-square tests at it.
-    gate_probability: probability that corner noise alone passes those tests
-        (0.999: one honest marker in a thousand fails; 1.0 turns them off).
+    corner_sigma_px: standard deviation of a detected point's x and y for
+        detections that do not state their own (``Detection.corner_sigma_px``).
+    model_sigma_px: added in quadrature to every point's noise: what the
+        detector's own estimate leaves out (video compression, the camera
+        calibration).
+    map_sd_m, map_sd_deg: standard deviation of each marker's mapped
+        position (each axis) and orientation (about each axis): the map's own
+        error, which moves all of a marker's points together (0.005 m and
+        0.2 degrees: a survey, as ``companion survey`` measures it; 0.02 m and
+        2 degrees: a tape measure; 0: an exact map, as in a simulation).
+    gate_probability: probability that corner noise alone passes the
+        chi-square tests (0.999: one honest marker in a thousand fails; 1.0
+        turns them off).
     max_rms_px: reject any fit whose RMS point error is above this.
     hypothesis_gate_px: loose RMS gate to gather markers before refining a
         hypothesis made from one marker.
-    ambiguity_chi2: a distinct pose whose sum of squared errors exceeds the
-        best by less than this many sigma^2 makes the result ambiguous.
-    max_position_sd_m: reject a pose whose position standard deviation along
-        its worst axis is above this (metres).
+    ambiguity_chi2: a distinct pose whose chi-square exceeds the best's by
+        less than this makes the result ambiguous.
     max_tilt_deg: largest plausible body roll/pitch (ArduPilot's ANGLE_MAX
         defaults to 30 degrees); it rejects many flipped IPPE branches.
+    attitude_sd_deg: standard deviation of the flight controller's roll and
+        of its pitch, each (its estimate's error plus the camera mount's).
     distinct_rotation_deg, distinct_position_m: two poses closer than both
         are the same solution.
     prior_max_age_s: the last accepted pose serves as prior this long.
@@ -81,12 +110,15 @@ class PoseParams:
     """
 
     corner_sigma_px: float = 0.5
+    model_sigma_px: float = 0.02
+    map_sd_m: float = 0.005
+    map_sd_deg: float = 0.2
     gate_probability: float = 0.999
     max_rms_px: float = 2.0
     hypothesis_gate_px: float = 30.0
     ambiguity_chi2: float = 25.0
-    max_position_sd_m: float = 0.10
     max_tilt_deg: float = 35.0
+    attitude_sd_deg: float = 0.5
     distinct_rotation_deg: float = 3.0
     distinct_position_m: float = 0.05
     prior_max_age_s: float = 1.0
@@ -96,11 +128,21 @@ class PoseParams:
     # Config keys that were replaced: the old key is an error naming the new one.
     RENAMED_KEYS: ClassVar[dict[str, str]] = {
         "gate_z": "gate_probability, the chi-square tests' probability (gate_z 3.09 was 0.999)",
+        "max_position_sd_m": "the covariance sent with every pose (nothing consistent is withheld for being "
+                             "uncertain); remove the key",
     }
 
     def __post_init__(self) -> None:
         if not (isinstance(self.gate_probability, (int, float)) and 0.0 < self.gate_probability <= 1.0):
             raise ValueError(f"pose parameter gate_probability must be in (0, 1], got {self.gate_probability!r}")
+        for name in ("corner_sigma_px", "attitude_sd_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"pose parameter {name} must be a positive number, got {value!r}")
+        for name in ("model_sigma_px", "map_sd_m", "map_sd_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"pose parameter {name} must be a number >= 0, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -109,18 +151,97 @@ class MarkerObservation:
 
     points_map: (K, 3) map-frame points (4 corners TL, TR, BR, BL, then circle centres).
     points_px: (K, 2) their image positions.
+    sigma_px: standard deviation of each point's x and y.
     """
 
     marker: MapMarker
     detection: Detection
     points_map: np.ndarray
     points_px: np.ndarray
+    sigma_px: float
 
     @property
     def side_px(self) -> float:
         """Mean side length of the marker's inner square in the image."""
         corners = self.detection.corners_px
-        return float(np.mean(np.linalg.norm(corners - np.roll(corners, 1, axis=0), axis=1)))
+        sides = corners - corners[[3, 0, 1, 2]]
+        return float(np.sqrt((sides * sides).sum(axis=1)).mean())
+
+
+@dataclass(frozen=True, eq=False)
+class _Points:
+    """The points of a frame's observations, stacked once.
+
+    map: (K, 3); px: (K, 2); marker: (K,) index of each point's observation;
+    starts, counts: (M,) each observation's first point and number of
+    points; marker_ids: (M,) their map ids; sigma_px: (M,) each
+    observation's point noise (the detection's and the model's); centres:
+    (M, 3) the markers' centres in the map.
+    """
+
+    map: np.ndarray
+    px: np.ndarray
+    marker: np.ndarray
+    starts: np.ndarray
+    counts: np.ndarray
+    marker_ids: np.ndarray
+    sigma_px: np.ndarray
+    centres: np.ndarray
+
+    @classmethod
+    def of(cls, observations: list[MarkerObservation], params: PoseParams) -> _Points:
+        counts = np.array([len(o.points_map) for o in observations])
+        # sigma^2 = sigma_detection^2 + sigma_model^2
+        sigma_px = np.sqrt(np.array([o.sigma_px for o in observations]) ** 2 + params.model_sigma_px ** 2)
+        return cls(np.vstack([o.points_map for o in observations]), np.vstack([o.points_px for o in observations]),
+                   np.repeat(np.arange(len(observations)), counts), np.cumsum(counts) - counts, counts,
+                   np.array([o.marker.id for o in observations]), sigma_px,
+                   np.array([o.marker.T_map_marker[:3, 3] for o in observations]))
+
+    def of_markers(self, members: np.ndarray) -> _Points:
+        """The points of the observations ``members`` (indices, ascending)."""
+        if len(members) == len(self.counts):
+            return self
+        keep = np.isin(self.marker, members)
+        counts = self.counts[members]
+        return _Points(self.map[keep], self.px[keep], np.repeat(np.arange(len(members)), counts),
+                       np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members],
+                       self.centres[members])
+
+
+@dataclass(frozen=True, eq=False)
+class _Weights:
+    """How a frame's point errors are weighed: per marker, ``Sigma^-1/2`` of its (2n, 2n) error covariance.
+
+    ``Sigma = sigma^2 I + G S G^T``: the points' own noise, and the map's
+    error of the marker's pose, S = diag(map_sd_m^2 (3), map_sd_rad^2 (3)),
+    seen through G = d(pixels)/d(the marker's pose in the map), which moves
+    all its points together. ``inverse_roots`` is None without map error
+    (then ``Sigma^-1/2 = I / sigma``).
+    """
+
+    points: _Points
+    inverse_roots: list[np.ndarray] | None
+
+    def whiten(self, values: np.ndarray) -> np.ndarray:
+        """(K, 2, ...) point errors (or their derivatives) -> whitened, the same shape."""
+        points = self.points
+        if self.inverse_roots is None:
+            return values / np.repeat(points.sigma_px, points.counts).reshape((-1,) + (1,) * (values.ndim - 1))
+        out = np.empty_like(values)
+        for start, count, root in zip(points.starts, points.counts, self.inverse_roots):
+            block = values[start:start + count]
+            out[start:start + count] = (root @ block.reshape(2 * count, -1)).reshape(block.shape)
+        return out
+
+    def marker_chi2(self, errors_px: np.ndarray) -> np.ndarray:
+        """(M,) each marker's chi-square from its (K, 2) point errors."""
+        return np.add.reduceat(np.sum(self.whiten(errors_px) ** 2, axis=1), self.points.starts)
+
+    def of_markers(self, members: np.ndarray) -> _Weights:
+        """The weights of the observations ``members`` (indices, ascending)."""
+        roots = None if self.inverse_roots is None else [self.inverse_roots[m] for m in members]
+        return _Weights(self.points.of_markers(members), roots)
 
 
 @dataclass(frozen=True)
@@ -129,16 +250,21 @@ class Fit:
 
     T_camera_map: (4, 4) map -> camera.
     inliers: indices (into the observations) of the markers that agree.
-    marker_sse_px2: (M,) sum of squared point errors of every observed marker
-        (inf if a point falls behind the camera).
-    sse_px2, n_points: sum of squared point errors and point count over the inliers.
+    marker_chi2: (M,) chi-square (squared point errors over their variances)
+        of every observed marker (inf if a point falls behind the camera).
+    chi2: over the inliers' points; attitude_chi2: the attitude prior's
+        (0 without an attitude); sse_px2, n_points: squared point errors in
+        pixels^2 and point count over the inliers.
     """
 
     T_camera_map: np.ndarray
     inliers: tuple[int, ...]
-    marker_sse_px2: np.ndarray
+    marker_chi2: np.ndarray
+    chi2: float
+    attitude_chi2: float
     sse_px2: float
     n_points: int
+    with_attitude: bool = False
 
     @property
     def rms_px(self) -> float:
@@ -147,8 +273,13 @@ class Fit:
 
     @property
     def dof(self) -> int:
-        """Residual degrees of freedom: 2 coordinates per point minus 6 pose parameters."""
-        return max(2 * self.n_points - 6, 1)
+        """Residual degrees of freedom: 2 per point, 2 for the attitude, minus 6 pose parameters."""
+        return max(2 * self.n_points + (ATTITUDE_DOF if self.with_attitude else 0) - 6, 1)
+
+    @property
+    def cost(self) -> float:
+        """Total chi-square: points and attitude."""
+        return self.chi2 + self.attitude_chi2
 
 
 @dataclass(frozen=True)
@@ -158,9 +289,10 @@ class PoseSolution:
     measurement: the accepted pose, or None.
     status: "ok", or why there is no pose: "no mapped markers",
         "reprojection", "inconsistent markers", "implausible attitude",
-        "ambiguous", "uncertain".
+        "ambiguous".
     ambiguous: another pose fitted nearly as well (resolved by the prior if
         ``used_prior``).
+    used_attitude: the flight controller's roll and pitch were part of the fit.
     marker_ids: ids of the markers used; rejected_ids: mapped markers seen
         but left out as inconsistent; unmapped_ids: detections not in the map
         (or seen twice).
@@ -170,6 +302,7 @@ class PoseSolution:
     status: str
     ambiguous: bool = False
     used_prior: bool = False
+    used_attitude: bool = False
     marker_ids: tuple[int, ...] = ()
     rejected_ids: tuple[int, ...] = ()
     unmapped_ids: tuple[int, ...] = ()
@@ -184,11 +317,30 @@ class _Choice:
     used_prior: bool = False
 
 
+@dataclass(frozen=True)
+class _Gravity:
+    """The attitude prior of one frame on the map frame: measured (roll, pitch) and 1 / sd."""
+
+    roll_rad: float
+    pitch_rad: float
+    inverse_sd: float
+    R_ned_map: np.ndarray
+
+    def residual(self, R_map_body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((2,) whitened roll and pitch errors, (2, 3) their derivative by theta on map axes, R' = exp(theta) R)."""
+        R_ned_body = self.R_ned_map @ R_map_body
+        roll, pitch = frames.roll_pitch_321(R_ned_body)
+        error = np.array([math.remainder(roll - self.roll_rad, 2 * math.pi), pitch - self.pitch_rad])
+        # theta on NED axes = R_ned_map theta_map
+        jacobian = frames.roll_pitch_321_jacobian(R_ned_body) @ self.R_ned_map
+        return error * self.inverse_sd, jacobian * self.inverse_sd
+
+
 class PoseSolver:
     """Turns one frame's detections into the vehicle pose in the map and NED.
 
     Holds one piece of state: the last accepted pose, used as the prior for
-    ambiguous frames within ``params.prior_max_age_s``.
+    the next frames within ``params.prior_max_age_s``.
     """
 
     def __init__(self, facility_map: FacilityMap, camera: CameraModel, params: PoseParams | None = None):
@@ -196,37 +348,61 @@ class PoseSolver:
         self.camera = camera
         self.params = params or PoseParams()
         self._layout = None
+        self._marker_points: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._last: tuple[int, np.ndarray] | None = None  # (t_ns, T_map_body)
+        self._T_camera_body = camera.T_camera_body
+        self._R_ned_map = facility_map.T_ned_map[:3, :3]
 
-    def solve(self, detections: list[Detection], t_ns: int, prior_T_map_body: np.ndarray | None = None) -> PoseMeasurement | None:
+    def solve(self, detections: list[Detection], t_ns: int, prior_T_map_body: np.ndarray | None = None,
+              attitude: AttitudeSample | None = None) -> PoseMeasurement | None:
         """The pose from this frame's detections, or None (see ``solve_detailed``)."""
-        return self.solve_detailed(detections, t_ns, prior_T_map_body).measurement
+        return self.solve_detailed(detections, t_ns, prior_T_map_body, attitude).measurement
 
-    def solve_detailed(self, detections: list[Detection], t_ns: int, prior_T_map_body: np.ndarray | None = None) -> PoseSolution:
+    def solve_detailed(self, detections: list[Detection], t_ns: int, prior_T_map_body: np.ndarray | None = None,
+                       attitude: AttitudeSample | None = None) -> PoseSolution:
         """The pose and the reasons behind it.
 
-        prior_T_map_body: (4, 4) a recent body pose in the map, used only to
-        resolve an ambiguous frame; defaults to the last accepted pose if it
-        is at most ``prior_max_age_s`` older than ``t_ns``.
+        prior_T_map_body: (4, 4) a recent body pose in the map, a start for the
+        fit and the choice between ambiguous fits; defaults to the last
+        accepted pose if it is at most ``prior_max_age_s`` older than ``t_ns``.
+        attitude: the flight controller's roll and pitch at ``t_ns``, or None.
         """
         observations, unmapped = self.observations(detections)
         if not observations:
             return PoseSolution(None, "no mapped markers", unmapped_ids=unmapped)
-        fits = self._hypothesis_fits(observations)
-        choice = self._choose(fits, len(observations), self._prior(t_ns, prior_T_map_body))
+        points = _Points.of(observations, self.params)
+        prior = self._prior(t_ns, prior_T_map_body)
+        gravity = None if attitude is None else self._gravity(attitude)
+        fits, choice = self._solve(points, len(observations), prior, gravity)
+        if gravity is not None and choice.status != "ok":
+            fits, choice = self._solve(points, len(observations), prior, None)
         used = choice.fit.inliers if choice.fit is not None else ()
         common = dict(ambiguous=choice.ambiguous, marker_ids=tuple(observations[i].marker.id for i in used),
                       unmapped_ids=unmapped, fits=tuple(fits))
         if choice.status != "ok":
             return PoseSolution(None, choice.status, **common)
-        measurement = self._measurement(choice.fit, observations, t_ns)
-        if position_sd_m(measurement) > self.params.max_position_sd_m:
-            return PoseSolution(None, "uncertain", **common)
+        with_attitude = choice.fit.with_attitude
+        measurement = self._measurement(choice.fit, points.of_markers(np.array(used)), observations, t_ns,
+                                        gravity if with_attitude else None,
+                                        unambiguous=not (choice.ambiguous or choice.used_prior))
         self._last = (t_ns, measurement.T_map_body)
         rejected = tuple(o.marker.id for i, o in enumerate(observations) if i not in used)
-        return PoseSolution(measurement, "ok", used_prior=choice.used_prior, rejected_ids=rejected, **common)
+        return PoseSolution(measurement, "ok", used_prior=choice.used_prior, used_attitude=with_attitude,
+                            rejected_ids=rejected, **common)
 
-    def _choose(self, fits: list[Fit], observed: int, prior: np.ndarray | None) -> "_Choice":
+    def _solve(self, points: _Points, observed: int, prior: np.ndarray | None,
+               gravity: _Gravity | None) -> tuple[list[Fit], _Choice]:
+        """(fits, choice): from the prior alone when it explains every marker, else from every hypothesis."""
+        if prior is not None:
+            fit = self._grow_and_refine(self._T_camera_map(prior), points, gravity)
+            if fit is not None and len(fit.inliers) == observed:
+                choice = self._choose([fit], observed, None)
+                if choice.status == "ok":
+                    return [fit], _Choice("ok", fit, used_prior=True)
+        fits = self._hypothesis_fits(points, gravity)
+        return fits, self._choose(fits, observed, prior)
+
+    def _choose(self, fits: list[Fit], observed: int, prior: np.ndarray | None) -> _Choice:
         """The fit to report, or why none: plausibility, consistency, ambiguity."""
         plausible = [f for f in fits if self._plausible(f)]
         if fits and not plausible:
@@ -239,7 +415,7 @@ class PoseSolver:
         if not rivals:
             return _Choice("ok", best)
         if prior is not None:
-            return _Choice("ok", _nearest_to_prior([best] + rivals, prior, self.camera.T_camera_body), True, True)
+            return _Choice("ok", _nearest_to_prior([best] + rivals, prior, self._T_camera_body), True, True)
         if self.params.accept_ambiguous_without_prior:
             return _Choice("ok", best, True)
         return _Choice("ambiguous", best, True)
@@ -268,17 +444,29 @@ class PoseSolver:
         return observations, tuple(sorted(set(left_out)))
 
     def _observation(self, marker: MapMarker, detection: Detection) -> MarkerObservation:
-        points_marker = [marker.corners_marker()]
-        points_px = [np.asarray(detection.corners_px, dtype=float).reshape(4, 2)]
+        corners_map, circles_map = self._points_of(marker)
+        points_map, points_px = corners_map, np.asarray(detection.corners_px, dtype=float).reshape(4, 2)
         if len(detection.circle_ids):
-            circles_uv = self._circles_uv()
             ids = np.asarray(detection.circle_ids, dtype=int).reshape(-1)
-            valid = (ids >= 0) & (ids < len(circles_uv))  # a detector bug must not stop the pipeline
+            valid = (ids >= 0) & (ids < len(circles_map))  # a detector bug must not stop the pipeline
+            points_map = np.vstack([corners_map, circles_map[ids[valid]]])
+            points_px = np.vstack([points_px, np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid]])
+        sigma_px = detection.corner_sigma_px
+        if sigma_px is None or not (math.isfinite(sigma_px) and sigma_px > 0):
+            sigma_px = self.params.corner_sigma_px
+        return MarkerObservation(marker, detection, points_map, points_px, float(sigma_px))
+
+    def _points_of(self, marker: MapMarker) -> tuple[np.ndarray, np.ndarray]:
+        """((4, 3) inner corners, (12, 3) corner-circle centres) of a marker in the map frame, computed once."""
+        cached = self._marker_points.get(marker.id)
+        if cached is None:
             layout = self._marker_layout()
-            points_marker.append(frames.grid_to_marker_m(circles_uv[ids[valid]], layout.inner_origin, layout.inner_cells, marker.size_m))
-            points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid])
-        points_map = frames.transform_points(marker.T_map_marker, np.vstack(points_marker))
-        return MarkerObservation(marker, detection, points_map, np.vstack(points_px))
+            circles_uv = np.asarray(layout.circles, dtype=float)[:, :2]
+            circles_marker = frames.grid_to_marker_m(circles_uv, layout.inner_origin, layout.inner_cells, marker.size_m)
+            cached = (frames.transform_points(marker.T_map_marker, marker.corners_marker()),
+                      frames.transform_points(marker.T_map_marker, circles_marker))
+            self._marker_points[marker.id] = cached
+        return cached
 
     def _marker_layout(self):
         if self._layout is None:
@@ -287,104 +475,174 @@ class PoseSolver:
             self._layout = MarkerLayout(parity=self.facility_map.parity, dictionary=self.facility_map.dictionary)
         return self._layout
 
-    def _circles_uv(self) -> np.ndarray:
-        """(12, 2) circle centres (u, v) in grid cells."""
-        return np.asarray(self._marker_layout().circles, dtype=float)[:, :2]
+    def _gravity(self, attitude: AttitudeSample) -> _Gravity:
+        return _Gravity(attitude.roll_rad, attitude.pitch_rad, 1.0 / math.radians(self.params.attitude_sd_deg),
+                        self._R_ned_map)
 
     # ----------------------------------------------------------- hypotheses
 
-    def _hypothesis_fits(self, observations: list[MarkerObservation]) -> list[Fit]:
+    def _hypothesis_fits(self, points: _Points, gravity: _Gravity | None) -> list[Fit]:
         """Refined fits from every marker's IPPE poses and from all markers at once, duplicates removed."""
-        starts = [T for o in observations for T in self._ippe_poses(o)]
-        if len(observations) > 1:
-            starts.append(self._all_markers_pose(observations))
+        starts = [T for m in range(len(points.counts)) for T in self._ippe_poses(points, m, gravity)]
+        if len(points.counts) > 1:
+            starts.append(self._all_markers_pose(points))
         fits: list[Fit] = []
         for T_camera_map in starts:
-            fit = self._grow_and_refine(T_camera_map, observations)
+            fit = self._grow_and_refine(T_camera_map, points, gravity)
             if fit is not None and not self._same_pose_as_any(fit, fits):
                 fits.append(fit)
         return fits
 
-    def _all_markers_pose(self, observations: list[MarkerObservation]) -> np.ndarray:
+    def _all_markers_pose(self, points: _Points) -> np.ndarray:
         """T_camera_map from SQPnP (globally optimal) over all points of all markers.
 
         Many markers small in the image, each with a poor pose of its own, can
         still give a good joint pose.
         """
-        points_map = np.vstack([o.points_map for o in observations])
-        points_px = np.vstack([o.points_px for o in observations])
-        _, rvec, tvec = cv2.solvePnP(points_map, points_px, self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_SQPNP)
-        return frames.transform_from_rotvec(rvec, tvec)
+        _, rvec, tvec = cv2.solvePnP(points.map, points.px, self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_SQPNP)
+        return _transform(cv2.Rodrigues(rvec)[0], tvec)
 
-    def _ippe_poses(self, observation: MarkerObservation) -> list[np.ndarray]:
-        """IPPE_SQUARE poses (T_camera_map) of one marker from its corners.
+    def _ippe_poses(self, points: _Points, m: int, gravity: _Gravity | None) -> list[np.ndarray]:
+        """IPPE_SQUARE poses (T_camera_map) of marker ``m`` from its corners.
 
         The second solution is kept only if it is not clearly worse on this
-        marker's points (the same test as for ambiguity); a clearly wrong
-        branch cannot become the best fit and costs a refinement.
+        marker's corners and, with an attitude, on the attitude too (the same
+        test as for ambiguity): a clearly wrong branch cannot become the best
+        fit and costs a refinement.
         """
-        square = observation.marker.corners_marker()
-        corners_px = observation.points_px[:4].reshape(4, 1, 2)
-        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-            square, corners_px, self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
-        )
-        T_marker_map = frames.invert_transform(observation.marker.T_map_marker)
-        poses = [frames.transform_from_rotvec(rvecs[i], tvecs[i]) @ T_marker_map for i in range(count)]
-        sse = [float(self._marker_sse(T, [observation])[0]) for T in poses]
-        limit_px2 = min(sse) + self.params.ambiguity_chi2 * self.params.corner_sigma_px ** 2
-        return [T for T, e in zip(poses, sse) if e <= limit_px2]
+        start = points.starts[m]
+        corners_px = points.px[start:start + 4]
+        marker = self.facility_map.markers[int(points.marker_ids[m])]
+        T_map_marker = marker.T_map_marker
+        square = marker.corners_marker()
+        count, rvecs, tvecs, rms_px = cv2.solvePnPGeneric(square, corners_px.reshape(4, 1, 2), self.camera.K,
+                                                           self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        # T_camera_map = T_camera_marker T_marker_map
+        T_marker_map = frames.invert_transform(T_map_marker)
+        poses = [_transform(cv2.Rodrigues(rvecs[i])[0], tvecs[i]) @ T_marker_map for i in range(count)]
+        # OpenCV's RMS is over the 8 coordinates: sse = 8 rms^2, chi-square = sse / sigma^2
+        weight = 1.0 / points.sigma_px[m] ** 2
+        costs = [8.0 * float(np.asarray(rms_px).reshape(-1)[i]) ** 2 * weight for i in range(count)]
+        if gravity is not None:
+            costs = [c + float(np.sum(gravity.residual(self._R_map_body(T))[0] ** 2)) for c, T in zip(costs, poses)]
+        limit = min(costs) + self.params.ambiguity_chi2
+        return [T for T, c in zip(poses, costs) if c <= limit]
 
-    def _grow_and_refine(self, T_camera_map: np.ndarray, observations: list[MarkerObservation]) -> Fit | None:
+    def _grow_and_refine(self, T_camera_map: np.ndarray, points: _Points, gravity: _Gravity | None) -> Fit | None:
         """Refine a hypothesis on the markers it explains; None if it explains none."""
-        sse = self._marker_sse(T_camera_map, observations)
-        counts = np.array([len(o.points_map) for o in observations])
-        members = np.flatnonzero(sse < counts * self.params.hypothesis_gate_px ** 2)
+        errors = self.camera.project_from(T_camera_map, points.map) - points.px
+        sse_m = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
+        members = np.flatnonzero(sse_m < points.counts * self.params.hypothesis_gate_px ** 2)
+        # the weights at the start: the map error's share changes little while the pose is refined
+        weights = self._weights(T_camera_map, points)
         for _ in range(3):
             if len(members) == 0:
                 return None
-            T_camera_map = self._refine(T_camera_map, [observations[i] for i in members])
-            sse = self._marker_sse(T_camera_map, observations)
-            agreeing = np.flatnonzero([self._within_noise(e, 2 * n) for e, n in zip(sse, counts)])
+            refined = self._refine(T_camera_map, weights.of_markers(members), gravity)
+            if refined is None:
+                return None
+            T_camera_map = refined
+            chi2_m, sse_m = self._marker_errors(T_camera_map, points, weights)
+            agreeing = np.flatnonzero([self._within_noise(c, 2 * n) for c, n in zip(chi2_m, points.counts)])
             if np.array_equal(agreeing, members):
                 break
             members = agreeing
         if len(members) == 0:
             return None
-        return Fit(T_camera_map, tuple(int(i) for i in members), sse, float(sse[members].sum()), int(counts[members].sum()))
+        attitude_chi2 = 0.0
+        if gravity is not None:
+            attitude_chi2 = float(np.sum(gravity.residual(self._R_map_body(T_camera_map))[0] ** 2))
+        return Fit(T_camera_map, tuple(int(i) for i in members), chi2_m, float(chi2_m[members].sum()), attitude_chi2,
+                   float(sse_m[members].sum()), int(points.counts[members].sum()), gravity is not None)
 
-    def _within_noise(self, sse_px2: float, dof: int) -> bool:
-        """Chi-square test: squared errors explained by corner noise at ``corner_sigma_px``."""
-        return sse_px2 / self.params.corner_sigma_px ** 2 < chi2_quantile(self.params.gate_probability, dof)
+    def _within_noise(self, chi2_value: float, dof: int) -> bool:
+        """Chi-square test: squared errors explained by the points' noise."""
+        return chi2_value < chi2_quantile(self.params.gate_probability, dof)
 
-    def _refine(self, T_camera_map: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
-        """Levenberg-Marquardt over all points of these markers, from T_camera_map."""
-        points_map = np.vstack([o.points_map for o in observations])
-        points_px = np.vstack([o.points_px for o in observations])
-        rvec = frames.rotvec_from_rotation(T_camera_map[:3, :3]).reshape(3, 1)
-        tvec = T_camera_map[:3, 3].reshape(3, 1).copy()
-        rvec, tvec = cv2.solvePnPRefineLM(points_map, points_px, self.camera.K, self.camera.dist, rvec, tvec)
-        return frames.transform_from_rotvec(rvec, tvec)
+    def _refine(self, T_camera_map: np.ndarray, weights: _Weights, gravity: _Gravity | None) -> np.ndarray | None:
+        """Gauss-Newton (Levenberg-Marquardt damped) on T_camera_map over these points (weighed) and the attitude.
 
-    def _residuals(self, T_camera_map: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
-        """(K, 2) projected minus observed pixels over the markers' points (NaN behind the camera)."""
-        points_map = np.vstack([o.points_map for o in observations])
-        points_px = np.vstack([o.points_px for o in observations])
-        return self.camera.project_from(T_camera_map, points_map) - points_px
+        Perturbation: R' = exp(w) R, t' = t + dt (camera axes), so a map point
+        seen at X_c = R X + t moves by dX_c = w x (R X) + dt, and the camera
+        gives d(pixels)/dX_c. With the attitude, R_map_body = R^T R_cb moves by
+        theta_map = -R^T w. None if a point falls behind the camera.
+        """
+        points = weights.points
+        R, t = T_camera_map[:3, :3], T_camera_map[:3, 3]
+        damping, previous = 0.0, None
+        for _ in range(MAX_ITERATIONS):
+            rotated = points.map @ R.T
+            px, dpx_dX = self.camera.project_with_jacobian(rotated + t)
+            # d(pixels)/dw: row a of d(pixels)/dX_c gives a . (w x RX) = w . (RX x a)
+            d_rotation = _cross(rotated[:, None, :], dpx_dX)
+            residual = weights.whiten(px - points.px).reshape(-1)
+            J = weights.whiten(np.concatenate([d_rotation, dpx_dX], axis=2)).reshape(-1, 6)
+            if gravity is not None:
+                error, d_theta = gravity.residual(R.T @ self._T_camera_body[:3, :3])
+                residual = np.concatenate([residual, error])
+                J = np.vstack([J, np.hstack([-d_theta @ R.T, np.zeros((2, 3))])])
+            cost = float(residual @ residual)
+            if not math.isfinite(cost):
+                return None if previous is None else _transform(*previous[:2])
+            if previous is not None and cost > previous[2]:
+                # the step made it worse: back to the previous pose, a more cautious step
+                R, t, cost, J, residual = previous
+                damping = max(10.0 * damping, 1e-4)
+            else:
+                damping = damping / 10.0 if damping > 1e-8 else 0.0
+            previous = (R, t, cost, J, residual)
+            H = J.T @ J
+            if damping:
+                H[np.diag_indices(6)] *= 1.0 + damping
+            try:
+                step = -np.linalg.solve(H, J.T @ residual)
+            except np.linalg.LinAlgError:
+                break
+            R = cv2.Rodrigues(step[:3])[0] @ R
+            t = t + step[3:]
+            if np.abs(step).max() < STEP_TOLERANCE:
+                break
+        return _transform(R, t)
 
-    def _marker_sse(self, T_camera_map: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
-        """(M,) sum of squared point errors of each marker under the pose (inf if behind the camera)."""
-        squared = np.sum(self._residuals(T_camera_map, observations) ** 2, axis=1)
-        starts = np.cumsum([0] + [len(o.points_map) for o in observations[:-1]])
-        sse = np.add.reduceat(squared, starts)
-        return np.where(np.isfinite(sse), sse, np.inf)
+    def _marker_errors(self, T_camera_map: np.ndarray, points: _Points,
+                       weights: _Weights) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) chi-square, (M,) squared pixel errors) of each marker under the pose (inf if behind the camera)."""
+        errors = self.camera.project_from(T_camera_map, points.map) - points.px
+        sse = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
+        chi2_m = weights.marker_chi2(errors)
+        return np.where(np.isfinite(chi2_m), chi2_m, np.inf), np.where(np.isfinite(sse), sse, np.inf)
+
+    def _weights(self, T_camera_map: np.ndarray, points: _Points) -> _Weights:
+        """The points' weights at a camera pose (see ``_Weights``)."""
+        if self.params.map_sd_m == 0 and self.params.map_sd_deg == 0:
+            return _Weights(points, None)
+        R, t = T_camera_map[:3, :3], T_camera_map[:3, 3]
+        # d(pixels)/dX_map = d(pixels)/dX_c R: (K, 2, 3)
+        D = self.camera.projection_jacobian(points.map @ R.T + t) @ R
+        # the marker moved by dt and turned by dtheta about its centre c: dX = dt + dtheta x (X - c);
+        # row a of D gives a . (dtheta x r) = dtheta . (r x a)
+        r = points.map - np.repeat(points.centres, points.counts, axis=0)
+        G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
+        S = np.array([self.params.map_sd_m ** 2] * 3 + [math.radians(self.params.map_sd_deg) ** 2] * 3)
+        roots: list[np.ndarray | None] = [None] * len(points.counts)
+        for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
+            markers = np.flatnonzero(points.counts == count)
+            g = np.stack([G[points.starts[m]:points.starts[m] + count].reshape(2 * count, 6) for m in markers])
+            sigma2 = points.sigma_px[markers, None] ** 2
+            # Sigma = sigma^2 I + G S G^T = V diag(l) V^T; Sigma^-1/2 = V diag(l^-1/2) V^T (l >= sigma^2: a
+            # point behind the camera of a wild hypothesis gives a huge G, and Cholesky would fail)
+            values, vectors = np.linalg.eigh(sigma2[:, :, None] * np.eye(2 * count) + (g * S) @ g.transpose(0, 2, 1))
+            inverse_roots = (vectors / np.sqrt(np.maximum(values, sigma2))[:, None, :]) @ vectors.transpose(0, 2, 1)
+            for m, root in zip(markers, inverse_roots):
+                roots[m] = root
+        return _Weights(points, roots)
 
     # --------------------------------------------------------------- choice
 
     def _plausible(self, fit: Fit) -> bool:
         """Body roll and pitch within ``max_tilt_deg`` (in the map, z up)."""
-        T_map_body = _body_pose(fit.T_camera_map, self.camera.T_camera_body)
         # The body's down axis (FRD z) against the map's down direction.
-        cos_tilt = float(-T_map_body[2, 2])
+        cos_tilt = float(-self._R_map_body(fit.T_camera_map)[2, 2])
         return cos_tilt >= math.cos(math.radians(self.params.max_tilt_deg))
 
     def _check_consistency(self, best: Fit | None, observed: int) -> str:
@@ -393,28 +651,32 @@ class PoseSolver:
         outliers = observed - len(best.inliers)
         if outliers and (len(best.inliers) < 2 or len(best.inliers) <= outliers):
             return "inconsistent markers"
-        if best.rms_px > self.params.max_rms_px or not self._within_noise(best.sse_px2, best.dof):
+        if best.rms_px > self.params.max_rms_px or not self._within_noise(best.cost, best.dof):
             return "reprojection"
         return "ok"
 
     def _rivals(self, best: Fit, fits: list[Fit]) -> list[Fit]:
-        """Distinct fits to the same markers whose squared error is not clearly worse."""
-        sigma2 = max(self.params.corner_sigma_px ** 2, best.sse_px2 / best.dof)
-        limit_px2 = best.sse_px2 + self.params.ambiguity_chi2 * sigma2
+        """Distinct fits to the same markers whose chi-square is not clearly worse.
+
+        Residuals larger than the points' noise widen the margin in proportion.
+        """
+        scale = max(1.0, best.cost / best.dof)
+        limit = best.cost + self.params.ambiguity_chi2 * scale
         return [
             f for f in fits
-            if f is not best and f.inliers == best.inliers and f.sse_px2 < limit_px2 and not self._same_pose_as_any(f, [best])
+            if f is not best and f.inliers == best.inliers and f.cost < limit and not self._same_pose_as_any(f, [best])
         ]
 
     def _same_pose_as_any(self, fit: Fit, others: list[Fit]) -> bool:
         """Whether one of the others is the same camera pose: closer than both distinct_rotation_deg and distinct_position_m."""
         if not others:
             return False
-        # one vectorised call: this runs for every pair of hypotheses
         R_others = np.stack([other.T_camera_map[:3, :3] for other in others])
-        angles_deg = np.degrees(frames.rotation_angle_rad(R_others, fit.T_camera_map[:3, :3]))
+        # the angle of R_a R_b^T from its trace: cos(angle) = (trace - 1) / 2
+        cos_angle = (np.einsum("kij,ij->k", R_others, fit.T_camera_map[:3, :3]) - 1.0) / 2.0
         positions_m = np.linalg.norm(np.stack([_camera_position_m(other) for other in others]) - _camera_position_m(fit), axis=1)
-        same = (angles_deg < self.params.distinct_rotation_deg) & (positions_m < self.params.distinct_position_m)
+        same = (cos_angle > math.cos(math.radians(self.params.distinct_rotation_deg))) & \
+               (positions_m < self.params.distinct_position_m)
         return bool(same.any())
 
     def _prior(self, t_ns: int, prior_T_map_body: np.ndarray | None) -> np.ndarray | None:
@@ -426,33 +688,37 @@ class PoseSolver:
 
     # ---------------------------------------------------------- measurement
 
-    def _measurement(self, fit: Fit, observations: list[MarkerObservation], t_ns: int) -> PoseMeasurement:
-        used = [observations[i] for i in fit.inliers]
-        T_map_body = _body_pose(fit.T_camera_map, self.camera.T_camera_body)
-        covariance_map = self._covariance_map(T_map_body, used)
+    def _measurement(self, fit: Fit, points: _Points, observations: list[MarkerObservation], t_ns: int,
+                     gravity: _Gravity | None, unambiguous: bool) -> PoseMeasurement:
+        T_map_body = _body_pose(fit.T_camera_map, self._T_camera_body)
+        covariance_map = self._covariance_map(T_map_body, points, gravity)
         T_ned_map = self.facility_map.T_ned_map
         return PoseMeasurement(
             t_ns=t_ns,
             T_map_body=T_map_body,
             T_ned_body=T_ned_map @ T_map_body,
             covariance_ned=frames.rotate_pose_covariance(covariance_map, T_ned_map[:3, :3]),
-            marker_ids=tuple(o.marker.id for o in used),
+            marker_ids=tuple(observations[i].marker.id for i in fit.inliers),
             reprojection_rms_px=fit.rms_px,
+            unambiguous=unambiguous,
         )
 
-    def _covariance_map(self, T_map_body: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
+    def _covariance_map(self, T_map_body: np.ndarray, points: _Points, gravity: _Gravity | None) -> np.ndarray:
         """(6, 6) covariance of [body position (3), small rotation (3)], both on map axes.
 
-        C = sigma^2 (J^T J)^-1, J = d(residuals)/d(pose), sigma^2 = r.r / (2K - 6)
-        floored at corner_sigma_px^2.
+        C = (J^T W J + A^T A)^-1: J = d(pixels)/d(pose), W the points' inverse
+        covariance (``_Weights``: their noise and the map's error), A =
+        d(whitened roll, pitch)/d(pose) when the attitude was used.
         """
-        J = self._pose_jacobian(T_map_body, observations)
-        residuals = self._residuals(self._T_camera_map(T_map_body), observations).reshape(-1)
-        dof = max(residuals.size - 6, 1)
-        sigma2 = max(float(residuals @ residuals) / dof, self.params.corner_sigma_px ** 2)
-        return sigma2 * np.linalg.pinv(J.T @ J)
+        weights = self._weights(self._T_camera_map(T_map_body), points)
+        J = weights.whiten(self._pose_jacobian(T_map_body, points.map).reshape(-1, 2, 6)).reshape(-1, 6)
+        information = J.T @ J
+        if gravity is not None:
+            A = np.hstack([np.zeros((2, 3)), gravity.residual(T_map_body[:3, :3])[1]])
+            information += A.T @ A
+        return np.linalg.pinv(information)
 
-    def _pose_jacobian(self, T_map_body: np.ndarray, observations: list[MarkerObservation]) -> np.ndarray:
+    def _pose_jacobian(self, T_map_body: np.ndarray, points_map: np.ndarray) -> np.ndarray:
         """(2K, 6) derivative of the projected pixels by [dp_map (3), dtheta_map (3)].
 
         Perturbed pose: R' = exp(dtheta) R, p' = p + dp (map axes). A map
@@ -460,19 +726,22 @@ class PoseSolver:
         to first order dX_c = R_cm (-dp + (X - p) x dtheta); the camera
         gives d(pixels)/dX_c (OpenCV's projectPoints).
         """
-        points_map = np.vstack([o.points_map for o in observations])
         T_camera_map = self._T_camera_map(T_map_body)
         # A_i = d(pixels_i)/dX_c R_cm: (K, 2, 3)
         A = self.camera.projection_jacobian(frames.transform_points(T_camera_map, points_map)) @ T_camera_map[:3, :3]
         # d(pixels_i)/d(dp) = -A_i
         d_position = -A
         # d(pixels_i)/d(dtheta) = A_i skew(X_i - p): row a of it is a x (X_i - p)
-        d_rotation = np.cross(A, (points_map - T_map_body[:3, 3])[:, None, :])
+        d_rotation = _cross(A, (points_map - T_map_body[:3, 3])[:, None, :])
         return np.concatenate([d_position, d_rotation], axis=2).reshape(-1, 6)
 
     def _T_camera_map(self, T_map_body: np.ndarray) -> np.ndarray:
         # T_camera_map = T_camera_body T_body_map
-        return self.camera.T_camera_body @ frames.invert_transform(T_map_body)
+        return self._T_camera_body @ frames.invert_transform(T_map_body)
+
+    def _R_map_body(self, T_camera_map: np.ndarray) -> np.ndarray:
+        # R_map_body = R_map_camera R_camera_body
+        return T_camera_map[:3, :3].T @ self._T_camera_body[:3, :3]
 
 
 # ----------------------------------------------------------------- helpers
@@ -483,8 +752,8 @@ def position_sd_m(measurement: PoseMeasurement) -> float:
 
 
 def _best(fits: list[Fit]) -> Fit | None:
-    """Most agreeing markers, then the lowest RMS."""
-    return min(fits, key=lambda f: (-len(f.inliers), f.sse_px2), default=None)
+    """Most agreeing markers, then the lowest chi-square."""
+    return min(fits, key=lambda f: (-len(f.inliers), f.cost), default=None)
 
 
 @functools.lru_cache(maxsize=1024)
@@ -496,9 +765,25 @@ def chi2_quantile(probability: float, dof: int) -> float:
     return float(chi2.ppf(probability, dof))
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis, broadcast (numpy's cross costs ~50 us a call on these small stacks)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _transform(R: np.ndarray, t) -> np.ndarray:
+    """(4, 4) from a rotation and a translation of any shape of 3 (OpenCV's tvec)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
 def _camera_position_m(fit: Fit) -> np.ndarray:
-    """(3,) the camera's optical centre in the map."""
-    return frames.invert_transform(fit.T_camera_map)[:3, 3]
+    """(3,) the camera's optical centre in the map: -R^T t."""
+    T = fit.T_camera_map
+    return -T[:3, :3].T @ T[:3, 3]
 
 
 def _body_pose(T_camera_map: np.ndarray, T_camera_body: np.ndarray) -> np.ndarray:

@@ -9,6 +9,10 @@ Threads (both stop on ``close()``):
   ``system_status`` STANDBY before streaming, ACTIVE while streaming and
   CRITICAL while the daemon says so (``set_critical``: camera stalled or lost).
 
+With an ``AttitudeStream`` (``companion.mavlink.attitude``) the link also asks
+the flight controller for its attitude and files each ATTITUDE it sends, on
+our clock, for the pose stage: that part lives in its own module.
+
 The pipeline thread calls ``publish(estimate)``, which sends at once (lowest
 latency) when the link is streaming, and never faster than ``max_rate_hz``
 (50 Hz at most: ArduPilot drops samples closer than 20 ms), judged on capture
@@ -28,6 +32,10 @@ Start order, whatever comes up first (see docs/daemon.md, "Start order"):
    after vision fusion began);
 4. while streaming, ask for HOME_POSITION; none after ``home_wait_s``: send
    MAV_CMD_DO_SET_HOME (here), none after twice that: warn.
+
+Beside all of it, from the first FC heartbeat on (it needs neither the EKF
+nor the origin): with an ``AttitudeStream`` the FC is asked for ATTITUDE,
+and each sample is put on our clock for the pose stage.
 
 Every bounded wait that runs out is logged and told by STATUSTEXT, and the
 stream starts anyway. A FC seen again after it went silent for
@@ -59,6 +67,7 @@ from companion.mavlink import messages as mm  # sets MAVLINK20 before pymavlink 
 from pymavlink import mavutil  # noqa: E402  (after mavlink_messages on purpose)
 
 from companion.mavlink import fc_params
+from companion.mavlink.attitude import ATTITUDE_MESSAGES, AttitudeStream
 from companion.types import Estimate
 
 log = logging.getLogger(__name__)
@@ -181,11 +190,13 @@ class MavlinkLink:
 
     stream: False for a tool that only reads the FC (``companion check-fc``):
     no origin handshake, no home check, no vision.
+    attitude: where the FC's ATTITUDE goes (requested once it is seen); None: not asked for.
     """
 
-    def __init__(self, params: LinkParams, stream: bool = True):
+    def __init__(self, params: LinkParams, stream: bool = True, attitude: AttitudeStream | None = None):
         self.params = params
         self.stream = stream
+        self.attitude = attitude
         self.counters = LinkCounters()
         self.state = LinkState.CONNECTING
         self.fc_system_id: int | None = None
@@ -400,7 +411,9 @@ class MavlinkLink:
     def _handle(self, message) -> None:
         kind = message.get_type()
         self.counters.received[kind] += 1
-        if kind == "HEARTBEAT" and message.autopilot != mm.mavlink2.MAV_AUTOPILOT_INVALID:
+        if kind in ATTITUDE_MESSAGES:
+            self._on_attitude(message)
+        elif kind == "HEARTBEAT" and message.autopilot != mm.mavlink2.MAV_AUTOPILOT_INVALID:
             self._on_fc_heartbeat(message)
         elif kind == "HEARTBEAT":
             self._on_companion_heartbeat(message)
@@ -440,6 +453,8 @@ class MavlinkLink:
             self._begin_parameter_read()
             # A FC that appears (or reappears after a reboot) gets the origin before any vision.
             self._begin_handshake(now_s)
+            if self.attitude is not None:
+                self.attitude.autopilot_appeared()
 
     def _on_companion_heartbeat(self, message) -> None:
         """A HEARTBEAT of a non-autopilot: another process with our ids is a second companion."""
@@ -524,6 +539,21 @@ class MavlinkLink:
         if self.on_parameters is not None:
             self.on_parameters(self.fc_autopilot, values)
 
+    # ---------------------------------------------------------- attitude
+
+    def _on_attitude(self, message) -> None:
+        """The autopilot's attitude (not another component's) into the attitude stream."""
+        receive_ns = time.monotonic_ns()
+        if self.attitude is None or self.fc_system_id is None:
+            return
+        if (message.get_srcSystem(), message.get_srcComponent()) == (self.fc_system_id, self.fc_component_id):
+            self.attitude.on_message(message, receive_ns)
+
+    def _request_attitude(self, now_s: float) -> None:
+        if self.attitude is not None and self.fc_seen:
+            for message in self.attitude.requests_due(now_s, self.fc_system_id, self.fc_component_id):
+                self._send(message)
+
     # ------------------------------------------------------- periodic
 
     def _begin_handshake(self, now_s: float | None = None) -> None:
@@ -567,6 +597,7 @@ class MavlinkLink:
             self._handshake_step(now_s)
         if self.state is LinkState.STREAMING and self._home_check_started_s is not None:
             self._home_step(now_s)
+        self._request_attitude(now_s)
         if self._statustexts and now_s - self._last_statustext_s >= self.params.statustext_interval_s:
             severity, text = self._statustexts.popleft()
             if self._send(mm.statustext(severity, text)):

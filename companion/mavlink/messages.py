@@ -172,6 +172,16 @@ def request_message(target_system: int, target_component: int, message_id: int) 
     )
 
 
+def set_message_interval(target_system: int, target_component: int, message_id: int, rate_hz: float) -> Message:
+    """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL (511): stream a message at ``rate_hz`` (interval in microseconds)."""
+    return mavlink2.MAVLink_command_long_message(
+        target_system=target_system, target_component=target_component,
+        command=mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, confirmation=0,
+        param1=float(message_id), param2=float(round(1e6 / rate_hz)), param3=0, param4=0, param5=0, param6=0,
+        param7=0,
+    )
+
+
 def request_gps_global_origin(target_system: int, target_component: int) -> Message:
     return request_message(target_system, target_component, mavlink2.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
 

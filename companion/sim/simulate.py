@@ -13,7 +13,9 @@ conventions) describe::
 
     SEQ/sequence.yaml, map.yaml (a copy of the map: the folder can be copied
     and still localized), frames/NNNNNN.png (or video.avi), timestamps.csv,
-    groundtruth.csv, markers.csv (per-frame marker corners in pixels)
+    groundtruth.csv, markers.csv (per-frame marker corners in pixels),
+    attitude.csv (the flight controller's roll and pitch: the truth with
+    ``AttitudeNoise``; ``companion.capture.attitude_csv``)
 
 Simulating again into the same folder replaces all of that (no stale frame
 of a longer earlier run is left); a folder holding anything else is refused.
@@ -32,6 +34,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
+from companion.capture.attitude_csv import ATTITUDE_FILE, write_attitude_csv
 from companion.capture.replay import sequence_map_path
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -41,6 +44,7 @@ from companion.sim import occluders
 from companion.sim import raster
 from companion.sim import trajectory as trajectories
 from companion.sim.degrade import Degradations
+from companion.types import AttitudeSample
 from companion.yaml_input import read_yaml
 
 DEFAULT_CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,
@@ -58,7 +62,8 @@ PROGRESS_MIN_FRAMES = 60  # longer renders show a progress bar unless told other
 MAX_FRAMES = 1_000_000   # 9 hours at 30 fps: more is a typo (a duration in ms, say)
 MAP_COPY = "map.yaml"
 # What a simulation writes into its folder (frames/ holds NNNNNN.png besides).
-GENERATED_FILES = ("sequence.yaml", MAP_COPY, "timestamps.csv", "groundtruth.csv", "markers.csv", "video.avi")
+GENERATED_FILES = ("sequence.yaml", MAP_COPY, "timestamps.csv", "groundtruth.csv", "markers.csv", "video.avi",
+                   ATTITUDE_FILE)
 GENERATOR = "companion simulate"
 
 
@@ -417,6 +422,42 @@ def frame_times_ns(duration_s: float, fps: float) -> list[int]:
     return [int(round(i * 1e9 / fps)) for i in range(n)]
 
 
+@dataclass(frozen=True)
+class AttitudeNoise:
+    """How the simulated flight controller's attitude (attitude.csv) departs from the truth.
+
+    rate_hz: samples per second (on their own clock, not the frames').
+    noise_deg: standard deviation of independent Gaussian noise on each roll
+        and each pitch sample; bias_deg: added to every roll and every pitch.
+    """
+
+    rate_hz: float = 50.0
+    noise_deg: float = 0.2
+    bias_deg: float = 0.0
+
+    def __post_init__(self):
+        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise SimulationError(f"attitude rate must be positive, got {self.rate_hz}")
+        if not (math.isfinite(self.noise_deg) and self.noise_deg >= 0):
+            raise SimulationError(f"attitude noise must be 0 or more degrees, got {self.noise_deg}")
+        if not (math.isfinite(self.bias_deg) and abs(self.bias_deg) <= 45):
+            raise SimulationError(f"attitude bias must be within +-45 degrees, got {self.bias_deg}")
+
+
+def attitude_samples(traj: trajectories.Trajectory, T_ned_map: np.ndarray, noise: AttitudeNoise,
+                     seed: int = 0) -> list[AttitudeSample]:
+    """The body's roll and pitch (Z-Y-X, relative to NED) over the flight, as the flight controller reports them."""
+    rng = np.random.default_rng([seed, 2718])
+    sd, bias = math.radians(noise.noise_deg), math.radians(noise.bias_deg)
+    samples = []
+    for t_ns in frame_times_ns(traj.duration_s, noise.rate_hz):
+        # R_ned_body = R_ned_map R_map_body
+        roll, pitch = frames.roll_pitch_321(T_ned_map[:3, :3] @ traj.pose_at(t_ns * 1e-9)[:3, :3])
+        roll_error, pitch_error = rng.normal(0.0, sd, 2) + bias
+        samples.append(AttitudeSample(t_ns, roll + roll_error, pitch + pitch_error))
+    return samples
+
+
 def prepare_folder(out: Path) -> None:
     """Make ``out`` ready for a sequence: created, or emptied of an earlier simulation's output.
     SimulationError for a file, or a folder with other content (nothing is deleted then)."""
@@ -441,11 +482,13 @@ VIDEO_CODECS = {"mp4v": "small, lossy (MPEG-4 part 2)", "ffv1": "lossless, large
 
 
 def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, video: bool = False,
-                   progress: bool | None = None, extra_info: dict | None = None, codec: str = "mp4v") -> Path:
+                   progress: bool | None = None, extra_info: dict | None = None, codec: str = "mp4v",
+                   attitude: AttitudeNoise | None = AttitudeNoise()) -> Path:
     """Render every frame and write the sequence folder; returns its path.
 
     video: one ``video.avi`` in ``codec`` ("mp4v" or "ffv1") instead of PNG frames.
     progress: a progress bar on stderr (None: for more than ``PROGRESS_MIN_FRAMES`` frames).
+    attitude: how attitude.csv departs from the truth; None writes no attitude.csv.
     """
     out = Path(out_dir)
     times = frame_times_ns(simulator.trajectory.duration_s, fps)
@@ -486,6 +529,8 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
             bar.update(1)
     if writer is not None:
         writer.release()
+    if attitude is not None:
+        write_attitude_csv(out / ATTITUDE_FILE, attitude_samples(simulator.trajectory, T_ned_map, attitude, simulator.seed))
     info = {
         "generator": GENERATOR,
         "map": MAP_COPY,
@@ -498,6 +543,7 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
         "seed": simulator.seed,
         "degradations": asdict(simulator.degradations),
         "occluders": len(simulator.occluders),
+        "attitude": asdict(attitude) if attitude is not None else None,
         "video": "video.avi" if video else None,
         "video_codec": codec if video else None,
     }
