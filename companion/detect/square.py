@@ -49,8 +49,10 @@ class SquareParams:
         (0.55 ms at 640x480 and 1280x720): not the default.
     min_side_px: the smallest inner square the path reads, mean side in
         pixels, whatever the image size (ArUco's smallest quad perimeter is
-        4 x this; 2.5 px per cell: smaller grids cannot be read, and skipping
-        the many small contours saves time).
+        4 x this). 12, as ArUco's relative default (0.08 of the long side)
+        was at 640 px: 19-20 px markers of the simulated hover flights are
+        read (at 20 they were not); 1.5 px per cell is about the least that
+        decodes.
     min_fixed_agreement_fraction: of the border cells that must read black
         and of the gap-ring cells that must read white (rejected quads).
     min_dark_codeword_fraction, max_dark_codeword_fraction: the share of a
@@ -63,7 +65,7 @@ class SquareParams:
     decode_rejected: bool = True
     aruco_threshold_windows_px: tuple[int, int, int] = (15, 15, 10)
     aruco_threshold_constant_gray: float = 7.0
-    min_side_px: float = 20.0
+    min_side_px: float = 12.0
     min_fixed_agreement_fraction: float = 0.75
     min_dark_codeword_fraction: float = 0.15
     max_dark_codeword_fraction: float = 0.85
