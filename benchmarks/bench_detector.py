@@ -3,7 +3,8 @@
     PYTHONPATH=. python benchmarks/bench_detector.py            # full run (~15 min on 2 cores)
     PYTHONPATH=. python benchmarks/bench_detector.py --quick    # smoke test (CI), ~1 min
 
-Scenes come from ``companion.sim.scenes.random_marker_scene``: 1-3 markers under
+Scenes come from ``companion.sim.scenes.random_marker_scene``: 1-3 markers (one
+under the long side occluders, which would hide the others too) under
 random perspective (inner square 40-150 px face-on, tilt up to 50 deg, any
 in-plane rotation) on boards over clutter, half the scenes at 640x480 and
 half at 1280x720, under each condition of ``scenes.CONDITIONS``. Every scene
@@ -22,8 +23,15 @@ a quarter side of that marker's; any other detection is a wrong id.
 Speed: every detector's time per frame is the best of ``--repeats`` runs;
 tables show medians. Our time is also given as a ratio to OpenCV ArUco
 (default settings, our dictionary's marker family being irrelevant to it)
-timed on the very same RS frames in the same run: over clean frames, and
-over the frames where our circles path ran.
+timed on the very same RS frames in the same run. The speed targets are
+measured on their own frames: 640x480, one marker over clutter, clean and
+occluded (strips, sides, corners), each frame timed with OpenCV on 2 threads
+and on 1 thread (``cv2.setNumThreads``), wall and CPU time; and the cost of
+the circles path running in every frame (its default) against running it
+only where the square path found nothing, on the same clean frames.
+
+Large images: one 60 px marker in an 8000x6000 frame, found or not, the
+time, and how much the process's peak memory grew (the frame is 46 MB).
 
 False positives: ours on thousands of marker-free frames (rendered clutter,
 textured noise, photographs from scikit-image's data at random crops, scales
@@ -35,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import sys
 import time
 import zlib
@@ -48,20 +57,26 @@ from common import aruco_detector, aruco_found, best_of, timed_together
 from companion.sim import degrade
 from companion.sim import raster
 from companion.sim import scenes
+from companion.detect.circles import CircleParams
 from companion.detect.detector import Detector, DetectorParams
 from companion.markers.layout import MarkerLayout
 
 SIZES = ((640, 480), (1280, 720))
 FAMILIES = ("rs", "aruco", "apriltag")
-STRIP_CONDITIONS = ("strip_1_8", "strip_1_4")
+PARITY_4_CONDITIONS = ("strip_1_8", "strip_1_4", "side_1_4")
 CORNER_ERROR_TARGET_PX = 0.3
-CLEAN_SPEED_TARGET = 1.3
-CIRCLES_SPEED_TARGET = 2.5
+CLEAN_SPEED_TARGET = 1.25
+OCCLUDED_SPEED_TARGET = 2.0
+CIRCLES_EVERYWHERE_COST_TARGET = 0.10
+SPEED_SIZE = (640, 480)
+SPEED_OCCLUSIONS = ("strip_1_8", "strip_1_4", "side_1_8", "side_1_4", "corner")
+LARGE_SIZE, LARGE_MARKER_PX = (8000, 6000), 60.0
 
 
 def fixed_targets(condition: str, parity: int) -> float | None:
-    """The issue's detection-rate target for a condition, or None (then: the best baseline)."""
+    """The issues' detection-rate target for a condition, or None (then: the best baseline)."""
     return {("strip_1_8", 2): 0.95, ("strip_1_8", 4): 0.95, ("strip_1_4", 2): 0.80, ("strip_1_4", 4): 0.95,
+            ("side_1_8", 2): 0.97, ("side_1_4", 2): 0.92, ("side_1_4", 4): 0.97,
             ("corner", 2): 0.90, ("blob", 2): 0.99}.get((condition, parity))
 
 
@@ -88,6 +103,21 @@ class AprilTag:
 
     def __call__(self, image: np.ndarray) -> list[tuple[int, np.ndarray]]:
         return [(int(d.tag_id), np.asarray(d.corners, float)) for d in self._detector.detect(image)]
+
+    def close(self) -> None:
+        """Free the C detector, then its tag family. pupil_apriltags 1.0.4's own ``__del__`` frees them the
+        other way round, and the detector's destroy then reads the freed family: the heap corruption that
+        ended some runs at exit (pupil-labs/apriltags issue 46, PR 65)."""
+        detector, self._detector = self._detector, None
+        if detector is None or detector.tag_detector_ptr is None:
+            return
+        detector.libc.apriltag_detector_destroy.restype = None
+        detector.libc.apriltag_detector_destroy(detector.tag_detector_ptr)
+        for family, pointer in detector.tag_families.items():
+            destroy = getattr(detector.libc, f"{family}_destroy")
+            destroy.restype = None
+            destroy(pointer)
+        detector.tag_detector_ptr = None  # its __del__ does nothing now
 
 
 
@@ -178,8 +208,11 @@ def render_family(textures: Textures, family: str, ids, condition: str, seed: in
 
 
 def scene_ids(seed: int, condition: str, index: int) -> list[int]:
+    """The scene's marker ids: 1-3, and one under a side occluder (running on past the marker, it would
+    hide the scene's other markers too)."""
     rng = scene_rng(seed, "ids", condition, index)
-    return rng.choice(50, int(rng.integers(1, 4)), replace=False).tolist()
+    count = 1 if scenes.CONDITIONS[condition].occlusion == "side" else int(rng.integers(1, 4))
+    return rng.choice(50, count, replace=False).tolist()
 
 
 # ------------------------------------------------------------------ the run
@@ -190,7 +223,6 @@ class ConditionResult:
     parity: int
     scores: dict
     aruco_same_frames: list  # per RS frame: (ArUco wall ms, our CPU ms, ArUco CPU ms)
-    circles_frames: list  # (ours ms, ArUco ms, ours CPU ms, ArUco CPU ms) where the circles path ran
     ours_on_other_families: int
     stage_ms: list  # per RS frame: our Detector.last_stage_ms (of the last timed run)
 
@@ -198,19 +230,16 @@ class ConditionResult:
 def run_condition(condition: str, parity: int, args, textures: Textures, detectors) -> ConditionResult:
     ours = detectors["ours"][parity]
     scores = {name: Score() for name in ("ours", "aruco", "aruco_ec1", "apriltag")}
-    aruco_same, circles_frames, other_family_hits, stage_ms = [], [], 0, []
+    aruco_same, other_family_hits, stage_ms = [], 0, []
     for index in range(args.scenes):
         ids = scene_ids(args.seed, condition, index)
         rs = render_family(textures, "rs", ids, condition, args.seed, index, parity)
         (found, _), (ms, aruco_ms), (cpu_ms, aruco_cpu_ms) = timed_together(
             [lambda im: [(d.id, d.corners_px) for d in ours.detect(im)], lambda im: aruco_found(detectors["aruco"], im)],
             rs.image, args.repeats)
-        circles_ran = "circles_blobs" in ours.last_stage_ms
         stage_ms.append(dict(ours.last_stage_ms))
         scores["ours"].add(rs.truths, found, ms)
         aruco_same.append((aruco_ms, cpu_ms, aruco_cpu_ms))
-        if circles_ran:
-            circles_frames.append((ms, aruco_ms, cpu_ms, aruco_cpu_ms))
         if parity != 2:
             continue  # the baselines do not depend on our parity
         aruco_scene = render_family(textures, "aruco", ids, condition, args.seed, index)
@@ -223,7 +252,73 @@ def run_condition(condition: str, parity: int, args, textures: Textures, detecto
         if detectors["apriltag"].available:
             found, ms = best_of(detectors["apriltag"], april_scene.image, repeats=args.repeats)
             scores["apriltag"].add(april_scene.truths, found, ms, upright_corners=False)
-    return ConditionResult(condition, parity, scores, aruco_same, circles_frames, other_family_hits, stage_ms)
+    return ConditionResult(condition, parity, scores, aruco_same, other_family_hits, stage_ms)
+
+
+# -------------------------------------------------------------------- speed
+
+@dataclass
+class SpeedFrames:
+    """Per frame of one kind and thread count: (ours, ArUco, ours with the circles path gated) wall ms and
+    CPU ms (the gated one only on clean frames), and the markers found of those shown."""
+
+    wall: list = field(default_factory=list)
+    cpu: list = field(default_factory=list)
+    markers: int = 0
+    hits: int = 0
+
+
+def run_speed(args, textures: Textures, detectors) -> dict:
+    """{(kind, threads): SpeedFrames} on 640x480 one-marker frames, kind "clean" or "occluded"."""
+    ours = detectors["ours"][2]
+    gated = Detector(DetectorParams(parity=2, circles=CircleParams(run="when_square_empty")))
+    results = {}
+    threads_before = cv2.getNumThreads()
+    for kind in ("clean", "occluded"):
+        frames = []
+        for index in range(args.speed_frames):
+            condition = "clean" if kind == "clean" else SPEED_OCCLUSIONS[index % len(SPEED_OCCLUSIONS)]
+            rng = scene_rng(args.seed, "speed", kind, index)
+            marker = textures.get("rs", int(rng.integers(0, 50)))
+            background = scenes.clutter_image(scene_rng(args.seed, "speed background", kind, index), SPEED_SIZE)
+            frames.append(scenes.random_marker_scene(rng, SPEED_SIZE, [marker], condition=condition,
+                                                     background=background))
+        for threads in (2, 1):
+            cv2.setNumThreads(threads)
+            speed = results[kind, threads] = SpeedFrames()
+            functions = [lambda im: [(d.id, d.corners_px) for d in ours.detect(im)],
+                         lambda im: aruco_found(detectors["aruco"], im)]
+            if kind == "clean":
+                functions.append(gated.detect)
+            for scene in frames:
+                (found, *_), wall, cpu = timed_together(functions, scene.image, args.repeats)
+                speed.wall.append(wall)
+                speed.cpu.append(cpu)
+                score = Score()
+                score.add(scene.truths, found, None)
+                speed.markers, speed.hits = speed.markers + score.markers, speed.hits + score.hits
+    cv2.setNumThreads(threads_before)
+    return results
+
+
+def run_large_image(args, textures: Textures, detectors) -> tuple[bool, float, float, float]:
+    """(ours found it, ours ms, ArUco's ms on the same frame, peak memory growth MB) for one 60 px marker
+    in an 8000x6000 frame (the marker rendered in a 400x300 patch, pasted over upscaled clutter)."""
+    rng = scene_rng(args.seed, "large")
+    width, height = LARGE_SIZE
+    patch = scenes.random_marker_scene(rng, (400, 300), [textures.get("rs", 17)],
+                                       inner_px_range=(LARGE_MARKER_PX, LARGE_MARKER_PX), max_tilt_deg=30.0)
+    image = cv2.resize(scenes.clutter_image(rng, (width // 10, height // 10)), LARGE_SIZE,
+                       interpolation=cv2.INTER_LINEAR)
+    x, y = int(rng.integers(0, width - 400)), int(rng.integers(0, height - 300))
+    image[y:y + 300, x:x + 400] = patch.image
+    truth_px = patch.truths[0].corners_px + [x, y]
+    peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    found, ms = best_of(detectors["ours"][2].detect, image, repeats=1)
+    peak_growth_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak_before) / 1024.0
+    _, aruco_ms = best_of(aruco_found, detectors["aruco"], image, repeats=1)
+    hit = any(d.id == 17 and np.abs(d.corners_px - truth_px).max() < 1.0 for d in found)
+    return hit, ms, aruco_ms, peak_growth_mb
 
 
 # ---------------------------------------------------------- false positives
@@ -310,7 +405,7 @@ def run_false_positives(args, detector: Detector, aruco) -> list[tuple[str, int,
 
 # ------------------------------------------------------------------ report
 
-def format_report(results: list[ConditionResult], free_rows, args) -> str:
+def format_report(results: list[ConditionResult], free_rows, speed: dict, large, args) -> str:
     lines = [f"bench_detector: {args.scenes} scenes per condition (1-3 markers, 640x480 and 1280x720), seed {args.seed}, "
              f"best of {args.repeats} runs per frame, OpenCV {cv2.__version__}, {cv2.getNumThreads()} threads",
              "",
@@ -344,26 +439,51 @@ def format_report(results: list[ConditionResult], free_rows, args) -> str:
 
     clean = next(r for r in results if r.condition == "clean" and r.parity == 2)
     ours_clean, base_clean = clean.scores["ours"], baselines["clean"]
-    aruco_clean = [f[0] for f in clean.aruco_same_frames]
-    clean_ratio = median(ours_clean.ms) / median(aruco_clean)
-    clean_cpu_ratio = median([f[1] for f in clean.aruco_same_frames]) / median([f[2] for f in clean.aruco_same_frames])
-    circles = [f for r in results for f in r.circles_frames]
-    circles_ratio = median([f[0] for f in circles]) / median([f[1] for f in circles]) if circles else float("nan")
-    circles_cpu_ratio = median([f[2] for f in circles]) / median([f[3] for f in circles]) if circles else float("nan")
     corner_error = median(ours_clean.corner_errors_px)
-    clean_circle_share = len(clean.circles_frames) / max(args.scenes, 1)
-    lines += [
-        f"speed, clean frames:         ours {median(ours_clean.ms):.2f} ms, ArUco on the same frames "
-        f"{median(aruco_clean):.2f} ms: {clean_ratio:.2f}x (target <= {CLEAN_SPEED_TARGET}x) "
-        f"{'yes' if clean_ratio <= CLEAN_SPEED_TARGET else 'NO'}; CPU time {clean_cpu_ratio:.2f}x; circles path "
-        f"ran in {clean_circle_share * 100:.0f} % of clean frames",
-        f"speed, circles-path frames:  {len(circles)} frames, ours {median([f[0] for f in circles]):.2f} ms, ArUco "
-        f"{median([f[1] for f in circles]):.2f} ms: {circles_ratio:.2f}x (target <= {CIRCLES_SPEED_TARGET}x) "
-        f"{'yes' if circles_ratio <= CIRCLES_SPEED_TARGET else 'NO'}; CPU time {circles_cpu_ratio:.2f}x",
-        f"corner error, clean (median px): ours {corner_error:.3f} (target <= {CORNER_ERROR_TARGET_PX}) "
-        f"{'yes' if corner_error <= CORNER_ERROR_TARGET_PX else 'NO'}, ArUco {median(base_clean['aruco'].corner_errors_px):.3f}, "
-        f"AprilTag {median(base_clean['apriltag'].corner_errors_px):.3f}",
-    ]
+    lines.append(f"corner error, clean (median px): ours {corner_error:.3f} (target <= {CORNER_ERROR_TARGET_PX}) "
+                 f"{'yes' if corner_error <= CORNER_ERROR_TARGET_PX else 'NO'}, ArUco "
+                 f"{median(base_clean['aruco'].corner_errors_px):.3f}, AprilTag "
+                 f"{median(base_clean['apriltag'].corner_errors_px):.3f}")
+    all_ok &= corner_error <= CORNER_ERROR_TARGET_PX
+    occluded = [r for r in results if scenes.CONDITIONS[r.condition].occlusion in ("strip", "side", "corner")]
+    for name, rows in (("clean", [clean]), ("occluded", occluded)):
+        ours_ms = [ms for r in rows for ms in r.scores["ours"].ms]
+        same = [f for r in rows for f in r.aruco_same_frames]
+        if same:
+            lines.append(f"speed, the table's {name} frames ({len(same)}, both sizes, 1-3 markers): ours "
+                         f"{median(ours_ms):.2f} ms, ArUco {median([f[0] for f in same]):.2f} ms: "
+                         f"{median(ours_ms) / median([f[0] for f in same]):.2f}x wall, "
+                         f"{median([f[1] for f in same]) / median([f[2] for f in same]):.2f}x CPU (for information)")
+    if speed:
+        lines += ["", f"speed targets: {SPEED_SIZE[0]}x{SPEED_SIZE[1]}, one marker over clutter, "
+                      f"{args.speed_frames} clean and {args.speed_frames} occluded frames ({', '.join(SPEED_OCCLUSIONS)}), "
+                      f"median ms, ours / ArUco on the same frames"]
+        for threads in (2, 1):
+            for kind, target in (("clean", CLEAN_SPEED_TARGET), ("occluded", OCCLUDED_SPEED_TARGET)):
+                frames = speed[kind, threads]
+                wall, cpu = np.array(frames.wall), np.array(frames.cpu)
+                ratio = median(wall[:, 0]) / median(wall[:, 1])
+                cpu_ratio = median(cpu[:, 0]) / median(cpu[:, 1])
+                all_ok &= ratio <= target
+                lines.append(f"  {threads} thread{'s' if threads > 1 else ' '} {kind:8s}: ours {median(wall[:, 0]):5.2f} ms, "
+                             f"ArUco {median(wall[:, 1]):5.2f} ms: {ratio:.2f}x wall (target <= {target}x) "
+                             f"{'yes' if ratio <= target else 'NO'}, {cpu_ratio:.2f}x CPU; found {frames.hits}/{frames.markers}")
+        for threads in (2, 1):
+            wall, cpu = np.array(speed["clean", threads].wall), np.array(speed["clean", threads].cpu)
+            cost = median(wall[:, 0]) / median(wall[:, 2]) - 1.0
+            cpu_cost = median(cpu[:, 0]) / median(cpu[:, 2]) - 1.0
+            all_ok &= cost <= CIRCLES_EVERYWHERE_COST_TARGET
+            lines.append(f"  {threads} thread{'s' if threads > 1 else ' '} circles in every frame, clean frames: ours "
+                         f"{median(wall[:, 0]):.2f} ms against {median(wall[:, 2]):.2f} ms with the circles path only "
+                         f"where the square path found nothing: {cost * 100:+.1f} % wall (target <= "
+                         f"{CIRCLES_EVERYWHERE_COST_TARGET * 100:.0f} %) {'yes' if cost <= CIRCLES_EVERYWHERE_COST_TARGET else 'NO'}, "
+                         f"{cpu_cost * 100:+.1f} % CPU")
+    if large is not None:
+        found, ms, aruco_ms, growth_mb = large
+        all_ok &= found
+        lines += ["", f"large image: a {LARGE_MARKER_PX:.0f} px marker in {LARGE_SIZE[0]}x{LARGE_SIZE[1]} (46 MB): found "
+                      f"{'yes' if found else 'NO'} (target: found), ours {ms:.0f} ms, ArUco on the frame {aruco_ms:.0f} ms, "
+                      f"the process's peak memory grew {growth_mb:.0f} MB"]
     stages = {}
     for r in results:
         for frame in r.stage_ms:
@@ -371,8 +491,6 @@ def format_report(results: list[ConditionResult], free_rows, args) -> str:
                 stages.setdefault(stage, []).append(ms)
     lines.append("stages, median ms over the RS frames each ran in (all conditions): "
                  + ", ".join(f"{stage} {median(ms):.2f} ({len(ms)})" for stage, ms in stages.items()))
-    all_ok &= clean_ratio <= CLEAN_SPEED_TARGET and circles_ratio <= CIRCLES_SPEED_TARGET
-    all_ok &= corner_error <= CORNER_ERROR_TARGET_PX
 
     other = sum(r.ours_on_other_families for r in results)
     other_frames = 2 * args.scenes * len([r for r in results if r.parity == 2])
@@ -392,16 +510,19 @@ def format_report(results: list[ConditionResult], free_rows, args) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="smoke test: 4 scenes per condition, 20 free frames per kind")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke test: 4 scenes per condition, 20 free frames per kind, 10 speed frames per kind")
     parser.add_argument("--scenes", type=int, default=150, help="scenes per condition")
     parser.add_argument("--free-frames", type=int, default=1000, help="marker-free frames per kind")
     parser.add_argument("--repeats", type=int, default=5, help="runs per frame for timing (best is kept)")
+    parser.add_argument("--speed-frames", type=int, default=100, help="640x480 frames per kind for the speed targets")
+    parser.add_argument("--no-large", action="store_true", help="skip the 8000x6000 frame")
     parser.add_argument("--seed", type=int, default=2024)
     parser.add_argument("--conditions", default=",".join(scenes.CONDITIONS), help="comma-separated subset")
     parser.add_argument("--json", type=Path, help="also write the raw numbers here")
     args = parser.parse_args(argv)
     if args.quick:
-        args.scenes, args.free_frames, args.repeats = 4, 20, 1
+        args.scenes, args.free_frames, args.repeats, args.speed_frames = 4, 20, 1, 10
     conditions = args.conditions.split(",")
     unknown = [c for c in conditions if c not in scenes.CONDITIONS]
     if unknown or "clean" not in conditions:
@@ -417,12 +538,16 @@ def main(argv=None) -> int:
     args.apriltag_available = detectors["apriltag"].available
     results = []
     for condition in conditions:
-        for parity in ((2, 4) if condition in STRIP_CONDITIONS else (2,)):
+        for parity in ((2, 4) if condition in PARITY_4_CONDITIONS else (2,)):
             start = time.monotonic()
             results.append(run_condition(condition, parity, args, textures, detectors))
             print(f"  {condition} p={parity}: {time.monotonic() - start:.0f} s", file=sys.stderr, flush=True)
+    start = time.monotonic()
+    speed = run_speed(args, textures, detectors) if args.speed_frames else {}
+    print(f"  speed frames: {time.monotonic() - start:.0f} s", file=sys.stderr, flush=True)
+    large = None if args.no_large else run_large_image(args, textures, detectors)
     free_rows = run_false_positives(args, detectors["ours"][2], detectors["aruco"]) if args.free_frames else []
-    report = format_report(results, free_rows, args)
+    report = format_report(results, free_rows, speed, large, args)
     print(report)
     if args.json:
         args.json.write_text(json.dumps({
@@ -431,6 +556,7 @@ def main(argv=None) -> int:
                                            "median_ms": median(s.ms)} for k, s in r.scores.items()},
                             "aruco_same_frames_ms": median([f[0] for f in r.aruco_same_frames])} for r in results],
             "false_positives": free_rows}, indent=1))
+    detectors["apriltag"].close()
     return 0
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from companion.geometry import frames
+from companion.markers.layout import MarkerLayout
 from companion.sim import degrade
 from companion.sim import occluders
 from companion.sim import raster
@@ -223,6 +224,27 @@ def test_strip_occluder_defeats_plain_aruco():
     assert 5 not in detect(rendering.image)
 
 
+def test_side_occluder_hides_a_side_with_both_its_corners_circles_and_runs_far_past_them():
+    rng = np.random.default_rng(5)
+    layout = MarkerLayout(parity=2)
+    texture = raster.rs_marker_texture(layout, 7)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
+    T = facing_marker_pose(1.2)
+    # the layout's circles by corner: 0 TL, 1 TR, 2 BR, 3 BL (three each)
+    for side, hidden_corners in (("left", [0, 3]), ("right", [1, 2]), ("top", [0, 1]), ("bottom", [2, 3])):
+        occluder = occluders.side_occluder(texture, 0.15, T, 0.125, side, rng, level=90.0)
+        rendering = renderer.render([raster.marker_quad(texture, 0.15, T), occluder], np.eye(4), 200.0)
+        truth = raster.marker_truth(renderer, rendering, texture, 0.15, T, np.eye(4), 0)
+        corners = np.ones(4, bool)
+        corners[hidden_corners] = False
+        np.testing.assert_array_equal(truth.corners_visible, corners, err_msg=side)
+        np.testing.assert_array_equal(truth.circles_visible, np.repeat(corners, 3), err_msg=side)
+        assert truth.inner_visible_fraction == pytest.approx(7 / 8, abs=0.03), side
+        # along the side it runs on past both corners by at least one inner side (57 px here)
+        along_px = np.count_nonzero((rendering.label == 1).any(axis=1 if side in ("left", "right") else 0))
+        assert along_px > 3 * truth.inner_px, (side, along_px)
+
+
 def test_corner_occluder_hides_one_corner():
     rng = np.random.default_rng(2)
     for corner in range(4):
@@ -375,7 +397,7 @@ def test_every_condition_renders_with_sizes_in_range():
             assert raster.Renderer(scene.K, [], W, H).inside_image(truth.corners_px).all()
             if scenes.CONDITIONS[name].occlusion == "none":
                 assert truth.corners_visible.all() and truth.inner_visible_fraction > 0.99
-            elif scenes.CONDITIONS[name].occlusion in ("strip", "corner"):
+            elif scenes.CONDITIONS[name].occlusion in ("strip", "side", "corner"):
                 assert not truth.corners_visible.all()
 
 

@@ -6,18 +6,21 @@ along the two grid edges, with half its radius. A marker whose black border
 is hidden (a strip over one side, a corner patch) still shows at least two
 corners, so at least six circles, which fix the grid homography.
 
-1. ``find_blobs``: one local-mean threshold inside OpenCV, a table of the
-   dark blobs (outer contours reduced with vectorised numpy, or OpenCV's
-   connected components on speckled frames), vectorised filters on it (area,
-   aspect, fill) and a ring of 8 samples around each blob (a circle is a
-   dark, compact spot on white paper: the ring is bright all round, and the
-   spot is much darker than the ring). No per-blob Python loop.
+1. ``find_frame_blobs``: at a pyramid level (``blob_level``: half
+   resolution by default, ``reduce``), one local-mean threshold inside
+   OpenCV, a table of the dark blobs (outer contours reduced with vectorised
+   numpy, or OpenCV's connected components on speckled frames) with their
+   moment ellipses, vectorised filters on it (area, elongation, fill of the
+   ellipse) and a ring of 8 samples on the ellipse around each blob (a circle
+   is a dark, compact spot on white paper: the ring is bright all round, and
+   the spot is much darker than the ring). No per-blob Python loop.
 2. ``corner_triples``: (large, small, small) blobs at the layout's relative
    positions and size ratio, oriented by the handedness of the printed face.
 3. ``assemble_candidates``: from each triple (called corner 0; the decoder
    resolves the true rotation), the other corners' circles are predicted and
    matched blob by blob, so a corner that lost a small circle still counts.
-4. The detector then fits the homography to the circle centres, refines it
+4. The detector then reads each candidate's circle centres again in the
+   frame (``refine_centres``), fits the homography to them, refines it
    on the inner square's visible edges (``edges``), and samples and
    decodes the grid with erasures where the image shows no marker
    (``missing_corner_cells``, ``sampling.erase_near_bad_fixed_cells``).
@@ -37,9 +40,12 @@ from companion.params import require
 
 RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
 RING_DIRECTIONS = np.stack([np.cos(RING_ANGLES), np.sin(RING_ANGLES)], axis=1)
+PIXEL_VARIANCE_PX2 = 1.0 / 12.0  # of a uniform unit square along each axis
+CENTROID_OFFSETS = np.stack(np.meshgrid(np.linspace(-1, 1, 9), np.linspace(-1, 1, 9)), axis=-1).reshape(-1, 2)
+MAX_LENGTH_PER_SQRT_AREA = 6.0  # boundary pixels of a compact blob over the root of its area (with a margin)
 
 
-CIRCLES_RUN_MODES = ("when_square_empty", "always", "never")
+CIRCLES_RUN_MODES = ("always", "when_square_empty", "never")
 BLOB_METHODS = ("auto", "contours", "components")
 
 
@@ -47,10 +53,16 @@ BLOB_METHODS = ("auto", "contours", "components")
 class CircleParams:
     """The occluded (corner circles) path: when it runs, blob finding, grouping and fit checks.
 
-    run: "when_square_empty" (only in frames where the square path found
-        nothing), "always", or "never".
+    run: "always" (in every frame, over what the markers found by the square
+        path do not explain), "when_square_empty" (only in frames where the
+        square path found nothing), or "never".
 
-    Blobs:
+    Blobs (looked for at a pyramid level, see ``blob_level``; sizes are in frame pixels):
+    min_side_px: the smallest marker (inner-square side, pixels) the
+        path looks for: circles are searched at the coarsest pyramid level at
+        which it keeps ``min_level_side_px`` (20 and 20: full resolution; 40
+        would search at half resolution, a quarter of the pixels, where the
+        small circles of 40-50 px markers start to merge with the large ones).
     threshold_block_px, threshold_offset_gray, threshold_ratio: a pixel is
         dark when below both mean - offset and mean x ratio over the window.
     pre_blur: 3 x 3 box blur before thresholding (fewer noise specks, but
@@ -67,10 +79,12 @@ class CircleParams:
         work a speckled texture causes (a marker has 12 circles).
     min_area_px: smallest blob (a small circle of a 40 px marker is ~12 px).
     max_area_fraction: largest blob, as a share of the image.
-    max_aspect: bounding-box elongation allowed (tilted circles are ellipses).
-    min_fill: blob area over bounding-box area.
-    ring_scale, ring_margin_px: the test ring's radius: ring_scale x the
-        blob's half extent + ring_margin_px.
+    max_aspect: elongation allowed, the ratio of the axes of the blob's
+        moment ellipse (tilted or smeared circles are ellipses).
+    min_fill: blob area over the area of its moment ellipse (about 1 for an
+        ellipse, less for a ring, a cross or an L).
+    ring_scale, ring_margin_px: the test ring: ring_scale x the blob's
+        moment ellipse (to the region's edge), + ring_margin_px (level pixels).
     ring_dark_allowed: ring samples (of 8) allowed to be dark (a neighbour,
         the paper's edge).
     ring_dark_contrast_fraction: a ring sample is dark when less than this
@@ -92,11 +106,13 @@ class CircleParams:
 
     Candidates (corners grown from a triple; see ``assemble_candidates``):
     min_circles: circles a candidate needs (on at least ``min_corners`` corners).
-    min_corners: corners with at least one circle a candidate needs.
+    min_corners: corners with at least two circles a candidate needs.
     first_triple_window_cells, triple_window_cells: a whole triple joins if its
         circles lie on average within this of their predictions (the first
         while only the anchor corner is known, then the second).
-    large_window_cells, small_window_cells: else circle by circle, within these.
+    first_large_window_cells, large_window_cells, small_window_cells: else
+        circle by circle: the large circle within the first (while only the
+        anchor corner is known) or the second, the small ones within the third.
     min_radius_ratio, max_radius_ratio: a blob's radius over the predicted circle's.
     min_circles_for_homography: below this many circles the grid map is
         affine (a homography's perspective terms are poorly pinned by 4-5
@@ -109,7 +125,9 @@ class CircleParams:
     max_edge_fit_rms_cells: RMS misfit of the edge-refined homography.
     """
 
-    run: str = "when_square_empty"
+    run: str = "always"
+    min_side_px: float = 20.0
+    min_level_side_px: float = 20.0
     threshold_block_px: int = 31
     threshold_offset_gray: float = 7.0
     threshold_ratio: float = 0.75
@@ -119,8 +137,8 @@ class CircleParams:
     max_blobs: int = 300
     min_area_px: int = 5
     max_area_fraction: float = 0.01
-    max_aspect: float = 3.0
-    min_fill: float = 0.45
+    max_aspect: float = 4.0
+    min_fill: float = 0.6
     ring_scale: float = 1.4
     ring_margin_px: float = 0.5
     ring_dark_allowed: int = 2
@@ -128,16 +146,17 @@ class CircleParams:
     max_darkness_ratio: float = 0.7
     min_ring_contrast_gray: float = 10.0
     max_triples: int = 32
-    area_ratio_tolerance: float = 2.2
+    area_ratio_tolerance: float = 2.5
     min_arm_fraction: float = 0.45
-    max_arm_fraction: float = 1.5
+    max_arm_fraction: float = 1.8
     max_arm_cos: float = 0.8
-    max_arm_ratio: float = 2.5
+    max_arm_ratio: float = 3.0
     max_small_area_ratio: float = 2.5
     min_circles: int = 5
     min_corners: int = 2
     first_triple_window_cells: float = 4.0
     triple_window_cells: float = 1.0
+    first_large_window_cells: float = 3.0
     large_window_cells: float = 1.1
     small_window_cells: float = 0.7
     min_radius_ratio: float = 0.4
@@ -157,6 +176,8 @@ class CircleParams:
         require(self.min_corners in (2, 3, 4), "min_corners", "2, 3 or 4", self.min_corners)
         require(4 <= self.min_circles_for_homography <= 12, "min_circles_for_homography", "in [4, 12]",
                 self.min_circles_for_homography)
+        require(self.min_side_px >= self.min_level_side_px > 0, "min_side_px",
+                f">= min_level_side_px ({self.min_level_side_px}) > 0", self.min_side_px)
         for key in ("threshold_offset_gray", "min_area_px", "ring_margin_px", "min_ring_contrast_gray"):
             require(getattr(self, key) >= 0, key, ">= 0", getattr(self, key))
         for key in ("threshold_ratio", "max_speck_fraction", "max_area_fraction", "min_fill",
@@ -168,84 +189,147 @@ class CircleParams:
             require(getattr(self, key) >= 1.0, key, ">= 1", getattr(self, key))
         for key in ("max_blobs", "max_triples", "min_circles"):
             require(getattr(self, key) >= 1, key, ">= 1", getattr(self, key))
-        for key in ("first_triple_window_cells", "triple_window_cells", "large_window_cells", "small_window_cells",
+        for key in ("first_triple_window_cells", "triple_window_cells", "first_large_window_cells",
+                    "large_window_cells", "small_window_cells",
                     "max_fit_error_cells", "max_edge_fit_rms_cells"):
             require(getattr(self, key) > 0, key, "> 0", getattr(self, key))
 
 
 @dataclass(frozen=True)
 class Blobs:
-    """Circle-like dark blobs.
+    """Circle-like dark blobs, in full-resolution pixels.
 
-    centres_px: (M, 2) float64 centroids; areas_px: (M,) float64;
-    extents_px: (M,) float64, half the larger bounding-box side.
+    centres_px: (M, 2) float64 centroids; areas_px: (M,) float64.
     """
 
     centres_px: np.ndarray
     areas_px: np.ndarray
-    extents_px: np.ndarray
 
     def __len__(self) -> int:
         return len(self.areas_px)
 
     def subset(self, keep: np.ndarray) -> "Blobs":
-        return Blobs(self.centres_px[keep], self.areas_px[keep], self.extents_px[keep])
+        return Blobs(self.centres_px[keep], self.areas_px[keep])
 
 
-def find_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
-    """Dark, compact blobs on bright surroundings in an (H, W) uint8 image."""
-    smooth = cv2.blur(gray, (3, 3)) if params.pre_blur else gray
-    binary = dark_pixels(smooth, params)
-    centres, area, w, h = (_contour_table if _use_contours(binary, params) else _component_table)(binary)
-    shape_ok = ((area >= params.min_area_px) & (area <= params.max_area_fraction * gray.size)
-                & (np.maximum(w, h) <= params.max_aspect * np.minimum(w, h))
-                & (area >= params.min_fill * w * h))
-    blobs = Blobs(centres[shape_ok], area[shape_ok].astype(np.float64), np.maximum(w, h)[shape_ok] / 2.0)
-    passed, darkness = _ring_test(smooth, blobs, params)
+@dataclass(frozen=True)
+class _BlobTable:
+    """Every dark region of a binary image: centres (K, 2), areas (K,) in pixels, and the second central
+    moments (K, 3) = (var x, var y, cov xy) in px^2 of the region's shape."""
+
+    centres: np.ndarray
+    areas: np.ndarray
+    moments: np.ndarray
+
+    def subset(self, keep: np.ndarray) -> "_BlobTable":
+        return _BlobTable(self.centres[keep], self.areas[keep], self.moments[keep])
+
+
+def blob_level(params: CircleParams) -> int:
+    """The pyramid level (0: full resolution, k: 2^k smaller) blobs are looked for at: the coarsest at which
+    the smallest marker of ``min_side_px`` keeps ``min_level_side_px``."""
+    return max(int(np.floor(np.log2(params.min_side_px / params.min_level_side_px))), 0)
+
+
+def find_frame_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
+    """The blobs of an (H, W) uint8 frame, looked for at the pyramid level ``blob_level`` (in frame pixels)."""
+    scale = 2 ** blob_level(params)
+    return find_blobs(reduce(gray, scale), params, scale)
+
+
+def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1) -> Blobs:
+    """Dark, compact blobs on bright surroundings.
+
+    level_image: (h, w) uint8, the frame reduced ``scale`` times (``reduce``); the parameters are in
+    frame pixels. Returns the blobs in frame pixels (centres to a few tenths of a level pixel;
+    ``refine_centres`` reads the frame).
+    """
+    smooth = cv2.blur(level_image, (3, 3)) if params.pre_blur else level_image
+    binary = dark_pixels(smooth, params, scale)
+    max_area_px = params.max_area_fraction * level_image.size
+    table = (_contour_table if _use_contours(binary, params) else _component_table)(binary, max_area_px)
+    var_x, var_y, cov = table.moments.T
+    # eigenvalues of the shape's covariance: its squared half axes / 4 for a filled ellipse
+    half_sum, half_diff = (var_x + var_y) / 2, np.hypot((var_x - var_y) / 2, cov)
+    major, minor = half_sum + half_diff, half_sum - half_diff
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # fill: area over the area of the ellipse of the same moments (pi a b = 4 pi sqrt(major minor))
+        shape_ok = ((table.areas >= params.min_area_px / scale ** 2)
+                    & (table.areas <= max_area_px)
+                    & (minor > 0) & (major <= params.max_aspect ** 2 * minor)
+                    & (table.areas >= params.min_fill * 4 * np.pi * np.sqrt(major * minor)))
+    table = table.subset(shape_ok)
+    passed, darkness = _ring_test(smooth, table, params)
     keep = np.flatnonzero(passed)
     if len(keep) > params.max_blobs:
         # a speckled texture: keep the darkest spots (relative to their rings), a bound on later work
-        keep = keep[np.argsort(darkness[keep], kind="stable")[:params.max_blobs]]
-    return blobs.subset(np.sort(keep))
+        keep = np.sort(keep[np.argsort(darkness[keep], kind="stable")[:params.max_blobs]])
+    return Blobs(to_frame_px(table.centres[keep], scale), table.areas[keep] * scale ** 2)
 
 
-def dark_pixels(gray: np.ndarray, params: CircleParams) -> np.ndarray:
+def reduce(gray: np.ndarray, scale: int) -> np.ndarray:
+    """The frame averaged over scale x scale blocks (``cv2.INTER_AREA``; a copy a scale^2-th of its size).
+
+    Averaging keeps a small circle's contrast better than a Gaussian pyramid step."""
+    if scale == 1:
+        return gray
+    return cv2.resize(gray, (gray.shape[1] // scale, gray.shape[0] // scale), interpolation=cv2.INTER_AREA)
+
+
+def to_frame_px(level_px: np.ndarray, scale: int) -> np.ndarray:
+    """(..., 2) positions in a ``reduce``d image -> frame pixels (level pixel i averages frame pixels
+    scale i .. scale i + scale - 1)."""
+    return level_px * scale + (scale - 1) / 2
+
+
+def dark_pixels(gray: np.ndarray, params: CircleParams, scale: int = 1) -> np.ndarray:
     """(H, W) uint8 255 where a pixel is darker than its neighbourhood.
 
-    Darker than both mean - offset and mean x ratio over a square window: the
-    offset keeps dim, low-contrast frames working, the ratio shrinks blobs on
-    bright paper to their dark cores, so circles close to cells stay apart.
+    Darker than both mean - offset and mean x ratio over a square window
+    (``threshold_block_px`` frame pixels, at ``scale``): the offset keeps dim,
+    low-contrast frames working, the ratio shrinks blobs on bright paper to
+    their dark cores, so circles close to cells stay apart. Two images of
+    the frame's size are made (a large frame is not copied more).
     """
-    mean = cv2.blur(gray, (params.threshold_block_px, params.threshold_block_px))
-    limit = cv2.min(cv2.subtract(mean, params.threshold_offset_gray),
-                    cv2.convertScaleAbs(mean, alpha=params.threshold_ratio))
-    return cv2.compare(gray, limit, cv2.CMP_LT)
+    block = max(int(params.threshold_block_px / scale) // 2 * 2 + 1, 3)
+    limit = cv2.blur(gray, (block, block))
+    scaled = cv2.convertScaleAbs(limit, alpha=params.threshold_ratio)
+    cv2.subtract(limit, params.threshold_offset_gray, dst=limit)
+    cv2.min(limit, scaled, dst=limit)
+    return cv2.compare(gray, limit, cv2.CMP_LT, dst=scaled)
 
 
 def _use_contours(binary: np.ndarray, params: CircleParams) -> bool:
     if params.blob_method != "auto":
         return params.blob_method == "contours"
-    specks = cv2.countNonZero(cv2.absdiff(binary, cv2.medianBlur(binary, 3)))
-    return specks <= params.max_speck_fraction * binary.size
+    specks = cv2.medianBlur(binary, 3)
+    cv2.absdiff(binary, specks, dst=specks)
+    return cv2.countNonZero(specks) <= params.max_speck_fraction * binary.size
 
 
-def _contour_table(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(centres (K, 2), areas (K,), widths (K,), heights (K,)) of the blobs' outer contours, vectorised.
+def _contour_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
+    """The blobs of the binary image from their outer contours, vectorised.
 
-    All contours are concatenated once and reduced segment-wise (np.*.reduceat),
-    so the cost per contour is one array in a list, not a Python loop of
-    OpenCV calls. Area: the pixel count of the region, from the polygon
-    through its boundary pixels by Pick's theorem (A + B / 2 + 1); centre:
-    the polygon's centroid (the boundary's mean for a polygon of no area).
+    Contours (OpenCV's, straight runs of boundary pixels compressed to their
+    ends) longer than a blob of ``max_area_px`` can be (a 1:4 ellipse of that
+    area has a perimeter of 5.2 sqrt(area); edges and large regions of
+    clutter are most of the points) are dropped first; the others are
+    concatenated once and reduced segment-wise (one ``np.add.reduceat``), so
+    the cost per contour is one array in a list, not a Python loop of OpenCV
+    calls. Area: the pixel count of the region, from the polygon through its
+    boundary pixels by Pick's theorem (A + B / 2 + 1, B the boundary pixels:
+    the longer coordinate step of each run); centre and second moments: the
+    polygon's (Green's theorem), its vertices' for a polygon of no area.
     """
     # two levels: every blob's outer boundary (even a blob inside another's hole), and the holes
-    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
-        empty = np.zeros(0)
-        return np.zeros((0, 2)), empty, empty, empty
-    outer = np.flatnonzero(hierarchy[0, :, 3] < 0)
-    contours = [contours[i] for i in outer]
-    lengths = np.fromiter((len(c) for c in contours), np.intp, len(contours))
+        return _BlobTable(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)))
+    lengths = np.fromiter(map(len, contours), np.intp, len(contours))
+    kept = np.flatnonzero((hierarchy[0, :, 3] < 0) & (lengths <= MAX_LENGTH_PER_SQRT_AREA * np.sqrt(max_area_px)))
+    if len(kept) == 0:
+        return _BlobTable(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)))
+    contours, lengths = [contours[i] for i in kept], lengths[kept]
     points = np.concatenate(contours).reshape(-1, 2).astype(np.float64)
     ends = np.cumsum(lengths)
     starts = ends - lengths
@@ -254,41 +338,63 @@ def _contour_table(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     x, y = points[:, 0], points[:, 1]
     xn, yn = x[following], y[following]
     cross = x * yn - xn * y
-    # shoelace area and polygon centroid: A = sum(cross) / 2, c = sum((p + p') cross) / (6 A)
-    polygon_area = np.add.reduceat(cross, starts) / 2
-    mean_x = np.add.reduceat(x, starts) / lengths
-    mean_y = np.add.reduceat(y, starts) / lengths
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cx = np.add.reduceat((x + xn) * cross, starts) / (6 * polygon_area)
-        cy = np.add.reduceat((y + yn) * cross, starts) / (6 * polygon_area)
-    flat = np.abs(polygon_area) < 0.5
-    centres = np.column_stack([np.where(flat, mean_x, cx), np.where(flat, mean_y, cy)])
-    area = np.abs(polygon_area) + lengths / 2 + 1
-    w = np.maximum.reduceat(x, starts) - np.minimum.reduceat(x, starts) + 1
-    h = np.maximum.reduceat(y, starts) - np.minimum.reduceat(y, starts) + 1
-    return centres, area, w, h
+    # polygon moments (Green): m00 = sum(c) / 2, m10 = sum((x + x') c) / 6,
+    # m20 = sum((x^2 + x x' + x'^2) c) / 12, m11 = sum((2 x y + x y' + x' y + 2 x' y') c) / 24;
+    # the boundary pixels of each run, max(|x' - x|, |y' - y|); and the vertices' sums (for flat ones)
+    terms = np.column_stack([cross, (x + xn) * cross, (y + yn) * cross, (x * x + x * xn + xn * xn) * cross,
+                             (y * y + y * yn + yn * yn) * cross, (2 * x * y + x * yn + xn * y + 2 * xn * yn) * cross,
+                             np.maximum(np.abs(xn - x), np.abs(yn - y)), x, y, x * x, y * y, x * y])
+    m00, m10, m01, m20, m02, m11, boundary, sx, sy, sxx, syy, sxy = np.add.reduceat(terms, starts, axis=0).T
+    polygon_area = m00 / 2
+    flat = np.abs(polygon_area) < 0.5  # a line or a single pixel: its vertices' mean and spread
+    polygon_area[flat] = np.nan
+    cx = np.where(flat, sx / lengths, m10 / (6 * polygon_area))
+    cy = np.where(flat, sy / lengths, m01 / (6 * polygon_area))
+    var_x = np.where(flat, sxx / lengths, m20 / (12 * polygon_area)) - cx * cx
+    var_y = np.where(flat, syy / lengths, m02 / (12 * polygon_area)) - cy * cy
+    cov = np.where(flat, sxy / lengths, m11 / (24 * polygon_area)) - cx * cy
+    polygon_area[flat] = 0.0
+    # the polygon runs through the boundary pixels' centres: each pixel's own spread (1/12 px^2) on top
+    moments = np.column_stack([var_x + PIXEL_VARIANCE_PX2, var_y + PIXEL_VARIANCE_PX2, cov])
+    area = np.abs(polygon_area) + boundary / 2 + 1
+    return _BlobTable(np.column_stack([cx, cy]), area, moments)
 
 
-def _component_table(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _component_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
     """The same table from OpenCV's connected components with statistics (16-bit labels, 2-3x faster
-    than 32-bit; 32-bit when a frame has more than 65534 components)."""
+    than 32-bit; 32-bit when a frame has more than 65534 components); the moments of the bounding
+    box's ellipse (no orientation): the speckled frames this runs on need no finer shape test."""
     try:
         _, _, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(binary, 8, cv2.CV_16U, cv2.CCL_DEFAULT)
     except cv2.error:
         _, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
-    return centroids[1:], stats[1:, 4].astype(np.float64), stats[1:, 2], stats[1:, 3]
+    # an ellipse through the boundary pixels' centres, half axes (w - 1) / 2: variance half axis^2 / 4
+    w, h = stats[1:, 2].astype(np.float64), stats[1:, 3].astype(np.float64)
+    moments = np.column_stack([(w - 1) ** 2 / 16 + PIXEL_VARIANCE_PX2, (h - 1) ** 2 / 16 + PIXEL_VARIANCE_PX2,
+                               np.zeros(len(w))])
+    return _BlobTable(centroids[1:], stats[1:, 4].astype(np.float64), moments)
 
 
-def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> tuple[np.ndarray, np.ndarray]:
-    """(M,) bool: the blob centre is much darker than a bright ring around it; (M,) centre / ring median."""
-    if len(blobs) == 0:
+def _ring_test(smooth: np.ndarray, table: _BlobTable, params: CircleParams) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) bool: the blob centre is much darker than a bright ring around it; (M,) centre / ring median.
+
+    The ring follows the blob's shape: ``ring_scale`` times the ellipse of its moments (half a pixel
+    out, to the region's edge), plus ``ring_margin_px``; a tilted or smeared circle is an ellipse
+    whose ring must not reach the marker cells beside its narrow side.
+    """
+    if len(table.areas) == 0:
         return np.zeros(0, bool), np.zeros(0)
-    radius = params.ring_scale * blobs.extents_px + params.ring_margin_px
-    ring = blobs.centres_px[:, None, :] + radius[:, None, None] * RING_DIRECTIONS[None]
+    var_x, var_y, cov = table.moments.T
+    # the ellipse x^T (4 S)^-1 x = 1 of moments S reaches r(d) = 2 / sqrt(d^T S^-1 d) along the unit vector d
+    dx, dy = RING_DIRECTIONS[:, 0], RING_DIRECTIONS[:, 1]
+    det = var_x * var_y - cov * cov
+    quadratic = (var_y[:, None] * dx ** 2 - 2 * cov[:, None] * dx * dy + var_x[:, None] * dy ** 2) / det[:, None]
+    reach = params.ring_scale * (2 / np.sqrt(quadratic) + 0.5) + params.ring_margin_px  # (M, 8)
+    ring = table.centres[:, None, :] + reach[..., None] * RING_DIRECTIONS[None]
     # a ring point past the image edge reads the edge pixel (circles near the border stay testable)
     h, w = smooth.shape
     ring = np.clip(ring, 0, [w - 1, h - 1])
-    points = np.concatenate([blobs.centres_px[:, None, :], ring], axis=1)
+    points = np.concatenate([table.centres[:, None, :], ring], axis=1)
     values, _ = sampling.sample_image(smooth, points)
     centre, ring_values = values[:, 0], np.sort(values[:, 1:], axis=1)
     ring_median = (ring_values[:, 3] + ring_values[:, 4]) / 2  # of 8 sorted samples (np.median is 10x slower)
@@ -296,9 +402,30 @@ def _ring_test(smooth: np.ndarray, blobs: Blobs, params: CircleParams) -> tuple[
     passed = ((contrast >= params.min_ring_contrast_gray)
               & (centre <= params.max_darkness_ratio * ring_median)
               & (ring_values[:, params.ring_dark_allowed] - centre >= params.ring_dark_contrast_fraction * contrast))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):
         darkness = centre / ring_median
     return passed, darkness
+
+
+def refine_centres(gray: np.ndarray, H: np.ndarray, circles_cells: np.ndarray) -> np.ndarray:
+    """(K, 2) circle centres read in the full-resolution frame: the darkness-weighted centroid of
+    a window of 1.5 radii around each circle, laid out on the grid through H (3, 3) grid -> frame
+    (so it follows the circle's ellipse; one ``cv2.remap`` for all 9 x 9 samples of every window).
+
+    circles_cells: (K, 3) the circles' (u, v, radius) in cells. Blobs found at a pyramid level are
+    off by a few tenths of a frame pixel; these are as good as the frame's. Only samples darker than
+    the window's median by a fifth of its contrast count, so the paper around a circle adds no pull
+    toward the window's centre.
+    """
+    window_cells = circles_cells[:, None, :2] + 1.5 * circles_cells[:, None, 2:3] * CENTROID_OFFSETS[None]  # (K, S, 2)
+    points = homography.project(H, window_cells.reshape(-1, 2)).reshape(window_cells.shape)
+    values, inside = sampling.sample_image(gray, points)  # (K, S), NaN outside the frame
+    darkness = sampling.nan_median_rows(values)[:, None] - values
+    with np.errstate(invalid="ignore"):
+        weight = np.nan_to_num(np.clip(darkness - 0.2 * np.nanmax(darkness, axis=1, keepdims=True), 0, None))
+    total = weight.sum(axis=1)
+    centres = (weight[..., None] * np.nan_to_num(points)).sum(axis=1) / np.maximum(total, 1e-9)[:, None]
+    return np.where((total > 0)[:, None], centres, np.nan)
 
 
 @dataclass(frozen=True)
@@ -393,7 +520,7 @@ class CircleCandidate:
     circle_ids: (K,) layout circle indices (corner 3c + slot, with the anchor
         triple called corner 0: the true rotation is left to the decoder).
     circles_px: (K, 2) matched blob centres; blob_index: (K,) their blob indices.
-    corners: sorted layout corners with at least one matched circle.
+    corners: sorted layout corners with at least two matched circles.
     """
 
     circle_ids: np.ndarray
@@ -402,7 +529,10 @@ class CircleCandidate:
 
     @property
     def corners(self) -> np.ndarray:
-        return np.unique(self.circle_ids // 3)
+        """Sorted layout corners with at least two of their circles matched (a lone circle may be the
+        part of one that shows past an occluder's edge: its corner is taken as hidden)."""
+        corners, counts = np.unique(self.circle_ids // 3, return_counts=True)
+        return corners[counts >= 2]
 
 
 def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
@@ -410,23 +540,26 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
     """Grow marker candidates from corner triples by predicting the other corners.
 
     Each triple, taken as corner 0, fixes an affine grid -> image map. The
-    other corners are visited nearest first (the two neighbours, then the
-    diagonal) and each is taken from, in order of preference:
+    other corners are visited nearest first (the neighbour that matches
+    more circles, the other neighbour, then the diagonal) and each is taken
+    from, in order of preference:
 
     1. a whole triple whose three circles lie, on average, within
        ``first_triple_window_cells`` of their predictions while only the
        anchor is known (one corner extrapolates poorly under perspective),
        ``triple_window_cells`` after that;
     2. the blob nearest the predicted large circle within
-       ``large_window_cells``, then each small circle's nearest blob within
+       ``first_large_window_cells`` (while only the anchor is known) or
+       ``large_window_cells`` (its whole triple if it is the large circle of
+       one), then each small circle's nearest blob within
        ``small_window_cells`` (a corner that lost a small circle still counts).
 
     Sizes must fit the map (a blob's radius within ``min_radius_ratio`` to
     ``max_radius_ratio`` x the circle's). Every match refines the map (a
     homography from ``min_circles_for_homography`` circles on, which must fit
     within ``max_fit_error_cells``). A candidate needs ``min_circles`` circles
-    on at least ``min_corners`` corners. The blobs of a candidate with three or
-    four corners take part in no other; a two-corner candidate may be a wrong
+    on at least ``min_corners`` corners (of two circles or more). The blobs of a
+    candidate with three or four such corners take part in no other; a two-corner candidate may be a wrong
     pairing, so its blobs stay free (the decoder settles it; identical
     candidates are listed once).
     """
@@ -445,73 +578,99 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
         in_candidate = np.zeros(len(blobs), bool)
         in_candidate[index] = True
         H = _fit(grid[ids], centres[index], p)
-        for corner in (1, 3, 2):
+
+        def tries_at(corner: int) -> list[list[int]]:
+            """Ways to match ``corner``'s circles through the current map (blob indices, -1: none), best first."""
             circles = np.arange(3 * corner, 3 * corner + 3)
             predicted, cell_px = homography.project_with_cell_px(H, grid[circles])
             if not np.isfinite(cell_px):
-                break
+                return []
+            free = ~(taken | in_candidate)
             # 1. a whole triple
             window = p.first_triple_window_cells if len(ids) == 3 else p.triple_window_cells
             error = np.linalg.norm(triples.points_px - predicted[None], axis=2).mean(axis=1) / cell_px
             r_ratio = blob_r[triples.index[:, 0]] / (radius_cells[circles[0]] * cell_px)
             fits = ((error < window) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
-                    & ~(taken | in_candidate)[triples.index].any(axis=1))
+                    & free[triples.index].all(axis=1))
             tries = [triples.index[k].tolist() for k in np.flatnonzero(fits)[np.argsort(error[fits])][:2]]
-            # 2. else circle by circle: the large one, then the small ones shifted by the large one's offset
-            if not tries:
-                found = _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index, p)
-                tries = [] if found is None else [found]
-            for found in tries:
+            if tries:
+                return tries
+            # 2. else circle by circle: the large one (with its whole triple if it has one), then the small
+            # ones shifted by the large one's offset
+            window = p.first_large_window_cells if len(ids) == 3 else p.large_window_cells
+            tries = []
+            for found in _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
+                                       window, p):
+                own = np.flatnonzero((triples.index[:, 0] == found[0]) & free[triples.index].all(axis=1))
+                tries += [triples.index[k].tolist() for k in own[:1]] + [found]
+            return tries
+
+        def quality(tries: list[list[int]]) -> int:
+            return max((sum(b >= 0 for b in found) for found in tries), default=0)
+
+        # the first neighbour to join is the one that matches best (a neighbour hidden under a strip can
+        # still lend a stray blob to a loose first window); then the other neighbour, then the diagonal
+        first_tries = {corner: tries_at(corner) for corner in (1, 3)}
+        first = max((1, 3), key=lambda corner: quality(first_tries[corner]))
+        for corner in (first, 4 - first, 2):
+            circles = np.arange(3 * corner, 3 * corner + 3)
+            for found in first_tries[corner] if corner == first else tries_at(corner):
                 added = [c for c, b in zip(circles, found) if b >= 0]
                 blobs_added = [b for b in found if b >= 0]
                 H_new = _fit(grid[ids + added], centres[index + blobs_added], p)
-                # below min_circles_for_homography points the fit is affine and always "fits"
+                # below min_circles_for_homography points the fit is affine and always "fits"; from there
+                # the whole set must fit, and so must the added circles themselves (one stray blob among
+                # seven good circles moves the RMS little)
                 checkable = len(ids) + len(added) >= p.min_circles_for_homography
-                if not checkable or homography.fit_error_cells(H_new, grid[ids + added],
-                                                               centres[index + blobs_added]) <= p.max_fit_error_cells:
+                if not checkable or max(homography.fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]),
+                                        homography.fit_error_cells(H_new, grid[added], centres[blobs_added])
+                                        ) <= p.max_fit_error_cells:
                     ids, index, H = ids + added, index + blobs_added, H_new
                     in_candidate[blobs_added] = True
                     break
-        ids_a = np.array(ids)
-        corners = len(np.unique(ids_a // 3))
-        if len(ids_a) >= p.min_circles and corners >= p.min_corners and frozenset(index) not in seen:
+        candidate = CircleCandidate(np.array(ids), centres[index].copy(), np.array(index))
+        corners = len(candidate.corners)
+        if len(ids) >= p.min_circles and corners >= p.min_corners and frozenset(index) not in seen:
             seen.add(frozenset(index))
-            candidates.append(CircleCandidate(ids_a, centres[index].copy(), np.array(index)))
+            candidates.append(candidate)
             in_any[index] = True
             if corners >= 3:
                 taken[index] = True  # three corners agreeing: these circles are this marker's
     return candidates
 
 
-def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used, params: CircleParams):
-    """Blob indices (3,) for one corner's circles (-1: none), or None if its large circle is missing.
+def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used, window_cells: float,
+                  params: CircleParams) -> list[list[int]]:
+    """Up to two ways of matching one corner's circles: blob indices (3,) each (-1: none); [] if its
+    large circle is missing.
 
-    The large circle is the nearest blob of fitting size within
-    ``large_window_cells`` of its prediction; the small ones are searched
-    within ``small_window_cells`` of their predictions moved by the large
-    circle's offset (most of an extrapolation's error is that shift).
+    The large circle is one of the two nearest blobs of fitting size within
+    ``window_cells`` of its prediction; the small ones are searched within
+    ``small_window_cells`` of their predictions moved by the large circle's
+    offset (most of an extrapolation's error is that shift).
     """
     p = params
     free = ~taken
     free[used] = False
     d = np.linalg.norm(centres - predicted[0], axis=1)
     r_ratio = blob_r / (radii_cells[0] * cell_px)
-    ok = free & (d < p.large_window_cells * cell_px) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
-    if not ok.any():
-        return None
-    large = int(np.flatnonzero(ok)[np.argmin(d[ok])])
-    free[large] = False
-    shift = centres[large] - predicted[0]
-    found = [large]
-    for k in (1, 2):
-        d = np.linalg.norm(centres - (predicted[k] + shift), axis=1)
-        r_ratio = blob_r / (radii_cells[k] * cell_px)
-        ok = (free & (d < p.small_window_cells * cell_px) & (r_ratio > p.min_radius_ratio)
-              & (r_ratio < p.max_radius_ratio))
-        found.append(int(np.flatnonzero(ok)[np.argmin(d[ok])]) if ok.any() else -1)
-        if found[-1] >= 0:
-            free[found[-1]] = False
-    return found
+    ok = free & (d < window_cells * cell_px) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
+    matches = []
+    for large in np.flatnonzero(ok)[np.argsort(d[ok], kind="stable")][:2].tolist():
+        left = free.copy()
+        left[large] = False
+        shift = centres[large] - predicted[0]
+        found = [large]
+        for k in (1, 2):
+            d_small = np.linalg.norm(centres - (predicted[k] + shift), axis=1)
+            r_ratio = blob_r / (radii_cells[k] * cell_px)
+            ok_small = (left & (d_small < p.small_window_cells * cell_px) & (r_ratio > p.min_radius_ratio)
+                        & (r_ratio < p.max_radius_ratio))
+            found.append(int(np.flatnonzero(ok_small)[np.argmin(d_small[ok_small])]) if ok_small.any() else -1)
+            if found[-1] >= 0:
+                left[found[-1]] = False
+        matches.append(found)
+    return matches
 
 
 def _fit(grid_points: np.ndarray, image_points: np.ndarray, params: CircleParams) -> np.ndarray:

@@ -18,10 +18,12 @@ Stages (one module each in ``companion.detect``, run in this order):
 5. ``refine``: each decoded square-path marker's whole pattern is aligned
    to the image for its final corners (through the camera's lens model when
    the detector has the camera).
-6. ``circles`` (the occluded path): where the square path found nothing,
-   corner circles are grouped into grids, fitted, refined on the visible
-   edges, sampled with occluded and out-of-image cells as erasures, and
-   decoded the same way.
+6. ``circles`` (the occluded path): in every frame (``circles.run``), where
+   the markers found by the square path do not explain them, corner circles
+   (found at a pyramid level, on a second thread beside ArUco when OpenCV
+   may use two) are grouped into grids, read again in the frame, fitted,
+   refined on the visible edges, sampled with occluded and out-of-image
+   cells as erasures, and decoded the same way.
 
 Nothing is reported unless it decodes to a dictionary marker. Every setting
 is a field of one of the stage parameter dataclasses that ``DetectorParams``
@@ -32,13 +34,15 @@ from __future__ import annotations
 
 import itertools
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from companion.detect import homography, sampling
-from companion.detect.circles import (CircleCandidate, CircleParams, assemble_candidates, corner_triples,
-                                      find_blobs, missing_corner_cells)
+from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, corner_triples,
+                                      find_frame_blobs, missing_corner_cells, refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -102,6 +106,9 @@ class Detector:
 
     camera: optional ``companion.geometry.camera.CameraModel``; with it the
     square-path corners are aligned through its lens model (``refine``).
+    With OpenCV on more than one thread, the circles path's blob search runs
+    on a thread of its own (started at the first frame, stopped by ``close``
+    or when the detector is dropped).
     """
 
     def __init__(self, params: DetectorParams | None = None, camera=None):
@@ -120,27 +127,47 @@ class Detector:
         self._hidden_by_corners = {corners: missing_corner_cells(self.layout, np.array(corners, int))
                                    for k in range(5) for corners in itertools.combinations(range(4), k)}
         self.last_stage_ms: dict[str, float] = {}
+        self._blob_worker: ThreadPoolExecutor | None = None
 
     def detect(self, gray: np.ndarray) -> list[Detection]:
         """All RS markers in an (H, W) uint8 frame, each once."""
         gray = _as_gray(gray)
         clock = _StageClock()
+        run = self.params.circles.run
+        blobs_pending = self._blob_search_beside(gray) if run == "always" else None
         candidates = self.square.find(gray)
         clock.lap("square")
         detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
         clock.lap("square_decode")
         detections = [self._aligned(gray, d) for d in detections]
         clock.lap("square_align")
-        run = self.params.circles.run
         if run == "always" or (run == "when_square_empty" and not detections):
-            detections += self._circles_path(gray, detections, clock)
+            blobs = find_frame_blobs(gray, self.params.circles) if blobs_pending is None else blobs_pending.result()
+            detections += self._circles_path(gray, blobs, detections, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
 
+    def close(self) -> None:
+        """Stop the blob-search thread, if one was started (it also stops when the detector is dropped)."""
+        if self._blob_worker is not None:
+            self._blob_worker.shutdown()
+            self._blob_worker = None
+
+    def _blob_search_beside(self, gray: np.ndarray) -> Future | None:
+        """The circles path's blob search started on a second thread, to run while ArUco runs on this one,
+        when OpenCV may use more than one thread (``cv2.setNumThreads``); None otherwise. It needs nothing
+        from the square path (blobs inside the markers it finds are dropped after)."""
+        if cv2.getNumThreads() < 2:
+            return None
+        if self._blob_worker is None:
+            self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
+        return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
+
     def _aligned(self, gray: np.ndarray, detection: Detection) -> Detection:
-        """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``), with their noise."""
+        """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``), with their noise;
+        where the alignment does not hold, the corners of the inner square's edge lines."""
         fit = self.refiner.refine(gray, detection.id, detection.corners_px)
-        corners_px = fit.corners_px if fit.refined else detection.corners_px
+        corners_px = fit.corners_px if fit.refined else self._edge_corners(gray, detection.corners_px[None])[0]
         sigma_px = square_corner_sigma_px(fit.residual, _cell_px(corners_px, self.layout.inner_cells))
         if sigma_px is not None and not self._pattern_inside(corners_px, gray.shape):
             sigma_px *= CUT_SIGMA_FACTOR
@@ -160,41 +187,55 @@ class Detector:
         levels = sampling.grid_levels(cells, self._border, self._gap)
         return sampling.classify_cells(cells, levels, self.params.sampling.ambiguity_fraction), levels
 
+    def _edge_corners(self, gray: np.ndarray, quads: np.ndarray, rough: bool = False) -> np.ndarray:
+        """(M, 4, 2) inner-square corners where the edge lines of M quads (M, 4, 2) meet (see ``edges``)."""
+        H = homography.from_quads(self.layout.inner_corners_cells, quads)
+        return self.edges.refine_square_corners(gray, H, quads, rough=rough)
+
     def _decode_quads(self, gray: np.ndarray, quads: np.ndarray, from_aruco: np.ndarray) -> list[Detection]:
-        """Sample, classify and decode M candidate inner squares (M, 4, 2) (clockwise corners)."""
+        """Sample, classify and decode M candidate inner squares (M, 4, 2) (clockwise corners).
+
+        Rejected quads come with whole-pixel corners, off by up to a few pixels on small markers:
+        their corners are taken from the edges first (a wide pass, then a fine one). ArUco's
+        sub-pixel corners read almost every identified grid as they are; a thin, oblique marker
+        that does not decode is read again from its edges' corners.
+        """
         if len(quads) == 0:
             return []
-        inner = self.layout.inner_corners_cells
-        # sub-pixel corners first: a thin, oblique marker needs good ones to be sampled right.
-        # Rejected quads come with whole-pixel corners, off by up to a few pixels on small
-        # markers: look wider across their edges first.
+        quads = quads.copy()
         rough = ~from_aruco
         if rough.any():
-            quads = quads.copy()
-            quads[rough] = self.edges.refine_square_corners(
-                gray, homography.from_quads(inner, quads[rough]), quads[rough], rough=True)
-        quads = self.edges.refine_square_corners(gray, homography.from_quads(inner, quads), quads)
-        grids, levels = self._read_grids(gray, homography.from_quads(inner, quads))
-        usable = levels.contrast >= self.params.sampling.min_contrast_gray
-        index = np.flatnonzero(usable)
-        results = self.decoder.decode(grids[usable])
-        found = np.array([r is not None for r in results], bool)
-        if not found.any():
-            return []
-        index, results = index[found], [r for r in results if r is not None]
-        corners = quads[index]
-        detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(c, -r.rotation, axis=0), path="square",
-                                corrected=r.corrected, quality=r.quality) for r, c in zip(results, corners)]
+            quads[rough] = self._edge_corners(gray, self._edge_corners(gray, quads[rough], rough=True))
+        results = self._decode_grids(gray, quads)
+        again = np.flatnonzero(from_aruco & np.array([r is None for r in results]))
+        if len(again):
+            quads[again] = self._edge_corners(gray, quads[again])
+            for i, result in zip(again, self._decode_grids(gray, quads[again])):
+                results[i] = result
+        detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(q, -r.rotation, axis=0), path="square",
+                                corrected=r.corrected, quality=r.quality)
+                      for r, q in zip(results, quads) if r is not None]
         return _unique(detections, self.params.duplicate_offset_fraction)
+
+    def _decode_grids(self, gray: np.ndarray, quads: np.ndarray) -> list:
+        """The decoder's result (or None) for the grid of each of M quads (M, 4, 2); None below the contrast floor."""
+        grids, levels = self._read_grids(gray, homography.from_quads(self.layout.inner_corners_cells, quads))
+        usable = levels.contrast >= self.params.sampling.min_contrast_gray
+        results: list = [None] * len(quads)
+        for i, result in zip(np.flatnonzero(usable), self.decoder.decode(grids[usable])):
+            results[i] = result
+        return results
 
     # ------------------------------------------------------------------ circles path
 
-    def _circles_path(self, gray: np.ndarray, found: list[Detection], clock: "_StageClock") -> list[Detection]:
-        """Markers found by their corner circles, away from markers already found."""
+    def _circles_path(self, gray: np.ndarray, blobs: Blobs, found: list[Detection],
+                      clock: "_StageClock") -> list[Detection]:
+        """Markers found by their corner circles among the frame's blobs, where no marker found already
+        explains them (blobs inside a found marker's whole grid are left out)."""
         params = self.params.circles
-        blobs = find_blobs(gray, params)
         if found and len(blobs):
-            blobs = blobs.subset(~self._inside_found(blobs.centres_px, found))
+            H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
+            blobs = blobs.subset(~sampling.inside_grids(blobs.centres_px, H, self.layout.n_cells))
         clock.lap("circles_blobs")
         candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout, params), self.layout, params)
         clock.lap("circles_group")
@@ -202,19 +243,23 @@ class Detector:
         clock.lap("circles_decode")
         return _unique(detections, self.params.duplicate_offset_fraction)
 
-    def _inside_found(self, points_px: np.ndarray, found: list[Detection]) -> np.ndarray:
-        """(K,) bool: points inside the full grid outline of an already found marker."""
-        corners = np.stack([d.corners_px for d in found])
-        H = homography.from_quads(self.layout.inner_corners_cells, corners)
-        return sampling.inside_grids(points_px, H, self.layout.n_cells)
-
     def _decode_circle_candidates(self, gray: np.ndarray, candidates: list[CircleCandidate]) -> list[Detection]:
-        """Fit, refine on the edges, sample and decode circle candidates, all batched."""
+        """Fit, refine on the edges, sample and decode circle candidates, all batched.
+
+        The circle centres are read again in the frame first (the blobs were found at a pyramid
+        level; even at full resolution a thresholded blob's centroid is 4x further off).
+        """
         params, min_contrast_gray = self.params.circles, self.params.sampling.min_contrast_gray
         fitted = []
         for candidate in candidates:
-            grid_points = self.layout.circles[candidate.circle_ids, :2]
+            circles = self.layout.circles[candidate.circle_ids]
+            grid_points = circles[:, :2]
             H = homography.fit(grid_points, candidate.circles_px)
+            if np.isfinite(H[2, 2]):
+                centres = refine_centres(gray, H, circles)
+                if np.isfinite(centres).all():
+                    candidate = replace(candidate, circles_px=centres)
+                    H = homography.fit(grid_points, centres)
             if homography.fit_error_cells(H, grid_points, candidate.circles_px) <= params.max_fit_error_cells:
                 fitted.append((candidate, H, (grid_points, candidate.circles_px)))
         if fitted:  # a first look at one sample per cell: a wrong pairing of corners reads as no marker

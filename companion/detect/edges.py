@@ -278,8 +278,9 @@ def _solve(anchors_grid, anchors_px, on_edge_px, axis, value) -> np.ndarray | No
     A = np.concatenate(rows)
     if len(A) < 8:
         return None
-    _, _, vt = np.linalg.svd(A)
-    G = np.linalg.inv(S) @ vt[-1].reshape(3, 3) @ T
+    # the unit g minimising |A g|: the eigenvector of A^T A (9 x 9) with the smallest eigenvalue
+    _, vectors = np.linalg.eigh(A.T @ A)
+    G = np.linalg.inv(S) @ vectors[:, 0].reshape(3, 3) @ T
     if not np.all(np.isfinite(G)) or abs(G[2, 2]) < 1e-12:
         return None
     G = G / G[2, 2]

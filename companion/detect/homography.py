@@ -73,9 +73,47 @@ def from_quad(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray
 
 
 def fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
-    """(3, 3) least-squares homography grid -> image from K >= 4 point pairs (K, 2); NaN if none fits."""
-    H, _ = cv2.findHomography(grid_points, image_points, 0)
-    return H if H is not None else np.full((3, 3), np.nan)
+    """(3, 3) least-squares homography grid -> image from K >= 4 point pairs (K, 2), H[2, 2] = 1; NaN if none fits.
+
+    The normalised direct linear transform (Hartley): both point sets moved to their centroid and
+    scaled to a mean distance of sqrt(2), then the unit vector h minimising |A h| (the eigenvector of
+    A^T A with the smallest eigenvalue). It minimises the algebraic error, not the reprojection error
+    that ``cv2.findHomography`` polishes with Levenberg-Marquardt (2x slower on a dozen points); on
+    circle centres the two differ by far less than the centres' own noise, and the callers refine
+    on the edges after.
+    """
+    g = np.asarray(grid_points, dtype=np.float64)
+    p = np.asarray(image_points, dtype=np.float64)
+    if len(g) < 4:
+        return np.full((3, 3), np.nan)
+    g_centre, p_centre = g.mean(axis=0), p.mean(axis=0)
+    g, p = g - g_centre, p - p_centre
+    g_spread, p_spread = np.sqrt((g * g).sum(axis=1)).mean(), np.sqrt((p * p).sum(axis=1)).mean()
+    if not (g_spread > 0 and p_spread > 0):
+        return np.full((3, 3), np.nan)
+    g *= math.sqrt(2.0) / g_spread
+    p *= math.sqrt(2.0) / p_spread
+    k = len(g)
+    # x = (h0 u + h1 v + h2) / (h6 u + h7 v + h8): h0 u + h1 v + h2 - x (h6 u + h7 v + h8) = 0, y likewise
+    A = np.zeros((2 * k, 9))
+    A[:k, 0:2] = g
+    A[:k, 2] = 1.0
+    A[k:, 3:5] = g
+    A[k:, 5] = 1.0
+    A[:k, 6:8] = -p[:, :1] * g
+    A[:k, 8] = -p[:, 0]
+    A[k:, 6:8] = -p[:, 1:] * g
+    A[k:, 8] = -p[:, 1]
+    _, vectors = np.linalg.eigh(A.T @ A)
+    Hn = vectors[:, 0].reshape(3, 3)
+    # undo the normalisations: H = T_image^-1 Hn T_grid
+    gs, ps = math.sqrt(2.0) / g_spread, p_spread / math.sqrt(2.0)
+    T_grid = np.array([[gs, 0.0, -gs * g_centre[0]], [0.0, gs, -gs * g_centre[1]], [0.0, 0.0, 1.0]])
+    T_image_inv = np.array([[ps, 0.0, p_centre[0]], [0.0, ps, p_centre[1]], [0.0, 0.0, 1.0]])
+    H = T_image_inv @ Hn @ T_grid
+    if not np.all(np.isfinite(H)) or abs(H[2, 2]) < MIN_DETERMINANT or abs(np.linalg.det(H)) < MIN_DETERMINANT:
+        return np.full((3, 3), np.nan)
+    return H / H[2, 2]
 
 
 def fit_affine(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:

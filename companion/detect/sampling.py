@@ -256,12 +256,9 @@ def erase_near_bad_fixed_cells(grids: np.ndarray, border: np.ndarray, gap: np.nd
     """
     bad = (border[None] & (grids == 0)) | (gap[None] & (grids == 1))
     n = grids.shape[-1]
-    r = reach_cells
-    padded = np.pad(bad, ((0, 0), (r, r), (r, r)))
-    near_bad = np.zeros_like(bad)
-    for dy in range(2 * r + 1):  # dilation by a (2r + 1) square, as shifted ORs
-        for dx in range(2 * r + 1):
-            near_bad |= padded[:, dy:dy + n, dx:dx + n]
+    # dilation by a (2r + 1) square: rows and columns each summed over a band |i - j| <= r
+    band = (np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]) <= reach_cells).astype(np.float32)
+    near_bad = (band @ bad.astype(np.float32) @ band) > 0
     out = grids.copy()
     out[near_bad & codeword[None]] = UNKNOWN
     return out

@@ -27,6 +27,10 @@ from companion.markers.layout import MarkerLayout
 from companion.params import require
 
 
+ARUCO_DETECTORS_KEPT = 4
+NEXT_CORNER = [1, 2, 3, 0]
+
+
 @dataclass(frozen=True)
 class SquareParams:
     """ArUco and pre-filter settings of the square path.
@@ -37,18 +41,18 @@ class SquareParams:
     decode_rejected: RS-decode marker-like quads ArUco rejected (blobs on data).
     aruco_threshold_windows_px: ArUco's adaptive-threshold windows (min, max,
         step), odd sizes. OpenCV's default (3, 23, 10) thresholds three times;
-        (7, 27, 20) twice, about 25 % faster with the same or better recall
-        here (docs/detector.md has the measurement).
-    aruco_min_perimeter_fraction: ArUco's smallest quad perimeter over the
-        image's larger side (OpenCV's minMarkerPerimeterRate, 0.03). 0.08 is a
-        13 px inner side at 640 px, 26 px at 1280 px (under 3 px per cell: too
-        small to read the grid anyway); skipping the many small contours saves 5-15 %.
+        (15, 15, 10) once: 40 % of OpenCV's time on one thread, with the same
+        recall here (docs/detector.md has the measurement).
     aruco_threshold_constant_gray: ArUco's adaptive-threshold offset (OpenCV's
         7). 5 finds more small markers in dim frames (low light 97.8 -> 99.3 %
         in the benchmark) but costs 25 % more ArUco time on every frame
         (0.55 ms at 640x480 and 1280x720): not the default.
-    min_side_px: mean side of a rejected quad worth decoding (2.5 px per
-        cell; smaller quads are mostly single cells of markers already found).
+    min_side_px: the smallest inner square the path reads, mean side in
+        pixels, whatever the image size (ArUco's smallest quad perimeter is
+        4 x this). 12, as ArUco's relative default (0.08 of the long side)
+        was at 640 px: 19-20 px markers of the simulated hover flights are
+        read (at 20 they were not); 1.5 px per cell is about the least that
+        decodes.
     min_fixed_agreement_fraction: of the border cells that must read black
         and of the gap-ring cells that must read white (rejected quads).
     min_dark_codeword_fraction, max_dark_codeword_fraction: the share of a
@@ -59,10 +63,9 @@ class SquareParams:
 
     aruco_error_correction_rate: float = 0.6
     decode_rejected: bool = True
-    aruco_threshold_windows_px: tuple[int, int, int] = (7, 27, 20)
-    aruco_min_perimeter_fraction: float = 0.08
+    aruco_threshold_windows_px: tuple[int, int, int] = (15, 15, 10)
     aruco_threshold_constant_gray: float = 7.0
-    min_side_px: float = 20.0
+    min_side_px: float = 12.0
     min_fixed_agreement_fraction: float = 0.75
     min_dark_codeword_fraction: float = 0.15
     max_dark_codeword_fraction: float = 0.85
@@ -76,9 +79,7 @@ class SquareParams:
                 "aruco_threshold_windows_px", "[min, max, step] integers with an odd min >= 3, max >= min and "
                 "step >= 1", self.aruco_threshold_windows_px)
         object.__setattr__(self, "aruco_threshold_windows_px", windows)
-        require(0.0 < self.aruco_min_perimeter_fraction < 4.0, "aruco_min_perimeter_fraction", "in (0, 4)",
-                self.aruco_min_perimeter_fraction)
-        require(self.min_side_px >= 0, "min_side_px", ">= 0", self.min_side_px)
+        require(self.min_side_px > 0, "min_side_px", "> 0", self.min_side_px)
         for key in ("min_fixed_agreement_fraction", "min_dark_codeword_fraction", "max_dark_codeword_fraction"):
             require(0.0 <= getattr(self, key) <= 1.0, key, "in [0, 1]", getattr(self, key))
 
@@ -96,15 +97,16 @@ class SquareCandidates:
     from_aruco: np.ndarray
 
 
-def make_aruco_detector(layout: MarkerLayout, params: SquareParams) -> cv2.aruco.ArucoDetector:
-    """ArucoDetector for the layout's inner marker, sub-pixel corners, no border margin."""
+def make_aruco_detector(layout: MarkerLayout, params: SquareParams, image_side_px: int) -> cv2.aruco.ArucoDetector:
+    """ArucoDetector for the layout's inner marker, sub-pixel corners, no border margin, for images
+    whose larger side is ``image_side_px`` (OpenCV sets the smallest quad as a share of it)."""
     aruco_params = cv2.aruco.DetectorParameters()
     aruco_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     aruco_params.minDistanceToBorder = 0
     aruco_params.errorCorrectionRate = params.aruco_error_correction_rate
     aruco_params.adaptiveThreshWinSizeMin, aruco_params.adaptiveThreshWinSizeMax, \
         aruco_params.adaptiveThreshWinSizeStep = params.aruco_threshold_windows_px
-    aruco_params.minMarkerPerimeterRate = params.aruco_min_perimeter_fraction
+    aruco_params.minMarkerPerimeterRate = 4.0 * params.min_side_px / image_side_px
     aruco_params.adaptiveThreshConstant = params.aruco_threshold_constant_gray
     return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), aruco_params)
 
@@ -120,12 +122,12 @@ class SquareFinder:
         self.params = params
         self.min_contrast_gray = min_contrast_gray
         self._screen = screen
-        self._aruco = make_aruco_detector(layout, params)
+        self._aruco_by_side: dict[int, cv2.aruco.ArucoDetector] = {}
         self._inner_corners = layout.inner_corners_cells
         self._probe = sampling.CellProbe(layout)
 
     def find(self, gray: np.ndarray) -> SquareCandidates:
-        corners, _, rejected = self._aruco.detectMarkers(gray)
+        corners, _, rejected = self._aruco(max(gray.shape)).detectMarkers(gray)
         accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
         others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if self.params.decode_rejected and len(others):
@@ -135,6 +137,15 @@ class SquareFinder:
             others = others[:0]
         return SquareCandidates(np.concatenate([accepted, others]),
                                 np.r_[np.ones(len(accepted), bool), np.zeros(len(others), bool)])
+
+    def _aruco(self, image_side_px: int) -> cv2.aruco.ArucoDetector:
+        """The ArUco detector for images of this larger side (a few kept: frames rarely change size)."""
+        detector = self._aruco_by_side.get(image_side_px)
+        if detector is None:
+            if len(self._aruco_by_side) >= ARUCO_DETECTORS_KEPT:
+                self._aruco_by_side.pop(next(iter(self._aruco_by_side)))
+            detector = self._aruco_by_side[image_side_px] = make_aruco_detector(self.layout, self.params, image_side_px)
+        return detector
 
     def _within(self, quads: np.ndarray, markers: np.ndarray) -> np.ndarray:
         """(M,) bool: quad centres inside the whole grid of an identified marker (its own cells)."""
@@ -165,4 +176,5 @@ class SquareFinder:
 
 def _mean_side(quads: np.ndarray) -> np.ndarray:
     """(M,) mean side of M quads (M, 4, 2)."""
-    return np.linalg.norm(quads - np.roll(quads, -1, axis=1), axis=2).mean(axis=1)
+    sides = quads[:, NEXT_CORNER] - quads
+    return np.sqrt((sides * sides).sum(axis=2)).mean(axis=1)

@@ -1,6 +1,6 @@
-"""Occluder quads: things in front of a marker or crossing the view (strip, corner patch, blob, box, person).
+"""Occluder quads: things in front of a marker or crossing the view (strip, side, corner patch, blob, box, person).
 
-Stuck on a marker (``strip_occluder``, ``corner_occluder``, ``blob_occluder``:
+Stuck on a marker (``strip_occluder``, ``side_occluder``, ``corner_occluder``, ``blob_occluder``:
 the benchmark scenes' conditions) or standing in the scene (``person_occluder``,
 ``box_occluder``; ``PassingOccluder`` walks one across the simulator's view).
 Everything random takes a ``numpy.random.Generator``.
@@ -24,22 +24,42 @@ def strip_occluder(marker: MarkerTexture, size_m: float, T_world_marker: np.ndar
     """A strip over ``fraction`` of the inner square's width from one side, border and margin included.
 
     side: "left", "right", "top" or "bottom" of the upright marker. The strip
-    reaches well past the marker on the other three directions.
+    reaches a fifth of the inner side past the marker's texture in the other
+    three directions (over the corner circles at both ends of that side).
     """
-    s = size_m
-    reach = _outer_reach_m(marker, size_m) + 0.2 * s
-    inner_edge = -s / 2 + fraction * s  # measured from the chosen side
-    # in the marker frame (x right, y up): the strip covers [-reach, inner_edge] along the side axis
-    length = inner_edge + reach
-    centre_along = (-reach + inner_edge) / 2
+    reach = _outer_reach_m(marker, size_m) + 0.2 * size_m
+    return _side_band(rng, T_world_marker, size_m, fraction, side, reach, reach, level)
+
+
+def side_occluder(marker: MarkerTexture, size_m: float, T_world_marker: np.ndarray, fraction: float,
+                  side: str, rng: np.random.Generator, level: float | None = None) -> TexturedQuad:
+    """A long occluder in front of one whole side: a rack upright, a pipe, a cable along the sheet.
+
+    It hides ``fraction`` of the inner square's width from ``side`` (as ``strip_occluder``) and runs on
+    1 to 4 inner sides past both corners of that side, so the corner circles at both ends are gone
+    too; outward it reaches 0.05 to 1 inner side past the marker's texture (a pipe of any width).
+    """
+    texture_reach = _outer_reach_m(marker, size_m)
+    outward = texture_reach + rng.uniform(0.05, 1.0) * size_m
+    along = texture_reach + rng.uniform(1.0, 4.0) * size_m
+    return _side_band(rng, T_world_marker, size_m, fraction, side, outward, along, level)
+
+
+def _side_band(rng, T_world_marker, size_m: float, fraction: float, side: str, outward_m: float, along_m: float,
+               level: float | None) -> TexturedQuad:
+    """A rectangle from ``fraction`` of the inner width in from ``side`` out to ``outward_m`` from the
+    marker centre, ``along_m`` from the centre both ways along that side (marker frame: x right, y up)."""
+    inner_edge = -size_m / 2 + fraction * size_m  # measured from the chosen side
+    across = inner_edge + outward_m
+    centre_across = (inner_edge - outward_m) / 2
     if side == "left":
-        width_m, height_m, centre = length, 2 * reach, (centre_along, 0.0)
+        width_m, height_m, centre = across, 2 * along_m, (centre_across, 0.0)
     elif side == "right":
-        width_m, height_m, centre = length, 2 * reach, (-centre_along, 0.0)
+        width_m, height_m, centre = across, 2 * along_m, (-centre_across, 0.0)
     elif side == "bottom":
-        width_m, height_m, centre = 2 * reach, length, (0.0, centre_along)
+        width_m, height_m, centre = 2 * along_m, across, (0.0, centre_across)
     elif side == "top":
-        width_m, height_m, centre = 2 * reach, length, (0.0, -centre_along)
+        width_m, height_m, centre = 2 * along_m, across, (0.0, -centre_across)
     else:
         raise RenderError(f"strip side must be left, right, top or bottom, got {side!r}")
     return _flat_occluder(rng, T_world_marker, width_m, height_m, centre, level)

@@ -16,7 +16,7 @@ import numpy as np
 from companion.geometry import frames
 from companion.geometry.camera import intrinsics_from_hfov
 from companion.sim.degrade import Degradations, gaussian_blur
-from companion.sim.occluders import blob_occluder, corner_occluder, strip_occluder
+from companion.sim.occluders import blob_occluder, corner_occluder, side_occluder, strip_occluder
 from companion.sim.raster import (MARKER_LIFT_M, MarkerTexture, MarkerTruth, RenderError, Renderer, TexturedQuad,
                                   make_texture, marker_quad, marker_truth, solid_texture)
 
@@ -66,9 +66,11 @@ BASE_DEGRADATIONS = Degradations(optics_blur_sigma_px=0.5, read_noise_dn=1.0, sh
 class SceneCondition:
     """One benchmark condition: occluders stuck on each marker and image degradations.
 
-    occlusion: "none", "strip", "corner" or "blob".
-    occlusion_fraction: strip width or corner depth as a fraction of the
-        inner side; blob radius as a fraction of the inner side.
+    occlusion: "none", "strip", "side" (a long strip past both corners of
+        one side: a rack upright, a pipe), "corner" or "blob".
+    occlusion_fraction: strip width (of the inner side hidden) or corner
+        depth as a fraction of the inner side; blob radius as a fraction of
+        the inner side.
     degradations: applied to the whole image after rendering; a motion blur
         with ``motion_length_px`` gets a random direction per scene.
     """
@@ -84,6 +86,8 @@ CONDITIONS: dict[str, SceneCondition] = {
         SceneCondition("clean"),
         SceneCondition("strip_1_8", "strip", 1.0 / 8.0),
         SceneCondition("strip_1_4", "strip", 1.0 / 4.0),
+        SceneCondition("side_1_8", "side", 1.0 / 8.0),
+        SceneCondition("side_1_4", "side", 1.0 / 4.0),
         SceneCondition("corner", "corner", 0.25),
         SceneCondition("blob", "blob", 0.18),
         SceneCondition("gaussian_blur", degradations=BASE_DEGRADATIONS.with_(optics_blur_sigma_px=1.6)),
@@ -201,9 +205,10 @@ def _condition_occluders(condition: SceneCondition, marker: MarkerTexture, size_
                          T_world_marker: np.ndarray, rng: np.random.Generator) -> list[TexturedQuad]:
     if condition.occlusion == "none":
         return []
-    if condition.occlusion == "strip":
+    if condition.occlusion in ("strip", "side"):
         side = ("left", "right", "top", "bottom")[int(rng.integers(0, 4))]
-        return [strip_occluder(marker, size_m, T_world_marker, condition.occlusion_fraction, side, rng)]
+        occluder = strip_occluder if condition.occlusion == "strip" else side_occluder
+        return [occluder(marker, size_m, T_world_marker, condition.occlusion_fraction, side, rng)]
     if condition.occlusion == "corner":
         return [corner_occluder(marker, size_m, T_world_marker, condition.occlusion_fraction,
                                 int(rng.integers(0, 4)), rng)]

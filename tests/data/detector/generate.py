@@ -134,6 +134,33 @@ def main() -> None:
         (tex(9), T1, None, "strip_5_8", occluders.strip_occluder(tex(9), SIZE_M, T1, 5 / 8, "left", rng, level=90)),
     ], note="5/8 of an RS marker hidden: not decodable, nothing may be reported", seed=9)
 
+    # added with issue 13 (their own generator, so the frames above stay as they were)
+    rng_new = np.random.default_rng(13)
+    # a side and both its corners hidden by a long occluder (a rack upright, a pipe): three edges, two corners
+    T1, T2 = pose(0.85, 25, 20, (-95, 0), 60), pose(0.85, -60, 25, (95, 5), 150)
+    scene("side_corners", [
+        (tex(14), T1, "circles", "side_1_8",
+         occluders.side_occluder(tex(14), SIZE_M, T1, 1 / 8, "right", rng_new, level=50)),
+        (tex(37), T2, "circles", "side_1_4",
+         occluders.side_occluder(tex(37), SIZE_M, T2, 1 / 4, "bottom", rng_new, level=190)),
+    ], note="a long occluder over one side and past both its corners (1/8 and 1/4 of the inner side)", seed=10)
+
+    # occluded markers beside a clean one: all three are found in the same frame
+    T1, T2, T3 = pose(0.9, 5, 15, (-120, -10), 30), pose(0.9, 40, 20, (0, 20), 100), pose(0.9, -25, 20, (120, -15), 200)
+    scene("clean_beside_occluded", [
+        (tex(4), T1, "square", "none", None),
+        (tex(25), T2, "circles", "side_1_4", occluders.side_occluder(tex(25), SIZE_M, T2, 1 / 4, "left", rng_new, level=80)),
+        (tex(42), T3, "circles", "corner", occluders.corner_occluder(tex(42), SIZE_M, T3, 0.25, 2, rng_new, level=160)),
+    ], note="one clean marker and two occluded ones: the circles path runs beside the square path's finds", seed=11)
+
+    # a 9 px linear smear (motion blur), as in the benchmark's motion_blur condition
+    T1, T2 = pose(0.75, 15, 20, (-90, 0), 45), pose(0.75, -40, 15, (95, 0), 135)
+    scene("motion_blur", [
+        (tex(19), T1, "square", "none", None),
+        (tex(46), T2, "square", "none", None),
+    ], note="a 9 px linear smear at 30 degrees", seed=12,
+       degradations=scenes.BASE_DEGRADATIONS.with_(motion_length_px=9.0, motion_angle_rad=math.radians(30)))
+
 
 if __name__ == "__main__":
     main()
