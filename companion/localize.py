@@ -9,7 +9,10 @@ lens. When the folder has a ``groundtruth.csv`` the error against it is
 printed too, so the pose stage can be checked on its own. When it has an
 ``attitude.csv`` (the flight controller's roll and pitch), each frame's pose
 uses the attitude at its capture time, as the daemon does (``--no-attitude``
-leaves it out). Exit status: 0, or
+leaves it out). The map's own error (``PoseParams.map_sd_m``, ``map_sd_deg``)
+is what the sequence says of its map (``companion simulate`` writes 0 for
+the copy it rendered from: exact), else the default of a surveyed site;
+with ``--map`` the sequence's word is not about that map. Exit status: 0, or
 1 when the replay failed or skipped unreadable frames (the frames read are
 still printed, then a one-line error), 2 when the sequence, map or camera
 cannot be used.
@@ -27,7 +30,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.geometry.attitude import DEFAULT_MAX_AGE_S, history_of
-from companion.geometry.pose import PoseSolution, PoseSolver
+from companion.geometry.pose import PoseParams, PoseSolution, PoseSolver
 from companion.capture.replay import ReplaySource, open_recording, read_sequence_info, sequence_map_path
 from companion.types import AttitudeSample
 
@@ -77,6 +80,29 @@ def resources(sequence: Path, map_path: str | None, camera_path: str | None) -> 
     else:
         raise LocalizeError(f"{sequence}: no --camera given and no 'camera' section in sequence.yaml")
     return load_map(map_path), camera
+
+
+MAP_ERROR_KEYS = ("map_sd_m", "map_sd_deg")
+
+
+def sequence_pose_params(sequence: Path, map_path: str | None, **given) -> PoseParams:
+    """Pose parameters for a sequence: ``given`` and the map's error its ``sequence.yaml`` states.
+
+    ``map_sd_m`` and ``map_sd_deg`` in sequence.yaml say how far the markers
+    are from where the sequence's own map says (0: rendered from it). With a
+    map given on the command line (``map_path``), or without the keys, the
+    defaults hold (a surveyed site).
+    """
+    info = read_sequence_info(sequence) if sequence.is_dir() and map_path is None else {}
+    info_file = sequence / "sequence.yaml"
+    stated = {}
+    for key in MAP_ERROR_KEYS:
+        if key in info:
+            value = info[key]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value >= 0):
+                raise LocalizeError(f"{info_file}: {key} must be a number >= 0 (the map's error), not {value!r}")
+            stated[key] = float(value)
+    return PoseParams(**given, **stated)
 
 
 def groundtruth(sequence: Path) -> dict[int, np.ndarray] | None:

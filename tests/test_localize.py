@@ -182,3 +182,38 @@ def test_a_replay_that_reads_nothing_exits_non_zero(tmp_path, capsys):
     assert captured.out.splitlines()[-1] == "0/0 frames with a pose"
     assert [line for line in captured.err.splitlines() if line.startswith("companion localize:")] == [
         f"companion localize: {hover}: 31 of 31 frames could not be read (skipped)"]
+
+
+def test_a_sequence_says_its_map_is_exact_and_localize_weighs_by_it(tmp_path, capsys):
+    from companion.geometry.pose import PoseParams
+    from companion.localize import LocalizeError, sequence_pose_params
+
+    hover = SEQUENCES["warehouse_hover"]
+    # the committed rendered sequence states 0 (rendered from its map); a given --map is not the sequence's
+    exact = sequence_pose_params(hover, None, max_markers=1)
+    assert (exact.map_sd_m, exact.map_sd_deg, exact.max_markers) == (0.0, 0.0, 1)
+    other = sequence_pose_params(hover, str(REPO / "maps" / "warehouse.yaml"))
+    assert (other.map_sd_m, other.map_sd_deg) == (PoseParams().map_sd_m, PoseParams().map_sd_deg) == (0.005, 0.2)
+    # without the keys: the default (a surveyed site)
+    copy = tmp_path / "hover"
+    shutil.copytree(hover, copy)
+    info = yaml.safe_load((copy / "sequence.yaml").read_text())
+    info["map"] = str((hover / info["map"]).resolve())
+    del info["map_sd_m"], info["map_sd_deg"]
+    (copy / "sequence.yaml").write_text(yaml.safe_dump(info))
+    assert sequence_pose_params(copy, None).map_sd_m == 0.005
+    # what the CLI prints with the exact map is the solver told the map is exact, frame by frame
+    facility_map, camera = resources(hover, None, None)
+    truth = groundtruth(hover)
+    expected = [r.error_m for r in localize(hover, PoseSolver(facility_map, camera, PoseParams(map_sd_m=0.0, map_sd_deg=0.0)), truth)]
+    assert cli.main(["localize", str(hover), "--json"]) == 0
+    printed = [json.loads(line).get("error_m") for line in capsys.readouterr().out.splitlines()]
+    assert printed == [None if e is None else round(e, 5) for e in expected]
+    # a bad value: one line naming the file and the key
+    info["map_sd_m"] = "tape"
+    (copy / "sequence.yaml").write_text(yaml.safe_dump(info))
+    with pytest.raises(LocalizeError, match=r"sequence.yaml: map_sd_m must be a number >= 0"):
+        sequence_pose_params(copy, None)
+    assert cli.main(["localize", str(copy)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "map_sd_m" in err and "Traceback" not in err and len(err.splitlines()) == 1

@@ -317,6 +317,8 @@ def test_sequence_folder_round_trip(tmp_path, world, camera, facility_map):
     # the map travels with the sequence: a copy beside it, the original named for reference
     assert sequence.map_path() == out / "map.yaml" and sequence.map_path().read_bytes() == MAP.read_bytes()
     assert sequence.info["map_source"] == str(MAP.resolve())
+    # and says it is exact: the world was rendered from it
+    assert sequence.info["map_sd_m"] == 0.0 and sequence.info["map_sd_deg"] == 0.0
     assert sequence.info["trajectory"]["pattern"] == "path" and sequence.info["seed"] == 4
     # groundtruth.csv reads back as a trajectory
     replay = tj.read_trajectory_csv(out / "groundtruth.csv")

@@ -13,8 +13,9 @@ from companion.capture.source import SourceError
 from companion.geometry import frames
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import FacilityMap, MapError
-from companion.geometry.pose import PoseParams, PoseSolver
-from companion.localize import FrameResult, LocalizeError, ReplayFailed, groundtruth, localize, resources
+from companion.geometry.pose import PoseSolver
+from companion.localize import (FrameResult, LocalizeError, ReplayFailed, groundtruth, localize, resources,
+                                sequence_pose_params)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -44,7 +45,8 @@ def main(args) -> int:
     try:
         facility_map, camera = resources(Path(args.sequence), args.map_path, args.camera_path)
         truth = groundtruth(Path(args.sequence))
-        solver = PoseSolver(facility_map, camera, PoseParams(max_markers=args.max_markers))
+        params = sequence_pose_params(Path(args.sequence), args.map_path, max_markers=args.max_markers)
+        solver = PoseSolver(facility_map, camera, params)
         for result in localize(Path(args.sequence), solver, truth, fps=args.fps, use_attitude=args.attitude):
             results.append(result)
             print(json.dumps(result_json(result, facility_map)) if args.json else table_row(result, len(results) == 1))

@@ -535,6 +535,9 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
         "generator": GENERATOR,
         "map": MAP_COPY,
         "map_source": str(Path(map_path).resolve()),
+        # the world is rendered from map.yaml: its markers are exactly where it says (PoseParams.map_sd_m)
+        "map_sd_m": 0.0,
+        "map_sd_deg": 0.0,
         "camera": cam.to_config(),
         "fps": fps,
         "frames": len(times),
