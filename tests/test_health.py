@@ -47,7 +47,7 @@ def record(t_ns: int, markers: int = 2, status: str | None = "ok", tracking: boo
 def health():
     clock = Clock()
     said = []
-    monitor = Health(lambda text, severity: said.append((text, severity)), clock_ns=clock)
+    monitor = Health(lambda text, severity, topic: said.append((text, severity)), clock_ns=clock)
     return monitor, clock, said
 
 
@@ -186,7 +186,7 @@ def test_the_attitude_is_judged_beside_the_state_and_each_change_said_once():
     from companion.types import AttitudeSample
 
     clock, said = Clock(), []
-    monitor = Health(lambda text, severity: said.append((text, severity)), clock_ns=clock, attitude_expected=True)
+    monitor = Health(lambda text, severity, topic: said.append((text, severity)), clock_ns=clock, attitude_expected=True)
     states = []
     for attitude_present in [False] * 3 + [True] * 5 + [False] * 4 + [True] * 3:
         clock.now_ns += PERIOD_NS
@@ -206,7 +206,7 @@ def test_the_attitude_is_judged_beside_the_state_and_each_change_said_once():
                           sent=0, rejected=0, resets=0, attitude="stale")
     assert "| tracking | attitude stale | link streaming |" in status.line()
 
-    quiet, quiet_said = Health(lambda text, severity: quiet_said.append(text), clock_ns=clock), []
+    quiet, quiet_said = Health(lambda text, severity, topic: quiet_said.append(text), clock_ns=clock), []
     quiet.observe(None, record(clock.now_ns + PERIOD_NS))
     assert quiet.assess(clock.now_ns + PERIOD_NS).attitude == "off" and not any("attitude" in t for t in quiet_said)
     assert "attitude" not in dataclasses.replace(status, attitude="off").line()
