@@ -260,8 +260,8 @@ class Daemon:
             log.log(logging.ERROR if blocks else logging.WARNING,
                     "flight controller parameter %s = %s %s vision fusion: %s (expected %s; companion check-fc)",
                     check.name, check.value_text(), check.verdict, check.why, check.expected)
-            self.link.statustext(f"companion: {check.name}={check.value_text()} {check.verdict} vision",
-                                 SEVERITY_CRITICAL if blocks else SEVERITY_WARNING)
+        for text, severity in fc_params.statustexts(checks):
+            self.link.statustext(text, severity)
         if not problems:
             log.info("flight controller parameters fit what we send: %s",
                      ", ".join(f"{c.name}={c.value_text()}" for c in checks))
