@@ -41,8 +41,8 @@ Every bounded wait that runs out is logged and told by STATUSTEXT, and the
 stream starts anyway. A FC seen again after it went silent for
 ``fc_timeout_s`` (a reboot) gets all of it again.
 
-STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (a
-link that floods its FC gets them dropped), from a queue ordered by urgency:
+STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (nothing
+floods the FC nor the ground station), from a queue ordered by urgency:
 a health change (a text with a topic: "camera", "attitude") before anything
 else, then by severity, then in order. A queued text is replaced by a newer
 one of its topic (what it said is no longer true; the log keeps both), so a
