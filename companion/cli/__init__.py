@@ -24,6 +24,8 @@ COMMANDS = {
     "survey": ("companion.cli.survey", "build a facility map from walk-through footage and a few measured anchors"),
     "map": ("companion.cli.map", "check a facility map against a walk-through (markers that moved)"),
     "check-fc": ("companion.cli.check_fc", "read the flight controller's vision parameters and judge them"),
+    "sitl-home": ("companion.cli.sitl_home", "print the --home LAT,LON,ALT,HEADING that starts a simulator at "
+                  "the config's start position"),
 }
 
 

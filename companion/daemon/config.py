@@ -22,13 +22,18 @@ from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
 from companion.mavlink.link import LinkParams, Origin
 from companion.capture.replay import SEQUENCE_FILE, read_sequence_info, sequence_map_path
+from companion.capture.simulated import SimulatedCameraParams
 from companion.daemon.record import RecordParams
+from companion.sim.degrade import DegradationError, Degradations
 from companion.yaml_input import Where, read_yaml
 
 TOP_KEYS = {"source", "camera", "map", "detector", "pose", "fusion", "mavlink", "status", "record", "attitude"}
-SOURCE_KINDS = ("replay", "v4l2")
+SOURCE_KINDS = ("replay", "v4l2", "simulated_camera")
 REPLAY_KEYS = {"kind", "path", "realtime", "loop", "fps"}
 V4L2_KEYS = {"kind", "device", "width", "height", "fps", "pixel_format", "stall_timeout_s"}
+SIMULATED_KEYS = {"kind", "fps", "start_m", "start_heading_deg", "exposure_latency_ms", "render_delay_ms",
+                  "state_rate_hz", "stall_timeout_s", "seed", "degradations", "occluders_per_minute"}
+DEGRADATION_KEYS = {f.name for f in dataclasses.fields(Degradations)}
 MESSAGES = {"VISION_POSITION_ESTIMATE": "send_vision_position",
             "VISION_SPEED_ESTIMATE": "send_vision_speed",
             "ODOMETRY": "send_odometry"}
@@ -64,6 +69,20 @@ class V4L2Config:
 
 
 @dataclass(frozen=True)
+class SimulatedCameraConfig:
+    """``source: {kind: simulated_camera}``: frames rendered from the simulator's vehicle (docs/sitl.md).
+
+    start_m: (3,) where the vehicle starts in the map (floor under it: z);
+    start_heading_deg: its heading there (map frame, counter-clockwise from
+    +x); both for ``companion sitl-home``. params: how it renders.
+    """
+
+    start_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    start_heading_deg: float = 0.0
+    params: SimulatedCameraParams = SimulatedCameraParams()
+
+
+@dataclass(frozen=True)
 class AttitudeConfig:
     """Where the flight controller's roll and pitch come from, and when they are too old.
 
@@ -84,7 +103,7 @@ class AttitudeConfig:
 @dataclass(frozen=True)
 class Config:
     path: Path
-    source: ReplayConfig | V4L2Config
+    source: ReplayConfig | V4L2Config | SimulatedCameraConfig
     camera: CameraModel
     facility_map: FacilityMap
     detector: dict[str, Any]
@@ -128,6 +147,9 @@ def config_from_dict(data, path) -> Config:
     sequence = _sequence_info(source, where.sub("source"))
     camera = _camera(data, where, path, sequence)
     facility_map = _map(data, where, sequence)
+    if isinstance(source, SimulatedCameraConfig) and facility_map.frame.geodetic_origin is None:
+        raise where.error(f"a simulated camera needs the map's frame.geodetic_origin to place the simulator's "
+                          f"vehicle in the map; {facility_map.path} has none", "source.kind")
     status_where = where.sub("status")
     status = status_where.mapping(data.get("status"), "interval_s, http")
     status_where.reject_unknown(status, STATUS_KEYS)
@@ -194,8 +216,8 @@ def _attitude(section, where: Where) -> AttitudeConfig:
                           rate_hz=rate_hz)
 
 
-def _source(section, where: Where) -> ReplayConfig | V4L2Config:
-    section = where.mapping(section, "kind: replay or v4l2, ...")
+def _source(section, where: Where) -> ReplayConfig | V4L2Config | SimulatedCameraConfig:
+    section = where.mapping(section, "kind: replay, v4l2 or simulated_camera, ...")
     kind = section.get("kind", "replay")
     if kind not in SOURCE_KINDS:
         raise where.error(f"must be one of {', '.join(SOURCE_KINDS)}, got {kind!r}", "kind")
@@ -212,6 +234,8 @@ def _source(section, where: Where) -> ReplayConfig | V4L2Config:
             loop=where.flag(section, "loop", False),
             fps=where.number(section, "fps", None, minimum=0.1),
         )
+    if kind == "simulated_camera":
+        return _simulated_camera(section, where)
     where.reject_unknown(section, V4L2_KEYS)
     device = section.get("device", "/dev/video0")
     if isinstance(device, bool) or not isinstance(device, (str, int)):
@@ -228,6 +252,48 @@ def _source(section, where: Where) -> ReplayConfig | V4L2Config:
         pixel_format=pixel_format,
         stall_timeout_s=where.number(section, "stall_timeout_s", 2.0, minimum=0.1),
     )
+
+
+def _simulated_camera(section: dict, where: Where) -> SimulatedCameraConfig:
+    where.reject_unknown(section, SIMULATED_KEYS)
+    state_rate_hz = where.number(section, "state_rate_hz", 100.0, minimum=1.0)
+    if state_rate_hz > 400.0:
+        raise where.error(f"must be <= 400, got {state_rate_hz:g}", "state_rate_hz")
+    seed = where.number(section, "seed", 0, minimum=0)
+    if not seed.is_integer():
+        raise where.error(f"must be a whole number, got {section['seed']!r}", "seed")
+    params = SimulatedCameraParams(
+        fps=where.positive(section, "fps", 30.0),
+        exposure_latency_ms=where.number(section, "exposure_latency_ms", 5.0, minimum=0.0),
+        render_delay_ms=where.number(section, "render_delay_ms", 20.0, minimum=0.0),
+        state_rate_hz=state_rate_hz,
+        stall_timeout_s=where.number(section, "stall_timeout_s", 1.0, minimum=0.1),
+        seed=int(seed),
+        degradations=_degradations(section.get("degradations"), where.sub("degradations")),
+        occluders_per_minute=where.number(section, "occluders_per_minute", 0.0, minimum=0.0),
+    )
+    if params.fps > 120.0:
+        raise where.error(f"must be <= 120, got {params.fps:g}", "fps")
+    start = where.numbers(section, "start_m", (2, 3), [0.0, 0.0, 0.0], " (x, y[, z] in the map, metres)")
+    return SimulatedCameraConfig(start_m=tuple(float(v) for v in (*start, 0.0)[:3]),
+                                 start_heading_deg=where.number(section, "start_heading_deg", 0.0), params=params)
+
+
+def _degradations(section, where: Where) -> Degradations:
+    section = where.mapping(section, ", ".join(sorted(DEGRADATION_KEYS)))
+    where.reject_unknown(section, DEGRADATION_KEYS)
+    values = {}
+    for key, value in section.items():
+        if key == "motion_blur":
+            values[key] = where.flag(section, key, False)
+        elif key == "jpeg_quality":
+            values[key] = int(where.number(section, key, 0, minimum=0))
+        else:
+            values[key] = where.number(section, key)
+    try:
+        return Degradations(**values)
+    except DegradationError as error:
+        raise where.error(str(error).removeprefix("degradations: ")) from None
 
 
 def _sequence_info(source, where: Where) -> tuple[dict, Path] | None:

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from companion.geometry import frames
-from companion.daemon.config import Config, ConfigError, ReplayConfig
+from companion.daemon.config import Config, ConfigError, ReplayConfig, SimulatedCameraConfig
 from companion.daemon.health import Health, HealthState
 from companion.detect.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter
@@ -57,6 +57,7 @@ from companion.daemon.web import LiveView
 from companion.daemon.status import DaemonStatus, recent_activity
 from companion.geometry.pose import PoseSolver
 from companion.capture.replay import replay_source
+from companion.capture.simulated import SimulatedCamera
 from companion.capture.source import FrameSource
 from companion.capture.v4l2 import v4l2_source
 from companion.params import ParamsError
@@ -104,6 +105,9 @@ class Daemon:
         self.source = make_source(config)
         self.attitude_stream, attitude, self._attitude_text = attitude_source(config, self.source)
         self.link = MavlinkLink(config.mavlink, attitude=self.attitude_stream)
+        if isinstance(self.source, SimulatedCamera):
+            # the simulator's vehicle state arrives over the same connection
+            self.link.subscribe(self.source.state_stream)
         self.pipeline = Pipeline(
             detector,
             PoseSolver(config.facility_map, config.camera, config.pose),
@@ -315,7 +319,8 @@ class Daemon:
                             critical=health.critical, track_state=self.pipeline.pose_filter.state.value,
                             link_state=self.link.state.value, frames=self.pipeline.stats.frames,
                             sent=self.pipeline.stats.sent, rejected=counters.rejected, resets=counters.resets,
-                            attitude=health.attitude)
+                            attitude=health.attitude,
+                            render_ms=self.source.render_ms() if isinstance(self.source, SimulatedCamera) else None)
 
     def status_line(self) -> str:
         return self.status().line()
@@ -355,6 +360,8 @@ def make_source(config: Config) -> FrameSource:
     source = config.source
     if isinstance(source, ReplayConfig):
         return replay_source(source.path, realtime=source.realtime, loop=source.loop, fps=source.fps)
+    if isinstance(source, SimulatedCameraConfig):
+        return SimulatedCamera(config.facility_map, config.camera, source.params)
     return v4l2_source(source.device, source.width, source.height, source.fps, source.pixel_format,
                        source.stall_timeout_s)
 
@@ -364,6 +371,9 @@ def describe_source(config: Config) -> str:
     if isinstance(source, ReplayConfig):
         pace = "real time" if source.realtime else "as fast as possible"
         return f"replay of {source.path} ({pace}{', looping' if source.loop else ''})"
+    if isinstance(source, SimulatedCameraConfig):
+        return (f"simulated camera at {source.params.fps:g} fps following the simulator's SIM_STATE "
+                f"on {config.mavlink.connection}")
     return f"V4L2 camera {source.device}"
 
 

@@ -34,7 +34,9 @@ class DaemonStatus:
     ("connecting", "handshake", "streaming", "duplicate");
     frames, sent: totals since start; rejected, resets: the filter's counters;
     attitude: the flight controller's attitude in the pose stage ("ok",
-    "stale", "waiting"; "off" when none is expected, and then not shown).
+    "stale", "waiting"; "off" when none is expected, and then not shown);
+    render_ms: a simulated camera's median render time per frame (None: a
+    real camera, and then not shown).
     """
 
     fps: float
@@ -52,6 +54,7 @@ class DaemonStatus:
     rejected: int
     resets: int
     attitude: str = "off"
+    render_ms: float | None = None
 
     def state_text(self) -> str:
         """``camera stalled 3.2 s: no frame for 3.2 s``; the bare state when all is well."""
@@ -71,7 +74,8 @@ class DaemonStatus:
         attitude = "" if self.attitude == "off" else f"attitude {self.attitude} | "
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
                 f"{self.state_text()} | {attitude}link {self.link_state} | "
-                f"sent {self.sent} rejected {self.rejected} resets {self.resets}")
+                f"sent {self.sent} rejected {self.rejected} resets {self.resets}"
+                + (f" | render {self.render_ms:.1f} ms" if self.render_ms is not None else ""))
 
 
 def recent_activity(stats: PipelineStats, now_ns: int, window_s: float = 1.0

@@ -16,6 +16,9 @@ Frames (all right-handed, metres, see ``docs/frames.md`` for the figure):
   y axis points at ``x_bearing_deg - 90``.
 * **NED**: MAVLink local NED (north, east, down), origin at the map origin
   (the EKF origin set with SET_GPS_GLOBAL_ORIGIN).
+* **geodetic**: latitude, longitude (degrees, WGS-84) and altitude above mean
+  sea level, to and from NED by ArduPilot's flat-earth rule
+  (``ned_from_geodetic``, ``geodetic_from_ned``), as its simulator and EKF do.
 * **marker**: origin at the centre of the marker's inner black square,
   x toward the marker's right (TL -> TR), y toward its top (BL -> TL),
   z out of the printed face toward the viewer.
@@ -213,6 +216,56 @@ def R_ned_map(x_bearing_deg: float) -> np.ndarray:
 def T_ned_map(x_bearing_deg: float) -> np.ndarray:
     """(4, 4) map -> NED; both frames share the map origin (the EKF origin)."""
     return make_transform(R_ned_map(x_bearing_deg), np.zeros(3))
+
+
+# ---------------------------------------------------------------- geodetic
+#
+# ArduPilot's Location class (libraries/AP_Common/Location.cpp): north and
+# east offsets are degE7 differences times LOCATION_SCALING_FACTOR, the east
+# one also times the cosine of the mean latitude. Its simulator moves the
+# vehicle and its EKF measures positions with this rule, so converting with
+# the same one puts SITL's vehicle exactly where its EKF believes it is.
+
+# metres per 1e-7 degree of latitude: ArduPilot's RADIUS_OF_EARTH (6378100 m) * pi / 180 * 1e-7
+LOCATION_SCALING_FACTOR_M = 0.011131884502145034
+DEG_E7 = 1e7
+
+
+def _longitude_scale(latitude_deg: float) -> float:
+    """ArduPilot's longitude_scale: cos(latitude), at least 0.01."""
+    return max(math.cos(math.radians(latitude_deg)), 0.01)
+
+
+def ned_from_geodetic(latitude_deg: float, longitude_deg: float, altitude_m: float,
+                      origin_latitude_deg: float, origin_longitude_deg: float, origin_altitude_m: float) -> np.ndarray:
+    """(3,) north, east, down (m) of a geodetic position from an origin (altitudes above mean sea level)."""
+    d_lat_e7 = (latitude_deg - origin_latitude_deg) * DEG_E7
+    # longitude difference wrapped into [-180, 180) degrees
+    d_lon_e7 = ((longitude_deg - origin_longitude_deg + 180.0) % 360.0 - 180.0) * DEG_E7
+    # north = dlat * F, east = dlon * F * cos((lat + lat0) / 2), down = alt0 - alt
+    north_m = d_lat_e7 * LOCATION_SCALING_FACTOR_M
+    east_m = d_lon_e7 * LOCATION_SCALING_FACTOR_M * _longitude_scale((latitude_deg + origin_latitude_deg) / 2)
+    return np.array([north_m, east_m, origin_altitude_m - altitude_m])
+
+
+def geodetic_from_ned(ned_m, origin_latitude_deg: float, origin_longitude_deg: float,
+                      origin_altitude_m: float) -> tuple[float, float, float]:
+    """(latitude_deg, longitude_deg, altitude_m) of a (3,) NED offset from an origin: ``ned_from_geodetic`` inverted."""
+    north_m, east_m, down_m = np.asarray(ned_m, dtype=float).reshape(3)
+    latitude_deg = origin_latitude_deg + north_m / LOCATION_SCALING_FACTOR_M / DEG_E7
+    scale = _longitude_scale((latitude_deg + origin_latitude_deg) / 2)
+    longitude_deg = origin_longitude_deg + east_m / (LOCATION_SCALING_FACTOR_M * scale) / DEG_E7
+    longitude_deg = (longitude_deg + 180.0) % 360.0 - 180.0
+    return float(latitude_deg), float(longitude_deg), float(origin_altitude_m - down_m)
+
+
+def yaw_ned_from_map_heading_deg(heading_deg: float, x_bearing_deg: float) -> float:
+    """NED yaw (compass heading, degrees in [0, 360)) of a body heading ``heading_deg`` in the map.
+
+    The map heading is counter-clockwise from map +x seen from above; the map's
+    +x is at compass bearing ``x_bearing_deg``, so yaw = bearing - heading.
+    """
+    return (x_bearing_deg - heading_deg) % 360.0
 
 
 def R_body_camera_from_mount(roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:

@@ -13,6 +13,14 @@ With an ``AttitudeStream`` (``companion.mavlink.attitude``) the link also asks
 the flight controller for its attitude and files each ATTITUDE it sends, on
 our clock, for the pose stage: that part lives in its own module.
 
+Subscriptions (``subscribe``): a part of the daemon that needs other messages
+of the autopilot (the simulated camera: the simulator's SIM_STATE,
+``companion.capture.simulated``) registers a ``Subscriber``. The link thread
+hands it every message of its ``message_types`` from the flight controller,
+with the time it was received on our monotonic clock, and sends the requests
+it asks for (``requests_due``: MAV_CMD_SET_MESSAGE_INTERVAL while its messages
+are missing or slow). It shares the link's one connection.
+
 The pipeline thread calls ``publish(estimate)``, which sends at once (lowest
 latency) when the link is streaming, and never faster than ``max_rate_hz``
 (50 Hz at most: ArduPilot drops samples closer than 20 ms), judged on capture
@@ -43,8 +51,8 @@ stream starts anyway. A FC seen again after it went silent for
 
 STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (nothing
 floods the FC nor the ground station), from a queue ordered by urgency:
-a health change (a text with a topic: "camera", "attitude") before anything
-else, then by severity, then in order. A queued text is replaced by a newer
+a health change (a text with a topic: "camera", "attitude", "tracking") before
+anything else, then by severity, then in order. A queued text is replaced by a newer
 one of its topic (what it said is no longer true; the log keeps both), so a
 fault reaches the operator within ``statustext_interval_s`` whatever waits.
 
@@ -69,7 +77,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Protocol
 
 from companion.mavlink import messages as mm  # sets MAVLINK20 before pymavlink loads
 from pymavlink import mavutil  # noqa: E402  (after mavlink_messages on purpose)
@@ -205,6 +213,19 @@ class _TransportLost(ConnectionError):
     pass
 
 
+class Subscriber(Protocol):
+    """A part of the daemon that takes some of the flight controller's messages (see the module docstring).
+
+    Both methods run on the link's thread and must return quickly.
+    """
+
+    message_types: tuple[str, ...]
+
+    def on_message(self, message, receive_ns: int) -> None: ...
+
+    def requests_due(self, now_s: float, target_system: int, target_component: int) -> list: ...
+
+
 class MavlinkLink:
     """Owns the connection to the FC; see the module docstring for the threads.
 
@@ -257,6 +278,7 @@ class MavlinkLink:
         self._parameter_attempts = 0
         self._last_parameter_request_s = -math.inf
         self._last_vision_t_ns: int | None = None
+        self._subscribers: list[Subscriber] = []
         self._threads = [
             threading.Thread(target=self._run_link, name="link", daemon=True),
             threading.Thread(target=self._run_heartbeat, name="heartbeat", daemon=True),
@@ -283,6 +305,10 @@ class MavlinkLink:
     @property
     def fc_seen(self) -> bool:
         return time.monotonic() - self._last_fc_heartbeat_s < self.params.fc_timeout_s
+
+    def subscribe(self, subscriber: Subscriber) -> None:
+        """Hand ``subscriber`` the flight controller's messages of its types; call before ``start``."""
+        self._subscribers.append(subscriber)
 
     def publish(self, estimate: Estimate) -> bool:
         """Send the vision messages for one estimate now; False if held back."""
@@ -314,7 +340,7 @@ class MavlinkLink:
     def statustext(self, text: str, severity: int = SEVERITY_INFO, topic: str | None = None) -> None:
         """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``, the most urgent first.
 
-        topic: what a health change is about ("camera", "attitude"): it goes before any text without
+        topic: what a health change is about ("camera", "attitude", "tracking"): it goes before any text without
         one and replaces a queued text of the same topic (see the module docstring).
         """
         queued = QueuedText(topic is None, severity, next(self._statustext_sequence), text, topic)
@@ -440,7 +466,9 @@ class MavlinkLink:
             message = connection.recv_match(blocking=True, timeout=0.05)
             if message is not None and message.get_type() != "BAD_DATA":
                 self._handle(message)
+                self._deliver(message)
             self._tick()
+            self._request_for_subscribers()
 
     # ------------------------------------------------------ FC messages
 
@@ -589,6 +617,28 @@ class MavlinkLink:
         if self.attitude is not None and self.fc_seen:
             for message in self.attitude.requests_due(now_s, self.fc_system_id, self.fc_component_id):
                 self._send(message)
+
+    # ---------------------------------------------------- subscriptions
+
+    def _deliver(self, message) -> None:
+        """The flight controller's message (not another component's) to the subscribers of its type."""
+        receive_ns = time.monotonic_ns()
+        if not self._subscribers or self.fc_system_id is None:
+            return
+        if (message.get_srcSystem(), message.get_srcComponent()) != (self.fc_system_id, self.fc_component_id):
+            return
+        kind = message.get_type()
+        for subscriber in self._subscribers:
+            if kind in subscriber.message_types:
+                subscriber.on_message(message, receive_ns)
+
+    def _request_for_subscribers(self) -> None:
+        if not self._subscribers or not self.fc_seen or self.state is LinkState.DUPLICATE:
+            return  # a duplicate companion says nothing more on the link
+        now_s = time.monotonic()
+        for subscriber in self._subscribers:
+            for request in subscriber.requests_due(now_s, self.fc_system_id, self.fc_component_id):
+                self._send(request)
 
     # ------------------------------------------------------- periodic
 

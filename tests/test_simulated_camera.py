@@ -1,0 +1,213 @@
+"""The simulated camera's parts: geodetic <-> NED, SIM_STATE in, its clock, interpolation, config, a stopped stream."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from companion.capture.simulated import (SendClock, SimState, SimStateHistory, SimulatedCamera,
+                                         SimulatedCameraParams, sim_state_from_message)
+from companion.daemon.config import ConfigError, config_from_dict
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import GeodeticOrigin, load_map
+from companion.mavlink import messages as mm
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+HALL_MAP = ROOT / "tests" / "data" / "maps" / "closed_loop_hall.yaml"
+ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
+# ArduPilot: 1e-7 degree of latitude is 0.011131884502145034 m
+M_PER_DEG = 0.011131884502145034 * 1e7
+
+
+def test_ned_from_geodetic_by_hand():
+    # 1e-5 degree north: 1.1131884502 m; 1e-5 degree east at 60 degrees: half that (cos 60)
+    ned = frames.ned_from_geodetic(60.00001, 10.00001, 100.0, 60.0, 10.0, 102.5)
+    assert ned[0] == pytest.approx(1e-5 * M_PER_DEG, abs=1e-9)
+    assert ned[1] == pytest.approx(1e-5 * M_PER_DEG * math.cos(math.radians(60.000005)), abs=1e-9)
+    assert ned[2] == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize("ned", [[3.0, -4.0, -1.2], [-250.0, 1200.0, 10.0], [0.0, 0.0, 0.0]])
+def test_geodetic_round_trip(ned):
+    lat, lon, alt = frames.geodetic_from_ned(ned, *vars(ORIGIN).values())
+    np.testing.assert_allclose(frames.ned_from_geodetic(lat, lon, alt, *vars(ORIGIN).values()), ned, atol=1e-6)
+
+
+def test_longitude_wraps_at_the_date_line():
+    ned = frames.ned_from_geodetic(0.0, -179.99999, 0.0, 0.0, 179.99999, 0.0)
+    assert ned[1] == pytest.approx(2e-5 * M_PER_DEG, rel=1e-6)
+
+
+def test_map_heading_to_compass_yaw():
+    # map x at bearing 35: facing map +x is yaw 35, facing +y (90 ccw) is 35 - 90 = 305
+    assert frames.yaw_ned_from_map_heading_deg(0.0, 35.0) == pytest.approx(35.0)
+    assert frames.yaw_ned_from_map_heading_deg(90.0, 35.0) == pytest.approx(305.0)
+
+
+def sim_state_message(lat_deg, lon_deg, alt_m, yaw_rad=0.0, velocity=(0.0, 0.0, 0.0), ints=True):
+    q = [math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)]
+    return mm.mavlink2.MAVLink_sim_state_message(
+        *q, 0.0, 0.0, yaw_rad, 0.0, 0.0, -9.81, 0.0, 0.0, 0.0, lat_deg * 1e7, lon_deg * 1e7, alt_m, 0.0, 0.0,
+        *velocity, int(round(lat_deg * 1e7)) if ints else 0, int(round(lon_deg * 1e7)) if ints else 0)
+
+
+def test_sim_state_message_to_state():
+    message = sim_state_message(ORIGIN.latitude_deg + 2e-5, ORIGIN.longitude_deg, 489.5, math.radians(30),
+                                (1.0, 2.0, -0.5))
+    state = sim_state_from_message(message, 123, ORIGIN)
+    assert state.t_ns == 123
+    np.testing.assert_allclose(state.position_ned_m, [2e-5 * M_PER_DEG, 0.0, -1.5], atol=2e-3)
+    np.testing.assert_allclose(state.velocity_ned_m_s, [1.0, 2.0, -0.5])
+    # body x (forward) at yaw 30 degrees: (cos 30, sin 30, 0) in NED
+    np.testing.assert_allclose(state.R_ned_body[:, 0], [math.cos(math.radians(30)), 0.5, 0.0], atol=1e-6)
+    # without lat_int/lon_int (a SITL before they existed) the float fields are too coarse: refused
+    assert sim_state_from_message(sim_state_message(47.4, 8.5, 488.0, ints=False), 0, ORIGIN) is None
+
+
+def test_history_interpolates_and_extrapolates():
+    history = SimStateHistory()
+    history.add(SimState(0, np.zeros(3), np.eye(3), np.array([1.0, 0.0, 0.0])))
+    history.add(SimState(100_000_000, np.array([0.1, 0.2, 0.0]), frames.rot_z(math.pi / 2),
+                         np.array([1.0, 0.0, 0.0])))
+    middle = history.at(50_000_000, max_extrapolation_ns=0)
+    np.testing.assert_allclose(middle.position_ned_m, [0.05, 0.1, 0.0])
+    np.testing.assert_allclose(middle.R_ned_body, frames.rot_z(math.pi / 4), atol=1e-12)  # slerp: half the turn
+    ahead = history.at(120_000_000, max_extrapolation_ns=20_000_000)
+    np.testing.assert_allclose(ahead.position_ned_m, [0.12, 0.2, 0.0])  # + v * 20 ms
+    assert history.at(121_000_000, max_extrapolation_ns=20_000_000) is None
+    assert history.at(-1, max_extrapolation_ns=20_000_000) is None
+    assert not history.add(SimState(100_000_000, np.zeros(3), np.eye(3), np.zeros(3)))  # not newer
+
+
+def test_send_clock_puts_delayed_and_bunched_arrivals_back_on_the_send_grid():
+    """Sent every 10 ms from t = 0; received 1-15 ms later (random), with two hold-ups of 50 ms
+    whose samples arrive at once: every stamp within 3.5 ms of its send time (the promptest delay, 1 ms,
+    and the fitted interval's error over the window)."""
+    rng = np.random.default_rng(3)
+    period = 10_000_000
+    sent = np.arange(300) * period
+    received = sent + rng.uniform(1e6, 15e6, len(sent)).astype(np.int64)
+    for start in (120, 250):  # a hold-up: everything sent in 50 ms arrives at its end, bunched
+        received[start:start + 5] = received[start + 4] + np.arange(5) * 1000
+    clock = SendClock()
+    stamps = np.array([clock.stamp(int(r)) for r in received])
+    errors_ms = (stamps - sent)[20:] / 1e6
+    assert np.all(errors_ms < 3.5) and np.all(errors_ms > -0.5), (errors_ms.min(), errors_ms.max())
+    assert np.all(stamps <= received)
+    # the raw receive times were up to 55 ms late
+    assert ((received - sent)[20:] / 1e6).max() > 40
+
+
+def test_send_clock_follows_a_sender_slower_than_real_time():
+    clock = SendClock()
+    period = 10_200_000  # a simulator 2 % behind real time
+    stamps = [clock.stamp(k * period + 2_000_000) for k in range(400)]
+    np.testing.assert_allclose(np.array(stamps[200:]) - np.arange(200, 400) * period, 2_000_000, atol=1000)
+
+
+def simulated_config(tmp_path, **source):
+    data = {"source": {"kind": "simulated_camera", **source},
+            "camera": {"width": 320, "height": 240, "hfov_deg": 70.0},
+            "map": str(HALL_MAP)}
+    return config_from_dict(data, tmp_path / "sim.yaml")
+
+
+def test_config_reads_the_simulated_camera(tmp_path):
+    config = simulated_config(tmp_path, fps=25, start_m=[1.0, 2.0], start_heading_deg=45,
+                              degradations={"read_noise_dn": 2.0, "motion_blur": True})
+    assert config.source.start_m == (1.0, 2.0, 0.0)
+    assert config.source.params.fps == 25 and config.source.params.degradations.read_noise_dn == 2.0
+
+
+@pytest.mark.parametrize("source, message", [
+    ({"fps": 0}, "source.fps: must be positive"),
+    ({"fps": 500}, "source.fps: must be <= 120"),
+    ({"frame_rate": 30}, "source.frame_rate: unknown key"),
+    ({"start_m": [1.0]}, "source.start_m: must be a list of 2, 3 numbers"),
+    ({"degradations": {"blur": 1}}, "source.degradations.blur: unknown key"),
+    ({"degradations": {"vignette_strength": 2}}, "source.degradations: vignette_strength must be 0..1"),
+    ({"state_rate_hz": 1000}, "source.state_rate_hz: must be <= 400"),
+])
+def test_config_errors_name_the_key(tmp_path, source, message):
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        simulated_config(tmp_path, **source)
+
+
+def test_config_needs_the_maps_geodetic_origin(tmp_path):
+    no_origin = tmp_path / "map.yaml"
+    no_origin.write_text("\n".join(line for line in HALL_MAP.read_text().splitlines() if "geodetic_origin" not in line))
+    data = {"source": {"kind": "simulated_camera"}, "camera": {"width": 320, "height": 240, "hfov_deg": 70.0},
+            "map": str(no_origin)}
+    with pytest.raises(ConfigError, match="geodetic_origin"):
+        config_from_dict(data, tmp_path / "sim.yaml")
+
+
+def test_camera_renders_from_the_state_and_stalls_without_it():
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0,
+                                      "mount": {"facing": "forward"}}, "test")
+    source = SimulatedCamera(load_map(HALL_MAP), camera,
+                             SimulatedCameraParams(fps=20, exposure_latency_ms=5, render_delay_ms=20,
+                                                   stall_timeout_s=0.3))
+    source.start()
+    try:
+        deadline = time.monotonic() + 1.0
+        while source.lost_reason is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "no SIM_STATE from the simulator yet" in source.lost_reason
+        assert source.get(0.05) is None
+        # a state stream at 100 Hz: frames come, stamped with a state's time plus the latency
+        R_ned_body = frames.rotation_from_euler_321(0, 0, math.radians(215.0))
+        frames_seen = []
+        for _ in range(60):
+            now = time.monotonic_ns()
+            source.history.add(SimState(now, np.array([-2.87, -2.0, -1.2]), R_ned_body, np.zeros(3)))
+            frame = source.get(0.01)
+            if frame is not None:
+                frames_seen.append((frame, time.monotonic_ns()))
+        assert len(frames_seen) >= 5 and source.lost_reason is None
+        for frame, taken_ns in frames_seen:
+            assert frame.image.shape == (240, 320)
+            assert frame.t_ns <= taken_ns  # handed over no earlier than its stamp
+        assert source.render_ms() > 0
+        # the stream stops in the middle: no frames, and after stall_timeout_s the camera is lost, said once
+        deadline = time.monotonic() + 2.0
+        while source.lost_reason is None and time.monotonic() < deadline:
+            source.get(0.02)
+        assert source.lost_reason is not None and "no SIM_STATE for" in source.lost_reason
+        assert source.get(0.1) is None
+    finally:
+        source.close()
+
+
+def test_occluders_cross_the_view():
+    """With occluders a person or box walks across the view: the same pose renders differently while one passes."""
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0,
+                                      "mount": {"facing": "forward"}}, "test")
+    hall = load_map(HALL_MAP)
+    plain = SimulatedCamera(hall, camera, SimulatedCameraParams())
+    crowded = SimulatedCamera(hall, camera, SimulatedCameraParams(occluders_per_minute=600.0), world=plain.world)
+    R_ned_body = frames.rotation_from_euler_321(0, 0, math.radians(215.0))
+    changed = 0
+    for k in range(40):  # 4 s of states, 10 per second
+        state = SimState(k * 100_000_000, np.array([-2.87, -2.0, -1.2]), R_ned_body, np.zeros(3))
+        changed += int(np.mean(np.abs(plain._render(state, k).astype(int) - crowded._render(state, k))) > 2.0)
+    assert changed >= 5
+
+
+def test_culling_leaves_the_image_as_it_is():
+    """Only the quads in view are drawn: the image equals the whole world's."""
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0,
+                                      "distortion": [-0.05, 0.02, 0.0, 0.0, 0.0], "mount": {"facing": "forward"}}, "t")
+    source = SimulatedCamera(load_map(HALL_MAP), camera, SimulatedCameraParams())
+    for position, yaw_deg in (([-2.87, -2.0, -1.2], 215.0), ([-1.0, 1.5, -1.0], 100.0), ([-3.0, -2.0, -0.2], 300.0)):
+        T_ned_body = frames.make_transform(frames.rotation_from_euler_321(0, 0, math.radians(yaw_deg)), position)
+        T_camera_map = source._T_camera_map(T_ned_body)
+        in_view = source._quads_in_view(T_camera_map)
+        assert len(in_view) < len(source.world.quads)
+        whole = source._renderer.render(source.world.quads, T_camera_map, background=40.0).image
+        culled = source._renderer.render(in_view, T_camera_map, background=40.0).image
+        np.testing.assert_array_equal(culled, whole)
