@@ -105,8 +105,11 @@ def run_daemon(sequence: Path, realtime: bool, port: int, workdir: Path) -> tupl
     data = {
         "source": {"kind": "replay", "path": str(sequence), "realtime": realtime},
         "map": str(REPO / "maps" / "warehouse.yaml"),
-        # No flight controller on the sink: stream at once instead of waiting for the origin handshake.
-        "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "max_rate_hz": 50, "origin_wait_s": 0.0},
+        # No flight controller on the sink: stream at once, without waiting for the origin handshake nor
+        # listening for another companion (duplicate_listen_s, a 1.5 s wall-clock hold: with it, of the 139
+        # --quick frames the fast replay sent 38 and held back 80, the paced one held back its first 43).
+        "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "max_rate_hz": 50, "origin_wait_s": 0.0,
+                    "duplicate_listen_s": 0.0},
     }
     config = config_from_dict(data, workdir / "bench.yaml")
     daemon = Daemon(config, status_stream=None, record_frames=100_000)

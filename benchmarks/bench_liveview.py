@@ -73,7 +73,10 @@ def run(sequence: Path, realtime: bool, cycles: int, sink_port: int, workdir: Pa
     config = config_from_dict({
         "source": {"kind": "replay", "path": str(sequence), "realtime": realtime, "loop": True},
         "map": str(REPO / "maps" / "warehouse.yaml"),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{sink_port}", "max_rate_hz": 50, "origin_wait_s": 0.0},
+        # No flight controller on the sink: stream at once (no origin handshake, no 1.5 s wall-clock hold
+        # listening for another companion: it would leave the first 1.5 s of frames unsent, unlike the rest).
+        "mavlink": {"connection": f"udpout:127.0.0.1:{sink_port}", "max_rate_hz": 50, "origin_wait_s": 0.0,
+                    "duplicate_listen_s": 0.0},
         "status": {"http": "127.0.0.1:0"},
     }, workdir / "bench.yaml")
     daemon = Daemon(config, status_stream=None, record_frames=100_000)

@@ -100,7 +100,8 @@ def test_stopped_attitude_falls_back_once_and_comes_back(started):
     fm, camera = load_map(facility_map), CameraModel.from_config(DEFAULT_CAMERA, "default camera")
     pipeline = Pipeline(Detector(camera=camera), PoseSolver(fm, camera), PoseFilter(), link,
                         frames.invert_transform(fm.T_ned_map), attitude=history.lookup)
-    health = Health(lambda text, severity: link.statustext(f"companion: {text}", severity), attitude_expected=True)
+    health = Health(lambda text, severity, topic: link.statustext(f"companion: {text}", severity, topic),
+                    attitude_expected=True)
     pipeline.observers.append(health.observe)
     peer.wait_for("ATTITUDE", count=5, kind="sent")
     blank = np.full((camera.height, camera.width), 128, np.uint8)

@@ -3,6 +3,7 @@ independent MAVLink peer (libmav, its own process) on loopback."""
 from __future__ import annotations
 
 import csv
+import datetime
 import json
 import math
 import os
@@ -179,24 +180,25 @@ def recorded_images(sequence: Path) -> dict[int, np.ndarray]:
 
 
 def spliced_sequence(tmp_path: Path, sequence: Path, keep: list[int], blank=(), gap_after: int | None = None,
-                     gap_ns: int = 0) -> Path:
+                     gap_ns: int = 0, gap_after_index: int | None = None) -> Path:
     """A PNG copy of a sequence with only the frames ``keep`` (original numbers, in
-    order), those in ``blank`` turned black (markers out of sight), re-timed at the
-    recorded frame period with ``gap_ns`` of silence after frame ``gap_after`` (the
-    camera delivering nothing). groundtruth.csv follows the new times."""
+    order, repeats allowed), those in ``blank`` turned black (markers out of sight),
+    re-timed at the recorded frame period with ``gap_ns`` of silence after frame
+    ``gap_after`` (or after ``keep[gap_after_index]``: the camera delivering
+    nothing). groundtruth.csv follows the new times."""
     out = tmp_path / "spliced"
     (out / "frames").mkdir(parents=True)
     images = recorded_images(sequence)
     truth = {int(r["frame"]): r for r in read_rows(sequence / "groundtruth.csv")}
     period_ns = int(np.median(np.diff([int(r["t_ns"]) for r in truth.values()])))
     kept, kept_truth, t_ns = [], [], 0
-    for frame in keep:
+    for index, frame in enumerate(keep):
         name = f"frames/{frame:06d}.png"
         image = images[frame]
         cv2.imwrite(str(out / name), np.zeros_like(image) if frame in blank else image)
         kept.append({"frame": frame, "t_ns": t_ns, "file": name})
         kept_truth.append(dict(truth[frame], t_ns=t_ns))
-        t_ns += period_ns + (gap_ns if frame == gap_after else 0)
+        t_ns += period_ns + (gap_ns if frame == gap_after or index == gap_after_index else 0)
     for name, table in (("timestamps.csv", kept), ("groundtruth.csv", kept_truth)):
         with open(out / name, "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=list(table[0]))
@@ -454,6 +456,38 @@ def test_a_camera_that_stalls_is_reported_and_the_heartbeat_goes_critical(tmp_pa
     assert any(s.startswith("  0.0 fps") and "camera stalled" in s for s in statuses), statuses
     assert any(" fps | markers " in s and "| tracking |" in s for s in statuses)
     assert stderr.count("camera stalled") == 1
+
+
+def log_time_ns(stderr: str, text: str) -> int:
+    """The monotonic time (this machine's, the peer's clock) of the last log line containing ``text``."""
+    line = [line for line in stderr.splitlines() if text in line][-1]
+    wall_s = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+    return int(wall_s * 1e9) - (time.time_ns() - time.monotonic_ns())
+
+
+def test_a_stall_is_told_within_a_second_though_a_silent_fc_left_its_parameters_queued(tmp_path, peers):
+    """A flight controller that answers no parameter read (ten problems), STATUSTEXTs at the default one
+    per second, and the camera stalling 3 s once the parameters are judged: the stall's STATUSTEXT reaches
+    the peer within a second of the daemon logging it, and the parameters take two STATUSTEXTs, not ten
+    (the log keeps all ten). Before: the ten queued first, the stall came after the frames were back."""
+    hover = list(range(31)) + list(range(29, 0, -1))          # 4 s of hovering at 15 fps, there and back
+    keep = hover * 3                                          # stall after 4 s (parameters judged at ~2.5 s)
+    sequence = spliced_sequence(tmp_path, HOVER, keep, gap_after_index=60, gap_ns=3_000_000_000)
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")            # --params not given: no PARAM_VALUE ever
+    config = write_config(tmp_path, sequence, port, mavlink={"statustext_interval_s": 1.0})
+    code, _, stderr = finish(start_daemon(config), timeout_s=60)
+    assert code == 0, stderr
+    texts = [(r["t_ns"], r["fields"]["text"]) for r in peer.records("STATUSTEXT")]
+    stalled = [t for t, text in texts if "camera stalled" in text]
+    assert len(stalled) == 1, texts
+    # the last one logged: a slow start (no frame within 1 s) is a stall too, whose text the first frame replaced
+    delay_s = (stalled[0] - log_time_ns(stderr, "camera stalled")) * 1e-9
+    print(f"camera stalled: STATUSTEXT at the peer {delay_s:.3f} s after the daemon logged it")
+    assert -0.01 < delay_s < 1.5, texts   # one statustext_interval_s at most, and the log's ms rounding
+    parameter_texts = [text for _, text in texts if "vision" in text or "params" in text]
+    assert parameter_texts == ["companion: VISO_TYPE=? blocks vision", "companion: FC did not report 9 params"]
+    assert stderr.count("flight controller parameter ") == 10, stderr
 
 
 def test_frames_of_another_aspect_ratio_than_the_calibration_stop_the_daemon(tmp_path):

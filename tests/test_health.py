@@ -47,7 +47,7 @@ def record(t_ns: int, markers: int = 2, status: str | None = "ok", tracking: boo
 def health():
     clock = Clock()
     said = []
-    monitor = Health(lambda text, severity: said.append((text, severity)), clock_ns=clock)
+    monitor = Health(lambda text, severity, topic: said.append((text, severity)), clock_ns=clock)
     return monitor, clock, said
 
 
@@ -177,6 +177,33 @@ def test_an_unknown_autopilot_has_nothing_to_check():
     assert fc_params.parameter_names(12345) == () and fc_params.check_parameters(12345, {}, fc_params.Expected()) == []
 
 
+def statustexts(values) -> list[tuple[str, int]]:
+    return fc_params.statustexts(fc_params.check_parameters(fc_params.ARDUPILOT, values,
+                                                            fc_params.Expected(lever_arm_m=LEVER_ARM)))
+
+
+def test_a_flight_controller_that_answers_nothing_gets_two_statustexts_not_ten():
+    """No parameter answered: ten problems in the log, but two STATUSTEXTs: the blocking one first
+    (CRITICAL), then how many went unanswered."""
+    assert statustexts({}) == [("companion: VISO_TYPE=? blocks vision", 2),
+                               ("companion: FC did not report 9 params", 4)]
+
+
+def test_every_blocking_parameter_is_told_first_and_the_rest_counted_within_50_characters():
+    bad = {"AHRS_EKF_TYPE": 2, "VISO_TYPE": 0, "EK3_SRC1_POSXY": 3, "EK3_SRC1_POSZ": 1, "EK3_SRC1_YAW": 0,
+           "EK3_SRC1_VELXY": 3, "VISO_DELAY_MS": 0, "VISO_POS_X": 0.1, "VISO_POS_Y": 0.2, "VISO_POS_Z": 0.3}
+    texts = statustexts(bad)
+    assert all(len(text) <= 50 for text, _ in texts), texts
+    severities = [severity for _, severity in texts]
+    assert severities == sorted(severities) and severities.count(2) == len(texts) - 1  # CRITICAL first, one WARNING
+    told = " ".join(text for text, _ in texts)
+    for name in ("AHRS_EKF_TYPE", "VISO_TYPE", "EK3_SRC1_POSXY", "EK3_SRC1_YAW"):  # the four that block
+        assert name in told, texts
+    assert texts[-1] == ("companion: EK3_SRC1_POSZ=1, +5 degrade vision", 4)  # six degrade: one named, five counted
+    assert len(texts) <= 4
+    assert statustexts(GOOD) == []
+
+
 def test_the_attitude_is_judged_beside_the_state_and_each_change_said_once():
     """Frames without attitude at first, then with, then a gap, then back: 'waiting', 'ok', 'stale', 'ok'
     in the health and the status line, one message per change; no attitude expected: nothing said or shown."""
@@ -186,7 +213,7 @@ def test_the_attitude_is_judged_beside_the_state_and_each_change_said_once():
     from companion.types import AttitudeSample
 
     clock, said = Clock(), []
-    monitor = Health(lambda text, severity: said.append((text, severity)), clock_ns=clock, attitude_expected=True)
+    monitor = Health(lambda text, severity, topic: said.append((text, severity)), clock_ns=clock, attitude_expected=True)
     states = []
     for attitude_present in [False] * 3 + [True] * 5 + [False] * 4 + [True] * 3:
         clock.now_ns += PERIOD_NS
@@ -206,7 +233,7 @@ def test_the_attitude_is_judged_beside_the_state_and_each_change_said_once():
                           sent=0, rejected=0, resets=0, attitude="stale")
     assert "| tracking | attitude stale | link streaming |" in status.line()
 
-    quiet, quiet_said = Health(lambda text, severity: quiet_said.append(text), clock_ns=clock), []
+    quiet, quiet_said = Health(lambda text, severity, topic: quiet_said.append(text), clock_ns=clock), []
     quiet.observe(None, record(clock.now_ns + PERIOD_NS))
     assert quiet.assess(clock.now_ns + PERIOD_NS).attitude == "off" and not any("attitude" in t for t in quiet_said)
     assert "attitude" not in dataclasses.replace(status, attitude="off").line()

@@ -170,6 +170,35 @@ def test_statustext_is_rate_limited_and_ordered(peers, links):
     assert min(np.diff([r["t_ns"] for r in rows])) >= 0.25e9
 
 
+def test_a_health_change_goes_out_before_queued_texts_and_replaces_its_stale_one(peers):
+    """Texts queued before the link runs: the health changes (texts with a topic) go first, worst first;
+    a newer text of a topic replaces the queued one (the camera came back before 'stalled' went out);
+    then the rest by severity, in order; one per interval."""
+    port = free_port()
+    peer = peers(port)
+    link = MavlinkLink(LinkParams(connection=f"udpout:127.0.0.1:{port}", heartbeat_interval_s=0.2,
+                                  statustext_interval_s=0.3))
+    for text in ("companion: w1", "companion: w2"):
+        link.statustext(text, mm.SEVERITY_WARNING)
+    link.statustext("companion: VISO_TYPE=0 blocks vision", mm.SEVERITY_CRITICAL)
+    link.statustext("companion: camera stalled", mm.SEVERITY_CRITICAL, topic="camera")
+    link.statustext("companion: w3", mm.SEVERITY_WARNING)
+    link.statustext("companion: attitude stale", mm.SEVERITY_WARNING, topic="attitude")
+    link.statustext("companion: camera delivers frames again", mm.SEVERITY_INFO, topic="camera")
+    link.start()
+    try:
+        rows = peer.wait_for("STATUSTEXT", count=6, timeout_s=15)
+        time.sleep(0.6)
+        rows = peer.records("STATUSTEXT")
+    finally:
+        link.close()
+    # "camera stalled" was replaced, never sent
+    assert [r["fields"]["text"] for r in rows] == [
+        "companion: attitude stale", "companion: camera delivers frames again",
+        "companion: VISO_TYPE=0 blocks vision", "companion: w1", "companion: w2", "companion: w3"]
+    assert min(np.diff([r["t_ns"] for r in rows])) >= 0.25e9
+
+
 def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links):
     port = free_port()
     first = peers(port, "--origin-reply", "on_set", name="first")

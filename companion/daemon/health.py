@@ -23,11 +23,15 @@ tracking, coasting
 =================  ==========================================================  ========
 
 While a critical state lasts the link's HEARTBEAT says MAV_STATE_CRITICAL.
-Messages (``emit(text, severity)``: the daemon logs them and sends them as
-STATUSTEXT), one per change: the camera lost, stalled, and delivering again;
+Messages (``emit(text, severity, topic)``: the daemon logs them and sends them
+as STATUSTEXT), one per change: the camera lost, stalled, and delivering again;
 no pose with its reasons; and the filter's own changes (tracking markers,
 markers lost, re-acquired with its reset counter). "no markers" is shown,
-not sent: the filter's "markers lost" already says it.
+not sent: the filter's "markers lost" already says it. The camera's messages
+have the topic "camera", the attitude's "attitude", the filter's and "no
+pose" "tracking" (whether poses flow): the link sends such a health change
+before anything else queued, and a newer one of a topic replaces a queued
+older one (``MavlinkLink.statustext``).
 
 The flight controller's attitude (when the daemon expects one,
 ``attitude_expected``) is judged beside the state, from each frame's
@@ -58,7 +62,8 @@ STALL_PERIODS = 3
 STALL_MIN_S = 0.5
 STALL_MAX_S = 1.0
 
-Emit = Callable[[str, int], None]
+Emit = Callable[[str, int, "str | None"], None]  # (text, MAV_SEVERITY, topic or None)
+CAMERA, ATTITUDE, TRACKING = "camera", "attitude", "tracking"  # the topics of health changes
 
 # (previous, new) attitude state -> what is said; "start": the first frame
 ATTITUDE_MESSAGES = {
@@ -144,11 +149,11 @@ class Health:
         if previous == "acquiring" and track == "tracking":
             self._acquisitions += 1
             if self._acquisitions == 1:
-                self._emit("tracking markers", SEVERITY_INFO)
+                self._emit("tracking markers", SEVERITY_INFO, TRACKING)
             else:
-                self._emit(f"re-acquired (reset {estimate.reset_counter})", SEVERITY_INFO)
+                self._emit(f"re-acquired (reset {estimate.reset_counter})", SEVERITY_INFO, TRACKING)
         elif track == "acquiring":
-            self._emit("markers lost", SEVERITY_WARNING)
+            self._emit("markers lost", SEVERITY_WARNING, TRACKING)
         # tracking <-> coasting flickers frame to frame: not worth a message
 
     def _follow_the_attitude(self, record: FrameRecord) -> None:
@@ -164,7 +169,7 @@ class Health:
         message = ATTITUDE_MESSAGES.get((previous if self._frames_seen else "start", state))
         self._frames_seen = True
         if message is not None:
-            self._emit(*message)
+            self._emit(*message, ATTITUDE)
 
     # ---------------------------------------------- the supervisor's side
 
@@ -215,11 +220,12 @@ class Health:
         if state.state == previous:
             return
         if state.critical:
-            self._emit(f"{state.state}: {state.reasons[0]}" if state.reasons else state.state, SEVERITY_CRITICAL)
+            self._emit(f"{state.state}: {state.reasons[0]}" if state.reasons else state.state, SEVERITY_CRITICAL,
+                       CAMERA)
         elif previous in CRITICAL_STATES:
-            self._emit("camera delivers frames again", SEVERITY_INFO)
+            self._emit("camera delivers frames again", SEVERITY_INFO, CAMERA)
         if state.state == "no pose":
-            self._emit(f"no pose for {state.since_s:.1f} s: {', '.join(state.reasons)}", SEVERITY_WARNING)
+            self._emit(f"no pose for {state.since_s:.1f} s: {', '.join(state.reasons)}", SEVERITY_WARNING, TRACKING)
 
 
 def _seconds(ns: int) -> float:

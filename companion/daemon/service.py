@@ -226,20 +226,20 @@ class Daemon:
         self.pipeline.solver = PoseSolver(self.config.facility_map, scaled, self.config.pose)
         return True
 
-    def _say(self, text: str, severity: int) -> None:
-        """A health message: to the log and, as STATUSTEXT, to the flight controller."""
+    def _say(self, text: str, severity: int, topic: str | None = None) -> None:
+        """A health message: to the log and, as STATUSTEXT, to the flight controller (topic: see Health)."""
         level = (logging.ERROR if severity <= SEVERITY_CRITICAL else
                  logging.WARNING if severity <= SEVERITY_WARNING else logging.INFO)
         log.log(level, "%s", text)
-        self.link.statustext(f"companion: {text}", severity)
+        self.link.statustext(f"companion: {text}", severity, topic)
 
     def _on_fc_parameters(self, autopilot: int, values: dict) -> None:
         """The link read the FC's parameters (link thread): judged by the main thread, see _report_fc_parameters."""
         self._fc_parameters = (autopilot, values, time.monotonic())
 
     def _report_fc_parameters(self, now_s: float) -> None:
-        """Judge the FC's parameters once the latency is measured (or after a while): log and STATUSTEXT
-        each one that stops or degrades vision fusion."""
+        """Judge the FC's parameters once the latency is measured (or after a while): log each one that
+        stops or degrades vision fusion, and tell them in a few STATUSTEXTs (fc_params.statustexts)."""
         pending = self._fc_parameters
         if pending is None:
             return
@@ -264,8 +264,8 @@ class Daemon:
             log.log(logging.ERROR if blocks else logging.WARNING,
                     "flight controller parameter %s = %s %s vision fusion: %s (expected %s; companion check-fc)",
                     check.name, check.value_text(), check.verdict, check.why, check.expected)
-            self.link.statustext(f"companion: {check.name}={check.value_text()} {check.verdict} vision",
-                                 SEVERITY_CRITICAL if blocks else SEVERITY_WARNING)
+        for text, severity in fc_params.statustexts(checks):
+            self.link.statustext(text, severity)
         if not problems:
             log.info("flight controller parameters fit what we send: %s",
                      ", ".join(f"{c.name}={c.value_text()}" for c in checks))

@@ -6,6 +6,9 @@ sends (the body origin with the camera's lever arm applied, its messages,
 its measured capture -> send latency): ``ok``, ``degrades`` (vision is used,
 but worse or partly) or ``blocks`` (vision is not used at all). Used by the
 daemon (log + STATUSTEXT) and by ``companion check-fc`` (a table).
+The daemon logs every problem with its reason; ``statustexts`` says them to
+the flight controller in as few STATUSTEXTs as carry them (50 characters
+each), blocking ones first: a FC that answers nothing gets two, not ten.
 docs/daemon.md ("Flight controller set-up") gives the reasons.
 """
 from __future__ import annotations
@@ -13,7 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from companion.mavlink.messages import mavlink2
+from companion.mavlink.messages import SEVERITY_CRITICAL, SEVERITY_WARNING, STATUSTEXT_MAX_CHARS, mavlink2
 
 OK, DEGRADES, BLOCKS = "ok", "degrades", "blocks"
 ARDUPILOT = mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -218,6 +221,46 @@ def _px4(values: dict, expected: Expected) -> list[ParameterCheck]:
     checks.append(_delay("EKF2_EV_DELAY", values.get("EKF2_EV_DELAY"), expected.latency_ms))
     checks += _offsets(("EKF2_EV_POS_X", "EKF2_EV_POS_Y", "EKF2_EV_POS_Z"), values, expected.lever_arm_m)
     return checks
+
+
+def statustexts(checks: list[ParameterCheck], prefix: str = "companion: ") -> list[tuple[str, int]]:
+    """The problems of ``checks`` as (text, MAV_SEVERITY), each text at most STATUSTEXT_MAX_CHARS:
+    the blocking ones, all of them, by name and value ("VISO_TYPE=0 blocks vision", CRITICAL; by name
+    alone when that takes fewer texts: "AHRS_EKF_TYPE, VISO_TYPE block vision");
+    then one text for those that degrade vision ("VISO_POS_X=0.1, +2 degrade vision", WARNING) and
+    one for those the FC did not report ("FC did not report 9 params", WARNING). The log has the reasons.
+    """
+    blocks = [c for c in checks if c.verdict == BLOCKS]
+    degrades = [f"{c.name}={c.value_text()}" for c in checks if c.verdict == DEGRADES and c.value is not None]
+    unreported = [c for c in checks if c.verdict == DEGRADES and c.value is None]
+    width = STATUSTEXT_MAX_CHARS - len(prefix)
+    with_values = _packed([f"{c.name}={'?' if c.value is None else c.value_text()}" for c in blocks],
+                          "blocks", "block", width)
+    names_only = _packed([c.name for c in blocks], "blocks", "block", width)
+    texts = [(prefix + text, SEVERITY_CRITICAL)
+             for text in (with_values if len(with_values) <= len(names_only) else names_only)]
+    texts += [(prefix + text, SEVERITY_WARNING) for text in _packed(degrades, "degrades", "degrade", width, 1)]
+    if unreported:
+        texts.append((f"{prefix}FC did not report {len(unreported)} param{'s' * (len(unreported) > 1)}",
+                      SEVERITY_WARNING))
+    return texts
+
+
+def _packed(items: list[str], verb_one: str, verb_many: str, width: int, max_texts: int | None = None) -> list[str]:
+    """``items`` in as few texts of at most ``width`` characters as carry them ("A=1, B=3 block vision");
+    with ``max_texts``, the last one ends with how many did not fit ("A=1, +3 degrade vision")."""
+    texts, rest = [], list(items)
+    while rest and (max_texts is None or len(texts) < max_texts):
+        last = max_texts is not None and len(texts) == max_texts - 1
+        for count in range(len(rest), 0, -1):
+            left = len(rest) - count if last else 0
+            names = ", ".join(rest[:count] + ([f"+{left}"] if left else []))
+            text = f"{names} {verb_one if count + left == 1 else verb_many} vision"
+            if len(text) <= width or count == 1:
+                break
+        texts.append(text[:width])
+        rest = rest[count:] if not last else []
+    return texts
 
 
 def table(checks: list[ParameterCheck]) -> str:

@@ -49,6 +49,13 @@ Every bounded wait that runs out is logged and told by STATUSTEXT, and the
 stream starts anyway. A FC seen again after it went silent for
 ``fc_timeout_s`` (a reboot) gets all of it again.
 
+STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (nothing
+floods the FC nor the ground station), from a queue ordered by urgency:
+a health change (a text with a topic: "camera", "attitude", "tracking") before
+anything else, then by severity, then in order. A queued text is replaced by a newer
+one of its topic (what it said is no longer true; the log keeps both), so a
+fault reaches the operator within ``statustext_interval_s`` whatever waits.
+
 Parameters: when a FC appears, the few parameters that decide whether it
 fuses vision (``companion.mavlink.fc_params``) are read with
 PARAM_REQUEST_READ; ``on_parameters(autopilot, values)`` gets them.
@@ -64,6 +71,7 @@ from __future__ import annotations
 
 import collections
 import enum
+import itertools
 import logging
 import math
 import threading
@@ -90,7 +98,7 @@ SEVERITY_WARNING = mm.SEVERITY_WARNING
 NETWORK_PREFIXES = ("udpout:", "udpin:", "udp:", "tcp:", "tcpin:")
 SERIAL_PREFIXES = ("/dev/", "COM")
 PARAMETER_ATTEMPTS = 3  # PARAM_REQUEST_READ sent this many times before a parameter counts as absent
-STATUSTEXT_QUEUE = 16   # STATUSTEXTs waiting for their turn; the oldest is dropped beyond
+STATUSTEXT_QUEUE = 16   # STATUSTEXTs waiting for their turn; the least urgent is dropped beyond
 ARDUPILOT = mm.mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
 PX4 = mm.mavlink2.MAV_AUTOPILOT_PX4
 
@@ -174,6 +182,18 @@ def parse_connection(text: str) -> tuple[str, int | None]:
                     "tcpin:HOST:PORT or a serial device such as /dev/ttyAMA0,921600")
 
 
+@dataclass(frozen=True, order=True)
+class QueuedText:
+    """A STATUSTEXT waiting for its turn, ordered by urgency: a health change (topic) first,
+    then the most severe (MAV_SEVERITY: lower is worse), then the oldest."""
+
+    untopical: bool
+    severity: int
+    sequence: int
+    text: str = field(compare=False)
+    topic: str | None = field(compare=False, default=None)
+
+
 @dataclass
 class LinkCounters:
     sent: collections.Counter = field(default_factory=collections.Counter)
@@ -236,7 +256,9 @@ class MavlinkLink:
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._transport_broken = threading.Event()
-        self._statustexts: collections.deque = collections.deque(maxlen=STATUSTEXT_QUEUE)
+        self._statustexts: list[QueuedText] = []  # sorted, most urgent first
+        self._statustext_lock = threading.Lock()
+        self._statustext_sequence = itertools.count()
         # (wall time s, severity, text) of the latest STATUSTEXTs, for the live view
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
@@ -315,9 +337,23 @@ class MavlinkLink:
             self._home_check_started_s = time.monotonic()
         return sent
 
-    def statustext(self, text: str, severity: int = SEVERITY_INFO) -> None:
-        """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``."""
-        self._statustexts.append((severity, text))
+    def statustext(self, text: str, severity: int = SEVERITY_INFO, topic: str | None = None) -> None:
+        """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``, the most urgent first.
+
+        topic: what a health change is about ("camera", "attitude", "tracking"): it goes before any text without
+        one and replaces a queued text of the same topic (see the module docstring).
+        """
+        queued = QueuedText(topic is None, severity, next(self._statustext_sequence), text, topic)
+        with self._statustext_lock:
+            waiting = [q for q in self._statustexts if topic is None or q.topic != topic]
+            superseded = len(self._statustexts) - len(waiting)
+            waiting = sorted(waiting + [queued])
+            dropped = waiting[STATUSTEXT_QUEUE:]
+            self._statustexts = waiting[:STATUSTEXT_QUEUE]
+        if superseded:
+            log.debug("link: STATUSTEXT %r replaces %d queued of topic %s", text, superseded, topic)
+        for q in dropped:
+            log.warning("link: STATUSTEXT queue full: %r not sent", q.text)
         self.statustext_history.append((time.time(), severity, text))
 
     def set_critical(self, critical: bool) -> None:
@@ -648,10 +684,19 @@ class MavlinkLink:
         if self.state is LinkState.STREAMING and self._home_check_started_s is not None:
             self._home_step(now_s)
         self._request_attitude(now_s)
-        if self._statustexts and now_s - self._last_statustext_s >= self.params.statustext_interval_s:
-            severity, text = self._statustexts.popleft()
-            if self._send(mm.statustext(severity, text)):
-                self._last_statustext_s = now_s
+        if now_s - self._last_statustext_s >= self.params.statustext_interval_s:
+            self._send_statustext(now_s)
+
+    def _send_statustext(self, now_s: float) -> None:
+        """The most urgent queued STATUSTEXT; it stays queued if it could not be sent."""
+        with self._statustext_lock:
+            queued = self._statustexts[0] if self._statustexts else None
+        if queued is None or not self._send(mm.statustext(queued.severity, queued.text)):
+            return
+        self._last_statustext_s = now_s
+        with self._statustext_lock:
+            if queued in self._statustexts:  # (not replaced meanwhile)
+                self._statustexts.remove(queued)
 
     def _fc_went_silent(self) -> bool:
         """True when a FC seen since the last handshake began has stopped sending heartbeats."""
