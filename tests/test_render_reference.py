@@ -74,9 +74,11 @@ def test_renderings_match_the_reference(rendered, index):
     # rounding apart, the same pixels; but for the seams between the tiles of an opaque surface (a rack face
     # in 1.5 m tiles): their anti-aliased edges let up to a quarter of what lies behind show through, and
     # what lies wholly behind such a surface is no longer drawn (a few hundred pixels of a frame)
-    for new, old in ((plain, old_plain), (degraded, old_degraded)):
+    # The degraded frame: the same noise draws; exposure, vignette and noise are now rounded once, not after
+    # each step (1 DN in about a quarter of the pixels).
+    for new, old, mean_dn in ((plain, old_plain, 0.05), (degraded, old_degraded, 0.3)):
         diff = np.abs(new.astype(int) - old)
-        assert diff.mean() < 0.1
+        assert diff.mean() < mean_dn
         assert np.mean(diff > 2) < 0.005
 
 
