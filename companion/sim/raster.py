@@ -154,11 +154,11 @@ class Rendering:
 
     image: (H, W) uint8.
     label: (H, W) int32, index of the quad covering each pixel in the list
-        given to ``Renderer.render`` (-1: background).
+        given to ``Renderer.render`` (-1: background); None if not asked for.
     """
 
     image: np.ndarray
-    label: np.ndarray
+    label: np.ndarray | None
 
 
 class Renderer:
@@ -247,12 +247,13 @@ class Renderer:
     # ------------------------------------------------------------- drawing
 
     def render(self, quads: Sequence[TexturedQuad], T_camera_world: np.ndarray,
-               background: np.ndarray | float = 0.0) -> Rendering:
+               background: np.ndarray | float = 0.0, labels: bool = True) -> Rendering:
         """Draw the quads (nearest wins, per pixel) over a background.
 
         T_camera_world: (4, 4) world -> OpenCV camera.
         background: a gray level, or an (H, W) uint8 image (the output size;
         it is laid into the canvas, stretched if the lens distorts).
+        labels: False leaves out the label image (ground truth), which costs a pass per quad and a remap.
         """
         cw, ch = self.canvas_size
         if np.isscalar(background):
@@ -263,7 +264,7 @@ class Renderer:
                 raise RenderError(f"background must be {(self.height, self.width)}, got {bg.shape}")
             color = cv2.resize(bg, (cw, ch), interpolation=cv2.INTER_LINEAR).astype(np.float32)
         inv_depth = np.zeros((ch, cw), np.float32)
-        label = np.full((ch, cw), -1, np.int32)
+        label = np.full((ch, cw), -1, np.int32) if labels else None
         if len(quads) > 0:
             # every quad's corners in the camera frame at once: (Q, 4, 3)
             corners_cam = (np.stack([quad.corners_world for quad in quads]) @ T_camera_world[:3, :3].T
@@ -389,20 +390,24 @@ class Renderer:
         color_roi += shade
         solid = alpha >= 0.5
         np.copyto(inv_depth_roi, quad_inv_depth, where=solid)
-        np.copyto(label[roi], index, where=solid)
+        if label is not None:
+            np.copyto(label[roi], index, where=solid)
 
-    def _finish(self, color: np.ndarray, label: np.ndarray) -> Rendering:
+    def _finish(self, color: np.ndarray, label: np.ndarray | None) -> Rendering:
         s = self.supersample
         if s > 1:
             h, w = color.shape
             color = cv2.resize(color, (w // s, h // s), interpolation=cv2.INTER_AREA)
-            label = np.ascontiguousarray(label[s // 2::s, s // 2::s][: h // s, : w // s])
+            if label is not None:
+                label = np.ascontiguousarray(label[s // 2::s, s // 2::s][: h // s, : w // s])
         if self._undistort_map is not None:
             color = cv2.remap(color, self._undistort_map, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            label = cv2.remap(label.astype(np.float32), self._undistort_map, None, cv2.INTER_NEAREST,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=-1).astype(np.int32)
-        image = np.clip(np.rint(color), 0, 255).astype(np.uint8)
-        return Rendering(image=image, label=label)
+            if label is not None:
+                label = cv2.remap(label.astype(np.float32), self._undistort_map, None, cv2.INTER_NEAREST,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=-1).astype(np.int32)
+        np.rint(color, out=color)
+        np.clip(color, 0, 255, out=color)
+        return Rendering(image=color.astype(np.uint8), label=label)
 
 
 def _warp_level(levels, level: int, blend: float, H0: np.ndarray, shift_roi: np.ndarray, size, border: int,
