@@ -1,26 +1,32 @@
 """Bundle adjustment of a survey: every marker and camera pose over every corner and circle seen.
 
 Unknowns: each frame's camera pose ``T_camera_map`` and each free marker's
-``T_map_marker``, both as small corrections to their current values
-(a rotation ``R = exp(dtheta) R0`` on the left, on the outer frame's axes, and
-a translation ``t = t0 + dt``), so a marker's correction ``[dp (3), dtheta (3)]``
-is on map axes, as its covariance is reported. Fixed markers (anchors) do
-not move.
+``T_map_marker``. A step changes them by small corrections on the outer
+frame's axes (a rotation ``R = exp(dtheta) R0`` on the left and a translation
+``t = t0 + dt``), so a marker's correction ``[dp (3), dtheta (3)]`` is on map
+axes, as its covariance is reported. Fixed markers (anchors) do not move.
 
 Residuals, all in standard deviations:
 
-* every point of every sighting: (projected - detected pixels) / ``sigma_px``;
+* every point of every sighting: (projected - detected pixels) / the noise of
+  its kind (``POINT_KINDS``: a square-path corner is aligned on the whole
+  printed pattern, a few hundredths of a pixel; the circles path's corners
+  and circle centres are tenths), under a Huber loss at ``HUBER_SIGMAS`` so
+  that a few bad points cannot pull the map;
 * "hangs on a vertical wall" priors: the horizontal part of the marker's
   y axis (map x, y) / ``wall_sd_rad`` (zero when the y axis is vertical);
 * soft anchors (to test how well several anchors agree): the position
   difference / ``anchor_sd_m`` and the rotation difference (rotation vector) / ``anchor_sd_rad``.
 
-``scipy.optimize.least_squares`` solves it (trust region reflective, LSMR
-on the sparse Jacobian given by ``jac_sparsity``: a point depends on one
-camera and one marker), with a Huber loss so that a few bad corners cannot
-pull the map. Each free marker's covariance is ``s^2 (J^T J)^-1`` reduced to
-its 6x6 block by the Schur complement of the camera poses (each camera's
-block is 6x6), ``s^2`` the residuals' variance in standard deviations.
+The solver is Levenberg-Marquardt with exact steps: the normal equations are
+reduced to the markers by the Schur complement of the cameras (each camera's
+block is 6x6, the markers' system is dense and small: 6 per free marker) and
+solved exactly, with the Huber loss as iteratively reweighted least squares.
+An inexact iterative step (LSMR) stalls along the weak directions of a
+survey, the slow bending of a long chain of markers, while the residuals
+already look converged; an exact step does not. Each free marker's
+covariance is ``s^2 S^-1`` at the solution, ``S`` the same reduced system
+(the cameras marginalised out), ``s^2`` the residuals' variance in standard deviations.
 """
 from __future__ import annotations
 
@@ -28,19 +34,18 @@ import math
 import sys
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
-import scipy.sparse as sp
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
-from companion.survey.observations import SurveyFrame
+from companion.survey.observations import POINT_KINDS, SurveyFrame
 
-HUBER_SIGMAS = 3.0        # residuals beyond this many standard deviations count linearly
+HUBER_SIGMAS = 3.0        # a point's error beyond this many standard deviations counts linearly
 MIN_DEPTH_M = 1e-3        # a point behind the camera is projected as if just in front (a large error)
+RELATIVE_DECREASE = 1e-10  # converged when a step lowers the cost by less than this fraction
+MAX_DAMPING = 1e10
 
 
 @dataclass(frozen=True)
@@ -66,6 +71,11 @@ class Adjustment:
     covariance: free marker id -> (6, 6) over [position m (3), small rotation rad (3)], map axes.
     sighting_rms_px: (S,) RMS point error of each sighting, in ``sightings`` order (frame k, marker id).
     sigma_px: the point noise the residuals show (RMS over all points).
+    noise_px: point kind -> the noise of one coordinate of that kind of point the residuals show (RMS,
+        corrected for the parameters fitted to them), for the kinds present; points_of_kind: how many points.
+    iterations: steps taken; converged: the last step no longer lowered the cost.
+    point_errors_px: (P, 2) projected minus detected pixels of every point, sighting by sighting;
+    point_kinds: (P,) index into POINT_KINDS; sighting_starts: (S + 1,) each sighting's first point.
     """
 
     markers: dict[int, np.ndarray]
@@ -74,168 +84,296 @@ class Adjustment:
     sightings: list[tuple[int, int]]
     sighting_rms_px: np.ndarray
     sigma_px: float
+    noise_px: dict[str, float]
+    points_of_kind: dict[str, int]
     iterations: int
+    converged: bool
+    point_errors_px: np.ndarray
+    point_kinds: np.ndarray
+    sighting_starts: np.ndarray
+
+    def sighting_chi2(self, noise_px: dict[str, float]) -> np.ndarray:
+        """(S,) each sighting's squared point errors in units of its points' noise (chi-square, 2 K dof)."""
+        noise = np.array([noise_px[kind] for kind in POINT_KINDS])[self.point_kinds]
+        return np.add.reduceat(np.sum(self.point_errors_px ** 2, axis=1) / noise ** 2, self.sighting_starts[:-1])
+
+
+@dataclass
+class _Poses:
+    """Every pose of the problem: cameras (F, 3, 3) and (F, 3), markers (M, 3, 3) and (M, 3) by slot."""
+
+    R_camera: np.ndarray
+    t_camera: np.ndarray
+    R_marker: np.ndarray
+    p_marker: np.ndarray
+
+
+@dataclass
+class _Normal:
+    """The normal equations J^T J dx = -J^T r in blocks, and the cost they were taken at.
+
+    A: (F, 6, 6) each camera's block; g_camera: (F, 6). B: (S, 6, 6) camera-marker block of each sighting
+    of a free marker (zero for the others); C: (Mf, 6, 6) each free marker's block; g_marker: (Mf, 6).
+    """
+
+    cost: float
+    A: np.ndarray
+    g_camera: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    g_marker: np.ndarray
 
 
 class BundleAdjustment:
-    """One adjustment problem: frames (each with its sightings), initial poses, which markers are free."""
+    """One adjustment problem: frames (each with its sightings), initial poses, which markers are free.
+
+    noise_px: the expected noise of one coordinate of a point, by kind (``POINT_KINDS``), or one value for all.
+    """
 
     def __init__(self, survey_frames: list[SurveyFrame], camera: CameraModel, markers: dict[int, np.ndarray],
-                 cameras: np.ndarray, free_ids: list[int], priors: Priors = Priors(), sigma_px: float = 0.5):
-        self.frames, self.camera, self.priors, self.sigma_px = survey_frames, camera, priors, sigma_px
+                 cameras: np.ndarray, free_ids: list[int], priors: Priors = Priors(),
+                 noise_px: dict[str, float] | float = 0.5):
+        self.frames, self.camera, self.priors = survey_frames, camera, priors
+        self.noise_px = noise_px if isinstance(noise_px, dict) else {kind: float(noise_px) for kind in POINT_KINDS}
         self.ids = sorted(markers)
         self.slot = {m: k for k, m in enumerate(self.ids)}
         self.free_ids = list(free_ids)
         self.free_slot = {m: k for k, m in enumerate(self.free_ids)}
-        self.R0_marker = np.array([markers[m][:3, :3] for m in self.ids])
-        self.p0_marker = np.array([markers[m][:3, 3] for m in self.ids])
-        self.R0_camera = np.array(cameras)[:, :3, :3]
-        self.t0_camera = np.array(cameras)[:, :3, 3]
+        cameras = np.asarray(cameras)
+        self.start = _Poses(cameras[:, :3, :3].copy(), cameras[:, :3, 3].copy(),
+                            np.array([markers[m][:3, :3] for m in self.ids]),
+                            np.array([markers[m][:3, 3] for m in self.ids]))
         self._index_points()
 
     def _index_points(self) -> None:
-        """Flat (P, ...) arrays over every point: its frame, marker slot, marker-frame position and pixels."""
-        frame_of, slot_of, points, pixels, self.sightings, starts = [], [], [], [], [], [0]
+        """Flat (P, ...) arrays over every point (frame by frame, sighting by sighting), and the sightings."""
+        frame_of, slot_of, kind_of, points, pixels, self.sightings, starts = [], [], [], [], [], [], [0]
         for k, frame in enumerate(self.frames):
             for s in frame.sightings:
                 n = len(s.points_px)
                 frame_of.append(np.full(n, k))
                 slot_of.append(np.full(n, self.slot[s.marker_id]))
+                kind_of.append(s.point_kinds())
                 points.append(s.points_marker_m)
                 pixels.append(s.points_px)
                 self.sightings.append((k, s.marker_id))
                 starts.append(starts[-1] + n)
         self.point_frame = np.concatenate(frame_of)
         self.point_slot = np.concatenate(slot_of)
+        self.point_kind = np.concatenate(kind_of)
         self.points_marker = np.vstack(points)
         self.points_px = np.vstack(pixels)
         self.sighting_starts = np.array(starts)
+        self.point_noise_px = np.array([self.noise_px[POINT_KINDS[k]] for k in self.point_kind])
+        self.sighting_frame = np.array([k for k, _ in self.sightings])
+        self.sighting_free = np.array([self.free_slot.get(m, -1) for _, m in self.sightings])
+        # pairs of sightings of free markers in one frame (both orders, and each with itself): the Schur complement's terms
+        pairs = [(a, b) for k in range(len(self.frames))
+                 for a in self._free_sightings_of(k) for b in self._free_sightings_of(k)]
+        self.pairs = np.array(pairs, dtype=int).reshape(-1, 2)
+        self.frame_starts = np.concatenate([[0], np.cumsum(np.bincount(self.point_frame, minlength=len(self.frames)))])
         self.wall_ids = [m for m in self.free_ids if m in self.priors.on_wall]
         self.anchor_ids = [m for m in self.free_ids if m in self.priors.soft_anchors]
 
-    # --------------------------------------------------------------- model
+    def _free_sightings_of(self, k: int) -> list[int]:
+        first = np.searchsorted(self.sighting_frame, k)
+        last = np.searchsorted(self.sighting_frame, k, side="right")
+        return [s for s in range(first, last) if self.sighting_free[s] >= 0]
 
     @property
     def n_params(self) -> int:
         return 6 * (len(self.frames) + len(self.free_ids))
 
-    def poses(self, x: np.ndarray):
-        """(R_camera (F, 3, 3), t_camera (F, 3), R_marker (M, 3, 3), p_marker (M, 3)) at parameters x."""
-        F = len(self.frames)
-        d_camera = x[:6 * F].reshape(F, 6)
-        # R = exp(dtheta) R0, t = t0 + dt
-        R_camera = Rotation.from_rotvec(d_camera[:, :3]).as_matrix() @ self.R0_camera
-        t_camera = self.t0_camera + d_camera[:, 3:]
-        R_marker, p_marker = self.R0_marker.copy(), self.p0_marker.copy()
-        if self.free_ids:
-            d_marker = x[6 * F:].reshape(-1, 6)
-            free = [self.slot[m] for m in self.free_ids]
-            # p = p0 + dp, R = exp(dtheta) R0
-            p_marker[free] += d_marker[:, :3]
-            R_marker[free] = Rotation.from_rotvec(d_marker[:, 3:]).as_matrix() @ self.R0_marker[free]
-        return R_camera, t_camera, R_marker, p_marker
+    # --------------------------------------------------------------- model
 
-    def point_errors_px(self, x: np.ndarray) -> np.ndarray:
-        """(P, 2) projected minus detected pixels of every point."""
-        R_camera, t_camera, R_marker, p_marker = self.poses(x)
+    def _camera_points(self, poses: _Poses) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(X_camera, R_camera X_map, R_marker X_marker), each (P, 3), of every point."""
+        slot, frame = self.point_slot, self.point_frame
         # X_map = R_map_marker X + p;  X_camera = R_camera_map X_map + t
-        X_map = np.einsum("pij,pj->pi", R_marker[self.point_slot], self.points_marker) + p_marker[self.point_slot]
-        X_camera = np.einsum("pij,pj->pi", R_camera[self.point_frame], X_map) + t_camera[self.point_frame]
+        rotated_marker = np.einsum("pij,pj->pi", poses.R_marker[slot], self.points_marker)
+        X_map = rotated_marker + poses.p_marker[slot]
+        rotated_map = np.einsum("pij,pj->pi", poses.R_camera[frame], X_map)
+        X_camera = rotated_map + poses.t_camera[frame]
         X_camera[:, 2] = np.maximum(X_camera[:, 2], MIN_DEPTH_M)
-        projected, _ = cv2.projectPoints(X_camera.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), self.camera.K,
-                                         self.camera.dist)
-        return projected.reshape(-1, 2) - self.points_px
+        return X_camera, rotated_map, rotated_marker
 
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        """(2P + 2W + 6A,) every residual in standard deviations (see the module docstring)."""
-        parts = [self.point_errors_px(x).ravel() / self.sigma_px]
-        if self.wall_ids or self.anchor_ids:
-            _, _, R_marker, p_marker = self.poses(x)
-        if self.wall_ids:
-            y_axes = R_marker[[self.slot[m] for m in self.wall_ids], :, 1]
-            parts.append(y_axes[:, :2].ravel() / self.priors.wall_sd_rad)
+    def point_errors_px(self, poses: _Poses | None = None) -> np.ndarray:
+        """(P, 2) projected minus detected pixels of every point (at the start poses by default)."""
+        X_camera, _, _ = self._camera_points(poses or self.start)
+        return self.camera.project(X_camera) - self.points_px
+
+    def _robust(self, errors_px: np.ndarray) -> tuple[np.ndarray, float]:
+        """(per-point IRLS weights (P,), Huber cost of the points) of point errors (P, 2).
+
+        s = |error| / noise; cost rho(s) = s^2 up to k, 2 k s - k^2 beyond; weight rho'(s) / (2 s) = min(1, k / s).
+        """
+        s = np.linalg.norm(errors_px, axis=1) / self.point_noise_px
+        k = HUBER_SIGMAS
+        rho = np.where(s <= k, s ** 2, 2 * k * s - k ** 2)
+        return np.minimum(1.0, k / np.maximum(s, 1e-12)), 0.5 * float(np.sum(rho))
+
+    def _prior_residuals(self, poses: _Poses) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """(free slot, residuals (n,), their Jacobian by [dp, dtheta] (n, 6)) of every prior."""
+        terms = []
+        for m in self.wall_ids:
+            y_axis = poses.R_marker[self.slot[m], :, 1]
+            J = np.zeros((2, 6))
+            # d(y)/d(dtheta) = -[y]x  (dy = dtheta x y)
+            J[:, 3:] = -frames.skew(y_axis)[:2] / self.priors.wall_sd_rad
+            terms.append((self.free_slot[m], y_axis[:2] / self.priors.wall_sd_rad, J))
         for m in self.anchor_ids:
             T_stated = self.priors.soft_anchors[m]
             k = self.slot[m]
-            parts.append((p_marker[k] - T_stated[:3, 3]) / self.priors.anchor_sd_m)
-            parts.append(frames.rotvec_from_rotation(R_marker[k] @ T_stated[:3, :3].T) / self.priors.anchor_sd_rad)
-        return np.concatenate(parts)
+            r = np.concatenate([(poses.p_marker[k] - T_stated[:3, 3]) / self.priors.anchor_sd_m,
+                                frames.rotvec_from_rotation(poses.R_marker[k] @ T_stated[:3, :3].T)
+                                / self.priors.anchor_sd_rad])
+            # small differences: d(rotvec(exp(dtheta) R R_s^T))/d(dtheta) ~ identity
+            J = np.diag([1 / self.priors.anchor_sd_m] * 3 + [1 / self.priors.anchor_sd_rad] * 3)
+            terms.append((self.free_slot[m], r, J))
+        return terms
 
-    def sparsity(self) -> sp.csr_matrix:
-        """Which parameters each residual depends on: a point on its camera (6) and its marker if free (6)."""
-        F = len(self.frames)
-        rows, cols = [], []
-        point_rows = np.arange(2 * len(self.point_frame)).reshape(-1, 2)
-        for axis in range(2):
-            r = point_rows[:, axis]
-            rows.append(np.repeat(r, 6))
-            cols.append((6 * self.point_frame[:, None] + np.arange(6)).ravel())
-            free_slot = np.array([self.free_slot.get(m, -1) for m in self.ids])[self.point_slot]
-            moving = free_slot >= 0
-            rows.append(np.repeat(r[moving], 6))
-            cols.append((6 * F + 6 * free_slot[moving][:, None] + np.arange(6)).ravel())
-        row = 2 * len(self.point_frame)
-        for m in self.wall_ids:
-            for _ in range(2):
-                rows.append(np.full(6, row))
-                cols.append(6 * F + 6 * self.free_slot[m] + np.arange(6))
-                row += 1
-        for m in self.anchor_ids:
-            for _ in range(6):
-                rows.append(np.full(6, row))
-                cols.append(6 * F + 6 * self.free_slot[m] + np.arange(6))
-                row += 1
-        rows, cols = np.concatenate(rows), np.concatenate(cols)
-        return sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(row, self.n_params))
+    def cost(self, poses: _Poses) -> float:
+        """Half the sum of squared residuals (Huber on the points)."""
+        _, point_cost = self._robust(self.point_errors_px(poses))
+        return point_cost + 0.5 * sum(float(r @ r) for _, r, _ in self._prior_residuals(poses))
+
+    def _normal(self, poses: _Poses) -> _Normal:
+        """The normal equations at ``poses``, points weighted by their noise and the Huber loss."""
+        X_camera, rotated_map, rotated_marker = self._camera_points(poses)
+        errors = self.camera.project(X_camera) - self.points_px
+        weights, point_cost = self._robust(errors)
+        # each point's residual and Jacobian scaled by sqrt(weight) / noise
+        scale = np.sqrt(weights) / self.point_noise_px
+        r = errors * scale[:, None]
+        P = self.camera.projection_jacobian(X_camera) * scale[:, None, None]     # (P, 2, 3) d(residual)/dX_camera
+        # camera: dX_camera = -[R X_map]x dtheta + dt
+        J_camera = np.concatenate([-P @ _skews(rotated_map), P], axis=2)
+        # marker: dX_camera = R_camera (dp - [R_marker X]x dtheta)
+        P_map = P @ poses.R_camera[self.point_frame]
+        J_marker = np.concatenate([P_map, -P_map @ _skews(rotated_marker)], axis=2)
+        A = np.add.reduceat(np.einsum("pki,pkj->pij", J_camera, J_camera), self.frame_starts[:-1])
+        g_camera = np.add.reduceat(np.einsum("pki,pk->pi", J_camera, r), self.frame_starts[:-1])
+        starts = self.sighting_starts[:-1]
+        free = self.sighting_free >= 0
+        B = np.add.reduceat(np.einsum("pki,pkj->pij", J_camera, J_marker), starts) * free[:, None, None]
+        C_sighting = np.add.reduceat(np.einsum("pki,pkj->pij", J_marker, J_marker), starts)
+        g_sighting = np.add.reduceat(np.einsum("pki,pk->pi", J_marker, r), starts)
+        n_free = len(self.free_ids)
+        C, g_marker = np.zeros((n_free, 6, 6)), np.zeros((n_free, 6))
+        np.add.at(C, self.sighting_free[free], C_sighting[free])
+        np.add.at(g_marker, self.sighting_free[free], g_sighting[free])
+        prior_cost = 0.0
+        for k, r_prior, J_prior in self._prior_residuals(poses):
+            C[k] += J_prior.T @ J_prior
+            g_marker[k] += J_prior.T @ r_prior
+            prior_cost += 0.5 * float(r_prior @ r_prior)
+        return _Normal(point_cost + prior_cost, A, g_camera, B, C, g_marker)
+
+    def _reduced(self, normal: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A^-1 (F, 6, 6), S (6Mf, 6Mf), A^-1 g_camera (F, 6)): the cameras eliminated.
+
+        H = [[A, B], [B^T, C]] (cameras first), damped on its diagonal (Marquardt): the markers' system
+        is S = C - B^T A^-1 B, with one term per pair of free markers seen in one frame.
+        """
+        eye = np.eye(6)
+        A = normal.A * (1.0 + damping * eye)          # diag(A) (1 + damping): Marquardt's scaling
+        A_inverse = np.linalg.inv(A)
+        n_free = len(self.free_ids)
+        S = np.zeros((n_free, n_free, 6, 6))
+        S[np.arange(n_free), np.arange(n_free)] = normal.C * (1.0 + damping * eye)
+        if len(self.pairs):
+            a, b = self.pairs[:, 0], self.pairs[:, 1]
+            # S[m(a), m(b)] -= B_a^T A^-1 B_b
+            terms = np.einsum("sji,sjk,skl->sil", normal.B[a], A_inverse[self.sighting_frame[a]], normal.B[b])
+            np.add.at(S, (self.sighting_free[a], self.sighting_free[b]), -terms)
+        S = S.transpose(0, 2, 1, 3).reshape(6 * n_free, 6 * n_free)
+        return A_inverse, S, np.einsum("fij,fj->fi", A_inverse, normal.g_camera)
+
+    def _step(self, normal: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray]:
+        """The damped Gauss-Newton step (cameras (F, 6), free markers (Mf, 6)), solved exactly.
+
+        H dx = -g: d_marker = S^-1 (-g_marker + B^T A^-1 g_camera), d_camera = A^-1 (-g_camera - B d_marker).
+        """
+        A_inverse, S, Ainv_g = self._reduced(normal, damping)
+        free = self.sighting_free >= 0
+        n_free = len(self.free_ids)
+        rhs = -normal.g_marker.copy()
+        np.add.at(rhs, self.sighting_free[free],
+                  np.einsum("sji,sj->si", normal.B[free], Ainv_g[self.sighting_frame[free]]))
+        d_marker = np.linalg.solve(S, rhs.ravel()).reshape(n_free, 6) if n_free else np.zeros((0, 6))
+        coupling = np.zeros_like(normal.g_camera)
+        np.add.at(coupling, self.sighting_frame[free],
+                  np.einsum("sij,sj->si", normal.B[free], d_marker[self.sighting_free[free]]))
+        d_camera = -np.einsum("fij,fj->fi", A_inverse, normal.g_camera + coupling)
+        return d_camera, d_marker
+
+    def _moved(self, poses: _Poses, d_camera: np.ndarray, d_marker: np.ndarray) -> _Poses:
+        """The poses after a step: R = exp(dtheta) R0, t = t0 + dt (markers: p = p0 + dp)."""
+        R_marker, p_marker = poses.R_marker.copy(), poses.p_marker.copy()
+        if len(self.free_ids):
+            free = [self.slot[m] for m in self.free_ids]
+            p_marker[free] += d_marker[:, :3]
+            R_marker[free] = Rotation.from_rotvec(d_marker[:, 3:]).as_matrix() @ R_marker[free]
+        R_camera = Rotation.from_rotvec(d_camera[:, :3]).as_matrix() @ poses.R_camera
+        return _Poses(R_camera, poses.t_camera + d_camera[:, 3:], R_marker, p_marker)
 
     # --------------------------------------------------------------- solve
 
-    def solve(self, max_iterations: int = 60, progress: bool = False, description: str = "adjusting") -> Adjustment:
-        bar = tqdm(total=max_iterations, unit="step", desc=description, disable=not progress, file=sys.stderr)
+    def solve(self, max_iterations: int = 50, progress: bool = False, description: str = "adjusting") -> Adjustment:
+        """Levenberg-Marquardt from the start poses until a step no longer lowers the cost."""
+        poses, damping, converged, steps = self.start, 1e-4, False, 0
+        normal = self._normal(poses)
+        with tqdm(total=max_iterations, unit="step", desc=description, disable=not progress, file=sys.stderr) as bar:
+            while steps < max_iterations and not converged:
+                steps += 1
+                bar.update(1)
+                while damping < MAX_DAMPING:
+                    candidate = self._moved(poses, *self._step(normal, damping))
+                    cost = self.cost(candidate)
+                    if cost < normal.cost:
+                        break
+                    damping *= 10.0
+                else:
+                    converged = True  # no step lowers the cost: at the minimum (to rounding)
+                    break
+                converged = normal.cost - cost < RELATIVE_DECREASE * normal.cost
+                poses, damping = candidate, max(damping / 10.0, 1e-9)
+                normal = self._normal(poses)
+                bar.set_postfix(cost=f"{normal.cost:.6g}")
+        return self._adjustment(poses, normal, steps, converged)
 
-        def step(intermediate_result) -> None:  # the name asks scipy for the OptimizeResult
-            bar.update(1)
-            bar.set_postfix(cost=f"{intermediate_result.cost:.4g}")
-
-        try:
-            result = least_squares(self.residuals, np.zeros(self.n_params), jac_sparsity=self.sparsity(),
-                                   method="trf", tr_solver="lsmr", loss="huber", f_scale=HUBER_SIGMAS,
-                                   x_scale="jac", max_nfev=max_iterations, callback=step)
-        finally:
-            bar.close()
-        return self._adjustment(result)
-
-    def _adjustment(self, result) -> Adjustment:
-        R_camera, t_camera, R_marker, p_marker = self.poses(result.x)
-        markers = {m: frames.make_transform(R_marker[k], p_marker[k]) for m, k in self.slot.items()}
-        cameras = np.array([frames.make_transform(R, t) for R, t in zip(R_camera, t_camera)])
-        errors = self.point_errors_px(result.x)
+    def _adjustment(self, poses: _Poses, normal: _Normal, steps: int, converged: bool) -> Adjustment:
+        markers = {m: frames.make_transform(poses.R_marker[k], poses.p_marker[k]) for m, k in self.slot.items()}
+        cameras = np.array([frames.make_transform(R, t) for R, t in zip(poses.R_camera, poses.t_camera)])
+        errors = self.point_errors_px(poses)
         squared = np.sum(errors ** 2, axis=1)
         counts = np.diff(self.sighting_starts)
         sighting_rms = np.sqrt(np.add.reduceat(squared, self.sighting_starts[:-1]) / counts)
-        dof = max(2 * len(errors) - self.n_params, 1)
-        # the residuals' variance in standard deviations: (sum of squared point errors / sigma^2) / dof
-        variance = float(np.sum(squared)) / self.sigma_px ** 2 / dof
-        covariance = self._marker_covariance(result.jac, variance)
+        n_residuals = 2 * len(errors)
+        dof = max(n_residuals - self.n_params, 1)
+        # the residuals' variance in standard deviations: (sum of squared point errors / noise^2) / dof
+        variance = float(np.sum(squared / self.point_noise_px ** 2)) / dof
+        # each kind's noise: its RMS, scaled up for the parameters fitted (n_residuals / dof)
+        noise = {kind: math.sqrt(float(np.mean(squared[self.point_kind == k])) / 2 * n_residuals / dof)
+                 for k, kind in enumerate(POINT_KINDS) if np.any(self.point_kind == k)}
+        counts_of_kind = {kind: int(np.sum(self.point_kind == k)) for k, kind in enumerate(POINT_KINDS)}
+        covariance = self._marker_covariance(normal, variance)
         return Adjustment(markers, cameras, covariance, self.sightings, sighting_rms,
-                          math.sqrt(float(np.sum(squared)) / (2 * len(errors))), int(result.nfev))
+                          math.sqrt(float(np.sum(squared)) / n_residuals), noise, counts_of_kind, steps, converged,
+                          errors, self.point_kind, self.sighting_starts)
 
-    def _marker_covariance(self, J, variance: float) -> dict[int, np.ndarray]:
-        """Free marker id -> (6, 6) covariance: s^2 times the inverse of the Schur complement of the cameras.
-
-        H = J^T J = [[A, B], [B^T, C]] (cameras first); the markers' block of H^-1
-        is (C - B^T A^-1 B)^-1, and A is block diagonal (6x6 per camera).
-        """
+    def _marker_covariance(self, normal: _Normal, variance: float) -> dict[int, np.ndarray]:
+        """Free marker id -> (6, 6) covariance: s^2 times the inverse of the cameras' Schur complement S."""
         if not self.free_ids:
             return {}
-        J = sp.csr_matrix(J)
-        n_camera = 6 * len(self.frames)
-        H = (J.T @ J).tocsr()
-        A = H[:n_camera, :n_camera].tobsr(blocksize=(6, 6))
-        B = H[:n_camera, n_camera:]
-        C = H[n_camera:, n_camera:].toarray()
-        blocks = A.data
-        A_inverse = sp.bsr_matrix((np.linalg.pinv(blocks), A.indices, A.indptr), shape=A.shape)
-        schur = C - (B.T @ (A_inverse @ B)).toarray()
-        covariance = variance * np.linalg.pinv(schur)
+        _, S, _ = self._reduced(normal, 0.0)
+        covariance = variance * np.linalg.pinv(S)
         return {m: covariance[6 * k:6 * k + 6, 6 * k:6 * k + 6] for m, k in self.free_slot.items()}
+
+
+def _skews(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices of (N, 3) vectors: ``_skews(a)[i] @ b == np.cross(a[i], b)``."""
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    zero = np.zeros_like(x)
+    return np.stack([np.stack([zero, -z, y], axis=1), np.stack([z, zero, -x], axis=1),
+                     np.stack([-y, x, zero], axis=1)], axis=1)

@@ -136,7 +136,7 @@ def _check_one(marker_id: int, shown, mapped, excluded: set[int], camera: Camera
     cameras = np.array([graph.camera_pose_candidates(f, known, camera, ippe)[0] for f in usable])
     used_ids = {m for f in usable for m in f.marker_ids}
     problem = BundleAdjustment(usable, camera, {m: known[m] for m in used_ids}, cameras, [marker_id],
-                               sigma_px=params.sigma_px)
+                               noise_px=params.sigma_px)
     adjustment = problem.solve(max_iterations=30)
     T_estimate = adjustment.markers[marker_id]
     T_map = mapped[marker_id]

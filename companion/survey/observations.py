@@ -26,6 +26,9 @@ from companion.markers.layout import MarkerLayout
 from companion.types import Detection
 
 GET_TIMEOUT_S = 1.0
+# the kinds of point a sighting gives, each with its own noise: the square path's corners (aligned on the whole
+# printed pattern), the circles path's corners and its circle centres
+POINT_KINDS = ("corner", "circles-path corner", "circle centre")
 
 
 class SurveyError(ValueError):
@@ -38,11 +41,19 @@ class Sighting:
 
     points_marker_m: (K, 3) its points in the marker frame (4 corners TL, TR, BR, BL, then circle centres).
     points_px: (K, 2) where they are in the image.
+    path: the detector's path that found it ("square" or "circles").
     """
 
     marker_id: int
     points_marker_m: np.ndarray
     points_px: np.ndarray
+    path: str = "square"
+
+    def point_kinds(self) -> np.ndarray:
+        """(K,) index into POINT_KINDS of each point."""
+        kinds = np.full(len(self.points_px), POINT_KINDS.index("circle centre"))
+        kinds[:4] = POINT_KINDS.index("corner" if self.path == "square" else "circles-path corner")
+        return kinds
 
     @property
     def corners_px(self) -> np.ndarray:
@@ -158,7 +169,7 @@ def sightings_of(detections: list[Detection], size_m: Callable[[int], float | No
             points_marker.append(frames.grid_to_marker_m(circles_uv[circle_ids[valid]], layout.inner_origin,
                                                          layout.inner_cells, size))
             points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid])
-        sightings.append(Sighting(detection.id, np.vstack(points_marker), np.vstack(points_px)))
+        sightings.append(Sighting(detection.id, np.vstack(points_marker), np.vstack(points_px), detection.path))
     return tuple(sightings)
 
 

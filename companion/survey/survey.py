@@ -27,9 +27,11 @@ from companion.markers.layout import MarkerLayout
 from companion.survey import graph
 from companion.survey.adjust import Adjustment, BundleAdjustment, Priors
 from companion.survey.check import CheckParams, MarkerCheck, check_markers
-from companion.survey.observations import Footage, SurveyError, SurveyFrame, collect, keyframes
+from companion.survey.observations import POINT_KINDS, Footage, SurveyError, SurveyFrame, collect, keyframes
 
 GATE_PROBABILITY = 0.999   # a sighting whose errors fail this chi-square test at the fitted noise is left out
+MIN_POINTS_FOR_NOISE = 40  # a kind of point needs this many to measure its noise
+MIN_NOISE_PX = 0.005       # no kind of point is trusted beyond this (rendering and rounding)
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,8 @@ class SurveyResult:
     markers: every marker of ``facility_map`` with its statistics; dropped: symbol -> frames for markers
     seen too rarely; anchors: agreement of several anchors (empty for one); moved: markers of an existing
     map that disagreed with it (``extend``); camera_path_m: (N, 3) camera positions of the adjusted frames.
+    sigma_px: RMS point error of the adjustment; noise_px: the noise of each kind of point it measured (the
+    weights of the points), by ``POINT_KINDS`` name.
     """
 
     facility_map: FacilityMap
@@ -101,6 +105,7 @@ class SurveyResult:
     frames_skipped: int
     frames_adjusted: int
     sigma_px: float
+    noise_px: dict[str, float]
 
 
 def survey(sequences: list[Path], camera: CameraModel, anchors: FacilityMap, options: SurveyOptions = SurveyOptions(),
@@ -141,9 +146,6 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
                  if c.verdict == "moved"]
         for check in moved:
             del fixed[check.marker_id]
-    agreement: list[AnchorAgreement] = []
-    if len(fixed) >= 2 and not extend:
-        agreement = _anchor_agreement(shared, camera, fixed, groups, counts, anchors, symbols, options)
     initial = graph.initial_poses(shared, fixed, camera)
     for check in moved:  # start from where the check found it
         initial[check.marker_id] = check.T_map_marker
@@ -151,6 +153,10 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
     free_ids = sorted(m for m in initial if m not in fixed)
     priors = _priors(free_ids, anchors, symbols)
     adjustment, posed_frames = _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options)
+    agreement: list[AnchorAgreement] = []
+    if len(fixed) >= 2 and not extend:
+        agreement = _anchor_agreement(shared, camera, fixed, groups, counts, anchors, symbols, options,
+                                      _noise(adjustment, options))
     markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall)
     facility_map = replace(anchors, path="", markers={s.marker.id: s.marker for s in markers})
     if extend:  # the existing map's markers not seen this time stay as they were
@@ -160,7 +166,8 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
     camera_path = np.array([frames.invert_transform(T)[:3, 3] for T in adjustment.cameras])
     return SurveyResult(facility_map, sorted(markers, key=lambda s: s.marker.id),
                         {symbols[m]: n for m, n in sorted(dropped.items())}, agreement, moved, camera_path,
-                        footage.frame_count, footage.skipped, len(posed_frames), adjustment.sigma_px)
+                        footage.frame_count, footage.skipped, len(posed_frames), adjustment.sigma_px,
+                        _noise(adjustment, options))
 
 
 # ------------------------------------------------------------------ sizes
@@ -254,7 +261,7 @@ def _priors(free_ids, anchors: FacilityMap, symbols) -> Priors:
 
 
 def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, counts, anchors: FacilityMap, symbols,
-                      options: SurveyOptions) -> list[AnchorAgreement]:
+                      options: SurveyOptions, noise_px: dict[str, float]) -> list[AnchorAgreement]:
     """How far the images move each anchor when all are held softly (to within their stated uncertainty);
     SurveyError when they disagree beyond it (a chi-square test over all of them).
 
@@ -273,7 +280,7 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
     free_ids = sorted(start)
     soft = replace(_priors(free_ids, anchors, symbols), soft_anchors=dict(fixed), anchor_sd_m=hints.anchor_sd_m,
                    anchor_sd_rad=math.radians(hints.anchor_sd_deg))
-    problem = BundleAdjustment(posed_frames, camera, start, cameras, free_ids, soft, options.sigma_px)
+    problem = BundleAdjustment(posed_frames, camera, start, cameras, free_ids, soft, noise_px)
     adjustment = problem.solve(options.max_iterations, options.progress, "checking the anchors")
     agreement = []
     for m, T_stated in sorted(fixed.items()):
@@ -294,17 +301,14 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
 
 
 def _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options: SurveyOptions):
-    """Adjust, leave out the sightings whose errors the fitted noise cannot explain, adjust again."""
+    """Adjust with the expected noise; measure the noise of each kind of point from the residuals; leave out the
+    sightings whose errors that noise cannot explain; adjust again, each point weighted by its kind's noise."""
     problem = BundleAdjustment(posed_frames, camera, initial, cameras, free_ids, priors, options.sigma_px)
     adjustment = problem.solve(options.max_iterations, options.progress, "adjusting")
-    sigma_px = max(adjustment.sigma_px, 0.05)
-    bad = set()
-    for (k, m), rms_px, count in zip(adjustment.sightings, adjustment.sighting_rms_px, np.diff(problem.sighting_starts)):
-        dof = 2 * int(count)
-        if rms_px ** 2 * count / sigma_px ** 2 > chi2.ppf(GATE_PROBABILITY, dof):
-            bad.add((k, m))
-    if not bad:
-        return adjustment, posed_frames
+    noise = _noise(adjustment, options)
+    limits = chi2.ppf(GATE_PROBABILITY, 2 * np.diff(adjustment.sighting_starts))
+    bad = {sighting for sighting, value, limit in zip(adjustment.sightings, adjustment.sighting_chi2(noise), limits)
+           if value > limit}
     frames_left, cameras_left = [], []
     for k, frame in enumerate(posed_frames):
         sightings = tuple(s for s in frame.sightings if (k, s.marker_id) not in bad)
@@ -314,8 +318,18 @@ def _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, o
     markers_left = {m for f in frames_left for m in f.marker_ids}
     start = {m: T for m, T in adjustment.markers.items() if m in markers_left}
     problem = BundleAdjustment(frames_left, camera, start, np.array(cameras_left),
-                               [m for m in free_ids if m in markers_left], priors, options.sigma_px)
+                               [m for m in free_ids if m in markers_left], priors, noise)
     return problem.solve(options.max_iterations, options.progress, "adjusting again"), frames_left
+
+
+def _noise(adjustment: Adjustment, options: SurveyOptions) -> dict[str, float]:
+    """The noise of each kind of point as the adjustment's residuals show it (at least MIN_NOISE_PX); the
+    expected ``options.sigma_px`` for a kind with too few points to tell."""
+    noise = {kind: options.sigma_px for kind in POINT_KINDS}
+    for kind, measured_px in adjustment.noise_px.items():
+        if adjustment.points_of_kind[kind] >= MIN_POINTS_FOR_NOISE:
+            noise[kind] = max(measured_px, MIN_NOISE_PX)
+    return noise
 
 
 def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: FacilityMap, counts, sizes,
