@@ -284,7 +284,7 @@ class Renderer:
                     continue
                 prepared.append((float(polygon[:, 2].mean()), index, polygon))
             hidden = self._hidden_behind_occluders(quads, corners_cam, normals, plane_c,
-                                                   [index for _, index, polygon in prepared if len(polygon) == 4])
+                                                   [index for _, index, _ in prepared if all_in_front[index]])
             # back to front, so anti-aliased edges blend over what lies behind them
             prepared.sort(key=lambda item: -item[0])
             for _, index, polygon in prepared:
@@ -319,10 +319,9 @@ class Renderer:
         hidden = np.zeros(len(index), bool)
         for rows in surfaces.values():
             hull = cv2.convexHull(uv[rows].reshape(-1, 2).astype(np.float32)).reshape(-1, 2).astype(float)
-            hull_area = abs(cv2.contourArea(hull.astype(np.float32)))
-            tiled_area = sum(abs(cv2.contourArea(uv[r].astype(np.float32))) for r in rows)
-            if hull_area < 1.0 or tiled_area < hull_area * (1.0 - 1e-6):
-                continue  # the quads leave gaps in their hull
+            hull_area = _polygon_area(hull)
+            if hull_area < 1.0 or sum(_polygon_area(uv[r]) for r in rows) < hull_area * (1.0 - 1e-4):
+                continue  # the quads leave gaps in their hull (a missing tile: far more than 1e-4 of it)
             # signed distance of every corner p of every quad to every hull edge e from v:
             # d = (e x (p - v)) / |e|, (Q, 4 corners, E edges); one sign all round = inside
             e = np.roll(hull, -1, axis=0) - hull
@@ -424,6 +423,12 @@ def _warp_level(levels, level: int, blend: float, H0: np.ndarray, shift_roi: np.
         # trilinear: gain ((1 - b) level + b (level + 1)) + offset
         return cv2.addWeighted(warped, (1.0 - blend) * gain, warp(level + 1), blend * gain, offset, dtype=cv2.CV_32F)
     return cv2.addWeighted(warped, gain, warped, 0.0, offset, dtype=cv2.CV_32F)
+
+
+def _polygon_area(points: np.ndarray) -> float:
+    """Area of a simple polygon (K, 2) by the shoelace formula: 1/2 |sum x_i y_i+1 - x_i+1 y_i|."""
+    x, y = points[:, 0], points[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
 
 
 def _mip_levels(H_canvas_tex: np.ndarray, uv_polygon: np.ndarray, n_levels: int) -> tuple[int, float]:
