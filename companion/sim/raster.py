@@ -311,16 +311,24 @@ class Renderer:
         uv = projected[..., :2] / projected[..., 2:3]                    # (Q, 4, 2) canvas pixels
         unit_n = normals[index] / np.linalg.norm(normals[index], axis=1, keepdims=True)
         distance_m = plane_c[index] / np.linalg.norm(normals[index], axis=1)  # unit_n . X = distance_m
+        plane_keys = np.column_stack([np.round(unit_n, 6), np.round(distance_m, 5)]).tolist()
         surfaces: dict[tuple, list[int]] = {}
         for row, i in enumerate(index):
             if quads[i].texture.alpha_levels is None and abs(distance_m[row]) > NEAR_M:
-                key = (*np.round(unit_n[row], 6), round(float(distance_m[row]), 5))
-                surfaces.setdefault(key, []).append(row)
+                surfaces.setdefault(tuple(plane_keys[row]), []).append(row)
+        uv_min, uv_max = uv.min(axis=1), uv.max(axis=1)                  # (Q, 2) image bounding boxes
+        # shoelace: area = 1/2 |sum x_i y_i+1 - x_i+1 y_i|, (Q,)
+        uv_next = uv[:, [1, 2, 3, 0]]
+        area = 0.5 * np.abs(np.sum(uv[..., 0] * uv_next[..., 1] - uv_next[..., 0] * uv[..., 1], axis=1))
         hidden = np.zeros(len(index), bool)
         for rows in surfaces.values():
+            # a quad can only hide inside the surface's bounding box: most surfaces (a marker) hide none
+            if not np.any((uv_min >= uv_min[rows].min(axis=0)).all(axis=1)
+                          & (uv_max <= uv_max[rows].max(axis=0)).all(axis=1) & ~np.isin(np.arange(len(index)), rows)):
+                continue
             hull = cv2.convexHull(uv[rows].reshape(-1, 2).astype(np.float32)).reshape(-1, 2).astype(float)
             hull_area = _polygon_area(hull)
-            if hull_area < 1.0 or sum(_polygon_area(uv[r]) for r in rows) < hull_area * (1.0 - 1e-4):
+            if hull_area < 1.0 or area[rows].sum() < hull_area * (1.0 - 1e-4):
                 continue  # the quads leave gaps in their hull (a missing tile: far more than 1e-4 of it)
             # signed distance of every corner p of every quad to every hull edge e from v:
             # d = (e x (p - v)) / |e|, (Q, 4 corners, E edges); one sign all round = inside
@@ -428,7 +436,7 @@ def _warp_level(levels, level: int, blend: float, H0: np.ndarray, shift_roi: np.
 def _polygon_area(points: np.ndarray) -> float:
     """Area of a simple polygon (K, 2) by the shoelace formula: 1/2 |sum x_i y_i+1 - x_i+1 y_i|."""
     x, y = points[:, 0], points[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)))
+    return 0.5 * abs(float(x @ np.roll(y, -1) - np.roll(x, -1) @ y))
 
 
 def _mip_levels(H_canvas_tex: np.ndarray, uv_polygon: np.ndarray, n_levels: int) -> tuple[int, float]:
