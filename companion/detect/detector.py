@@ -171,7 +171,8 @@ class Detector:
         sigma_px = square_corner_sigma_px(fit.residual, _cell_px(corners_px, self.layout.inner_cells))
         if sigma_px is not None and not self._pattern_inside(corners_px, gray.shape):
             sigma_px *= CUT_SIGMA_FACTOR
-        return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px)
+        return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px,
+                       corner_cov_px2=_scaled_cov_px2(fit.corner_cov_px2 if fit.refined else None, sigma_px))
 
     def _pattern_inside(self, corners_px: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether the marker's whole printed grid lies inside the frame (the alignment saw all of it)."""
@@ -324,6 +325,17 @@ def square_corner_sigma_px(residual: float, cell_px: float) -> float | None:
     if not (np.isfinite(residual) and residual > 0):
         return None
     return float(SQUARE_SIGMA_PER_RESIDUAL * residual * np.cbrt(cell_px))
+
+
+def _scaled_cov_px2(cov_px2: np.ndarray | None, sigma_px: float | None) -> np.ndarray | None:
+    """The alignment's (8, 8) corner covariance (its correlations) at the calibrated scale: mean variance
+    sigma_px^2 (the alignment's own scale leaves out its misfit's spatial correlation); None if either is unknown."""
+    if cov_px2 is None or sigma_px is None or not np.all(np.isfinite(cov_px2)):
+        return None
+    mean_variance = float(np.trace(cov_px2)) / len(cov_px2)
+    if not mean_variance > 0:
+        return None
+    return cov_px2 * (sigma_px ** 2 / mean_variance)
 
 
 def circles_corner_sigma_px(rms_cells: float, cell_px: float) -> float | None:
