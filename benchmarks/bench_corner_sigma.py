@@ -79,11 +79,17 @@ def samples(condition: SceneCondition, path: str, scenes_per_band: int, seed: in
                 if t is None or d.path != path or d.corner_sigma_px is None or \
                         (path == "square" and not t.corners_visible.all()):
                     continue
-                constant = (detector_module.SQUARE_SIGMA_PER_RESIDUAL if path == "square"
-                            else detector_module.CIRCLES_SIGMA_PER_MISFIT)
+                constant = square_constant(d) if path == "square" else detector_module.CIRCLES_SIGMA_PER_MISFIT
                 found.append(Sample(d.corner_sigma_px / constant, d.corner_sigma_px, d.corners_px - t.corners_px,
                                     d.corner_cov_px2))
     return found
+
+
+def square_constant(detection) -> float:
+    """The square path's constant behind this detection's sigma: the alignment covariance's scale, or
+    (an alignment that did not hold) the misfit's."""
+    return (detector_module.SQUARE_COV_SCALE if detection.corner_cov_px2 is not None
+            else detector_module.SQUARE_SIGMA_PER_RESIDUAL)
 
 
 def row(name: str, found: list[Sample], constant: float) -> str:
@@ -91,13 +97,13 @@ def row(name: str, found: list[Sample], constant: float) -> str:
         return f"{name:<18} {0:>5}"
     errors = np.stack([s.errors_px for s in found])                   # (N, 4, 2)
     sigma = np.array([s.sigma_px for s in found])[:, None, None]
-    per_constant = sigma / constant                                  # sigma / k
+    ratio = float(np.sqrt(np.mean((errors / sigma) ** 2)))          # the honest k over the one in use
     # k_rms: sqrt(mean((error / (sigma / k))^2)) over every corner coordinate
-    k_rms = float(np.sqrt(np.mean((errors / per_constant) ** 2)))
+    k_rms = ratio * constant
     inside = float(np.mean(np.abs(errors / sigma) <= 2.0))
     error_rms = float(np.sqrt(np.mean(errors ** 2)))
     return (f"{name:<18} {len(found):>5} {error_rms:9.4f} {float(np.median(sigma)):9.4f} {k_rms:8.4f} "
-            f"{k_rms / constant:6.2f} {inside:8.1%}{joint(found)}")
+            f"{ratio:6.2f} {inside:8.1%}{joint(found)}")
 
 
 def joint(found: list[Sample]) -> str:
@@ -126,9 +132,12 @@ def main(argv: list[str] | None = None) -> int:
     circles_conditions = CIRCLES_CONDITIONS[:1] if args.quick else CIRCLES_CONDITIONS
     head = f"{'condition':<18} {'marks':>5} {'err_rms':>9} {'sigma_med':>9} {'k_rms':>8} {'k/used':>6} {'in 2 sig':>8}"
     joint_head = f" {'cov':>5} {'d2_diag':>7} {'in95':>6} {'d2_cov':>7} {'in95':>6}"
-    for path, conditions, constant in (("square", square_conditions, detector_module.SQUARE_SIGMA_PER_RESIDUAL),
+    for path, conditions, constant in (("square", square_conditions, detector_module.SQUARE_COV_SCALE),
                                        ("circles", circles_conditions, detector_module.CIRCLES_SIGMA_PER_MISFIT)):
-        print(f"\n{path} path: sigma = k x feature, k in use {constant} "
+        what = ("k^2 x the alignment's (8, 8) corner covariance (sigma: its mean variance's root; "
+                f"k {detector_module.SQUARE_SIGMA_PER_RESIDUAL} x the misfit where the alignment did not hold)"
+                if path == "square" else "sigma = k x feature")
+        print(f"\n{path} path: {what}, k in use {constant} "
               f"(err_rms, sigma_med: px per corner coordinate; k_rms: the honest k for the condition)")
         if path == "square":
             print("  4 corners together: cov detections with corner_cov_px2; d2 = e^T Sigma^-1 e (8 coordinates; "

@@ -147,8 +147,9 @@ class MarkerFit:
         the template points read, through corner = H(model corner). The four
         corners come from one homography, so their errors are strongly
         correlated. The misfit's spatial correlation (blur, interpolation) is
-        not in it: its scale is a model value, its shape (the correlations)
-        is what the pose stage needs. None when ``refined`` is False.
+        not in it: the detector scales it by a constant calibrated on
+        rendered truth (``detector.SQUARE_COV_SCALE``). None when
+        ``refined`` is False.
     """
 
     corners_px: np.ndarray

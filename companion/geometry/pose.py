@@ -655,12 +655,12 @@ class PoseSolver:
         for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
             markers = np.flatnonzero(points.counts == count)
             noise = np.stack([points.noise_px2(m) for m in markers])
-            # the smallest variance of the points' own noise: no direction of Sigma is surer than that
-            floor = np.linalg.eigvalsh(noise)[:, :1]
-            sigma = noise
+            sigma, floor = noise, 0.0
             if map_error:
                 g = np.stack([G[points.starts[m]:points.starts[m] + count].reshape(2 * count, 6) for m in markers])
                 sigma = noise + (g * S) @ g.transpose(0, 2, 1)
+                # the smallest variance of the points' own noise: no direction of Sigma is surer than that
+                floor = np.linalg.eigvalsh(noise)[:, :1] if points.correlated else points.sigma_px[markers, None] ** 2
             # Sigma = N + G S G^T = V diag(l) V^T; Sigma^-1/2 = V diag(l^-1/2) V^T (l >= the floor: a
             # point behind the camera of a wild hypothesis gives a huge G, and Cholesky would fail)
             values, vectors = np.linalg.eigh(sigma)
