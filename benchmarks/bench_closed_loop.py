@@ -16,6 +16,10 @@ the pipeline is the baseline, the render's cost is stated as its ratio),
 capture -> send latency, our estimate against the stand-in's truth at each
 capture time, and the longest gap between vision messages (wall clock, and
 in frames). The machine is shared: the load average is printed with them.
+Then the render alone (no flight): the simulated camera's render and
+degradations of config/sitl-camera.yaml's warehouse at poses around its 2 m
+square, median CPU time (time.process_time: the machine is loaded) and wall
+time per frame.
 """
 from __future__ import annotations
 
@@ -23,6 +27,7 @@ import argparse
 import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +36,10 @@ import common
 
 sys.path.insert(0, str(common.REPO / "tests"))
 from closed_loop_harness import ClosedLoop, judge_flight  # noqa: E402
+from test_render_reference import vehicle_state  # noqa: E402
+
+from companion.capture.simulated import SimulatedCamera  # noqa: E402
+from companion.daemon.config import load_config  # noqa: E402
 
 TARGET_FPS = 20.0
 
@@ -67,6 +76,26 @@ def table(rows: list[dict]) -> None:
               f"{r['longest_unsent_frames']:6d} {'met' if r['fps'] >= TARGET_FPS else 'not met':>8}")
 
 
+def render_only(config_path: Path, n_frames: int = 60) -> None:
+    """The simulated camera's render + degradations alone, at n_frames poses around the config's 2 m square."""
+    config = load_config(config_path)
+    camera = SimulatedCamera(config.facility_map, config.camera, config.source.params)
+    # (x, y) offsets from the start along the square's perimeter, 8 m in all
+    perimeter = [np.array(corner, float) for corner in ((-1, -1), (1, -1), (1, 1), (-1, 1), (-1, -1))]
+    offsets = [perimeter[int(4 * k / n_frames)] + (4 * k / n_frames % 1)
+               * (perimeter[int(4 * k / n_frames) + 1] - perimeter[int(4 * k / n_frames)]) for k in range(n_frames)]
+    cpu_ms, wall_ms = [], []
+    for index, offset in enumerate(offsets):
+        state = vehicle_state(config, offset, index)
+        cpu0, wall0 = time.process_time(), time.perf_counter()
+        camera._render(state, index)
+        cpu_ms.append((time.process_time() - cpu0) * 1e3)
+        wall_ms.append((time.perf_counter() - wall0) * 1e3)
+    print(f"render only ({config_path.name}, {camera.camera.width}x{camera.camera.height}, {n_frames} poses): "
+          f"CPU {np.median(cpu_ms):.1f} ms p95 {np.percentile(cpu_ms, 95):.1f}, "
+          f"wall {np.median(wall_ms):.1f} ms p95 {np.percentile(wall_ms, 95):.1f} per frame")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smoke test: the test hall's 2 m square only")
@@ -75,6 +104,7 @@ def main() -> None:
                [("test hall, 4 m square", 4.0, None),
                 ("warehouse (sitl-camera), 2 m", 2.0, common.REPO / "config" / "sitl-camera.yaml")])
     table([fly(*flight) for flight in flights])
+    render_only(common.REPO / "config" / "sitl-camera.yaml")
 
 
 if __name__ == "__main__":

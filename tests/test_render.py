@@ -186,6 +186,32 @@ def test_nearest_quad_wins_whatever_the_order():
         assert rendering.label[H // 2, W // 2] == near_index
 
 
+def flat_quad(x0, x1, y0, y1, z, level) -> raster.TexturedQuad:
+    """A plain quad facing the camera at depth z (camera frame), x0..x1 by y0..y1 metres."""
+    corners = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]])
+    return raster.TexturedQuad(corners, raster.make_texture(np.full((16, 16), level, np.uint8)))
+
+
+def test_what_a_tiled_wall_hides_is_skipped_and_what_it_does_not_is_drawn():
+    """A wall of three tiles at 2 m hides a panel behind it; the panel shows wherever the wall does not cover
+    it: through a missing tile, beyond the wall's edge, or when it stands in front."""
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
+    tiles = [flat_quad(x, x + 0.4, -0.4, 0.4, 2.0, 90) for x in (-0.6, -0.2, 0.2)]
+    # the panel at 4 m: inside the wall's image (the wall spans +-0.3 x +-0.2 of depth there, scaled by 2)
+    behind = flat_quad(-0.8, 0.8, -0.5, 0.5, 4.0, 220)
+    whole = renderer.render(tiles + [behind], np.eye(4))
+    assert 3 not in whole.label and not np.any(whole.image == 220)
+    # the middle tile missing: the panel shows through the gap
+    gap = renderer.render([tiles[0], tiles[2], behind], np.eye(4))
+    assert gap.label[H // 2, W // 2] == 2 and gap.image[H // 2, W // 2] == 220
+    # a panel a little wider than the wall: its rim shows at both sides
+    wider = renderer.render(tiles + [flat_quad(-1.3, 1.3, -0.5, 0.5, 4.0, 220)], np.eye(4))
+    assert np.count_nonzero(wider.label == 3) > 100
+    # the panel in front of the wall: drawn over it
+    front = renderer.render(tiles + [flat_quad(-0.2, 0.2, -0.1, 0.1, 1.0, 220)], np.eye(4))
+    assert front.label[H // 2, W // 2] == 3
+
+
 def test_one_sided_quad_is_culled_from_behind():
     renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), [], W, H)
     texture = raster.aruco_marker_texture(ARUCO, 1)

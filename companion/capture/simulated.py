@@ -360,7 +360,7 @@ class SimulatedCamera(ThreadedSource):
         started = time.perf_counter_ns()
         T_camera_map = self._T_camera_map(state.T_ned_body())
         quads = self._quads_in_view(T_camera_map) + self._occluder_quads(state.t_ns * 1e-9, T_camera_map)
-        rendering = self._renderer.render(quads, T_camera_map, background=40.0)
+        rendering = self._renderer.render(quads, T_camera_map, background=40.0, labels=False)
         degradations = self.params.degradations.at(state.t_ns * 1e-9, self.params.seed)
         motion = self._image_motion_px(state, T_camera_map) if degradations.motion_blur else None
         rng = np.random.default_rng([self.params.seed, index])

@@ -7,6 +7,7 @@ both use it). Everything random takes a ``numpy.random.Generator``.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields, replace
 
@@ -62,9 +63,25 @@ def sensor_noise(image: np.ndarray, rng: np.random.Generator, read_noise_dn: flo
     read-out noise), then rounded and clipped to 0..255.
     """
     signal = image.astype(np.float32)
-    sigma = np.sqrt(np.float32(read_noise_dn) ** 2 + np.float32(shot_noise_gain) * signal)
-    noisy = signal + sigma * rng.standard_normal(image.shape, dtype=np.float32)
-    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+    _add_noise(signal, rng, read_noise_dn, shot_noise_gain)
+    return _to_uint8(signal)
+
+
+def _add_noise(signal: np.ndarray, rng: np.random.Generator, read_noise_dn: float, shot_noise_gain: float) -> None:
+    """sensor_noise on an (H, W) float32 signal, in place (before rounding)."""
+    # sigma = sqrt(read^2 + gain I)
+    sigma = signal * np.float32(shot_noise_gain)
+    sigma += np.float32(read_noise_dn) ** 2
+    np.sqrt(sigma, out=sigma)
+    sigma *= rng.standard_normal(signal.shape, dtype=np.float32)
+    signal += sigma
+
+
+def _to_uint8(signal: np.ndarray) -> np.ndarray:
+    """(H, W) uint8: the float32 signal rounded and clipped to 0..255 (in place, then converted)."""
+    np.rint(signal, out=signal)
+    np.clip(signal, 0, 255, out=signal)
+    return signal.astype(np.uint8)
 
 
 def exposure(image: np.ndarray, gain: float, black_level_dn: float = 0.0) -> np.ndarray:
@@ -93,10 +110,18 @@ def jpeg(image: np.ndarray, quality: int) -> np.ndarray:
 
 def vignette(image: np.ndarray, strength: float) -> np.ndarray:
     """Darker corners: I * (1 - strength r^2), r = distance from the centre over the half diagonal."""
-    h, w = image.shape
+    return np.clip(np.rint(image * vignette_gain(image.shape, strength)), 0, 255).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=8)
+def vignette_gain(shape: tuple[int, int], strength: float) -> np.ndarray:
+    """(H, W) float32 read-only: 1 - strength r^2 (see ``vignette``), made once per image size."""
+    h, w = shape
     ys, xs = np.ogrid[:h, :w]
     r2 = ((xs - (w - 1) / 2) ** 2 + (ys - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
-    return np.clip(np.rint(image * (1.0 - strength * r2)), 0, 255).astype(np.uint8)
+    gain = (1.0 - strength * r2).astype(np.float32)
+    gain.flags.writeable = False
+    return gain
 
 
 def exposure_wander_gain(t_s: float, amplitude: float, seed: int) -> float:
@@ -181,15 +206,24 @@ class Degradations:
             out = motion_blur(out, math.hypot(*motion_px), math.atan2(motion_px[1], motion_px[0]))
         if self.optics_blur_sigma_px > 0:
             out = gaussian_blur(out, self.optics_blur_sigma_px)
-        if self.exposure_gain != 1.0:
-            out = exposure(out, self.exposure_gain)
-        if self.vignette_strength > 0:
-            out = vignette(out, self.vignette_strength)
-        if self.read_noise_dn > 0 or self.shot_noise_gain > 0:
-            out = sensor_noise(out, rng, self.read_noise_dn, self.shot_noise_gain)
+        noisy = self.read_noise_dn > 0 or self.shot_noise_gain > 0
+        if self.exposure_gain != 1.0 or self.vignette_strength > 0 or noisy:
+            out = self._expose_and_sense(out, rng, noisy)
         if self.jpeg_quality > 0:
             out = jpeg(out, self.jpeg_quality)
         return out if out is not image else image.copy()
+
+    def _expose_and_sense(self, image: np.ndarray, rng: np.random.Generator, noisy: bool) -> np.ndarray:
+        """exposure, vignette and sensor_noise as one float32 signal, rounded once at the end."""
+        signal = image.astype(np.float32)
+        if self.exposure_gain != 1.0:
+            signal *= np.float32(self.exposure_gain)
+            np.minimum(signal, 255.0, out=signal)  # bright areas saturate before the lens darkens the corners
+        if self.vignette_strength > 0:
+            signal *= vignette_gain(image.shape, self.vignette_strength)
+        if noisy:
+            _add_noise(signal, rng, self.read_noise_dn, self.shot_noise_gain)
+        return _to_uint8(signal)
 
     def with_(self, **changes) -> "Degradations":
         return replace(self, **changes)

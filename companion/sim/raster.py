@@ -37,6 +37,8 @@ NEAR_M = 0.02  # near clipping plane: nothing closer to the camera is drawn
 MIN_MIP_SIZE_PX = 4
 MIP_BIAS = 0.0  # > 0 picks coarser levels: less aliasing, more blur
 MARKER_LIFT_M = 0.001  # a marker sits this far in front of its backing board
+OCCLUSION_DEPTH_M = 1e-5  # a quad this far behind an opaque surface, in its image, is hidden by it
+OCCLUSION_MARGIN_PX = 2.0  # a hidden quad stays this far inside its occluder's edges (anti-aliasing: 1 px)
 
 
 class RenderError(ValueError):
@@ -152,11 +154,11 @@ class Rendering:
 
     image: (H, W) uint8.
     label: (H, W) int32, index of the quad covering each pixel in the list
-        given to ``Renderer.render`` (-1: background).
+        given to ``Renderer.render`` (-1: background); None if not asked for.
     """
 
     image: np.ndarray
-    label: np.ndarray
+    label: np.ndarray | None
 
 
 class Renderer:
@@ -245,12 +247,13 @@ class Renderer:
     # ------------------------------------------------------------- drawing
 
     def render(self, quads: Sequence[TexturedQuad], T_camera_world: np.ndarray,
-               background: np.ndarray | float = 0.0) -> Rendering:
+               background: np.ndarray | float = 0.0, labels: bool = True) -> Rendering:
         """Draw the quads (nearest wins, per pixel) over a background.
 
         T_camera_world: (4, 4) world -> OpenCV camera.
         background: a gray level, or an (H, W) uint8 image (the output size;
         it is laid into the canvas, stretched if the lens distorts).
+        labels: False leaves out the label image (ground truth), which costs a pass per quad and a remap.
         """
         cw, ch = self.canvas_size
         if np.isscalar(background):
@@ -261,25 +264,86 @@ class Renderer:
                 raise RenderError(f"background must be {(self.height, self.width)}, got {bg.shape}")
             color = cv2.resize(bg, (cw, ch), interpolation=cv2.INTER_LINEAR).astype(np.float32)
         inv_depth = np.zeros((ch, cw), np.float32)
-        label = np.full((ch, cw), -1, np.int32)
-
-        prepared = []
-        for index, quad in enumerate(quads):
-            corners_cam = frames.transform_points(T_camera_world, quad.corners_world)
-            if not quad.two_sided and not _faces_camera(corners_cam):
-                continue
-            polygon = clip_polygon_near(corners_cam, NEAR_M)
-            if len(polygon) < 3:
-                continue
-            depth = float(np.mean(polygon[:, 2]))
-            prepared.append((depth, index, quad, corners_cam, polygon))
-        # back to front, so anti-aliased edges blend over what lies behind them
-        prepared.sort(key=lambda item: -item[0])
-        for _, index, quad, corners_cam, polygon in prepared:
-            self._draw_quad(color, inv_depth, label, index, quad, corners_cam, polygon)
+        label = np.full((ch, cw), -1, np.int32) if labels else None
+        if len(quads) > 0:
+            # every quad's corners in the camera frame at once: (Q, 4, 3)
+            corners_cam = (np.stack([quad.corners_world for quad in quads]) @ T_camera_world[:3, :3].T
+                           + T_camera_world[:3, 3])
+            tl, tr, bl = corners_cam[:, 0], corners_cam[:, 1], corners_cam[:, 3]
+            # the plane n . X = c of each quad, n = a x b (a = TL->TR, b = TL->BL); c > 0: its front
+            # (TL -> TR -> BR clockwise in the image, front normal b x a) faces the camera
+            normals = np.cross(tr - tl, bl - tl)
+            plane_c = np.einsum("qi,qi->q", normals, tl)
+            all_in_front = (corners_cam[:, :, 2] >= NEAR_M).all(axis=1)
+            prepared = []
+            for index, quad in enumerate(quads):
+                if not quad.two_sided and not plane_c[index] > 0.0:
+                    continue
+                polygon = corners_cam[index] if all_in_front[index] else clip_polygon_near(corners_cam[index])
+                if len(polygon) < 3:
+                    continue
+                prepared.append((float(polygon[:, 2].mean()), index, polygon))
+            hidden = self._hidden_behind_occluders(quads, corners_cam, normals, plane_c,
+                                                   [index for _, index, _ in prepared if all_in_front[index]])
+            # back to front, so anti-aliased edges blend over what lies behind them
+            prepared.sort(key=lambda item: -item[0])
+            for _, index, polygon in prepared:
+                if index in hidden:
+                    continue
+                self._draw_quad(color, inv_depth, label, index, quads[index], corners_cam[index], polygon,
+                                normals[index], plane_c[index])
         return self._finish(color, label)
 
-    def _draw_quad(self, color, inv_depth, label, index, quad, corners_cam, polygon) -> None:
+    def _hidden_behind_occluders(self, quads, corners_cam, normals, plane_c, candidates: list[int]) -> set[int]:
+        """Indices of quads that cannot show, so need not be drawn: each lies wholly behind an opaque plane
+        surface, and its image wholly inside that surface's image, away from its anti-aliased edge. That surface
+        paints over every pixel they would reach (or they would fail the depth test there): skipping them
+        changes nothing. A surface is the coplanar opaque quads of the list that tile a convex polygon (a
+        wall, a rack face in tiles).
+
+        candidates: quads in front of the near plane (4 corners each), not culled.
+        """
+        if len(candidates) < 2:
+            return set()
+        index = np.asarray(candidates)
+        corners = corners_cam[index]                                     # (Q, 4, 3)
+        projected = corners @ self.canvas_K.T
+        uv = projected[..., :2] / projected[..., 2:3]                    # (Q, 4, 2) canvas pixels
+        unit_n = normals[index] / np.linalg.norm(normals[index], axis=1, keepdims=True)
+        distance_m = plane_c[index] / np.linalg.norm(normals[index], axis=1)  # unit_n . X = distance_m
+        plane_keys = np.column_stack([np.round(unit_n, 6), np.round(distance_m, 5)]).tolist()
+        surfaces: dict[tuple, list[int]] = {}
+        for row, i in enumerate(index):
+            if quads[i].texture.alpha_levels is None and abs(distance_m[row]) > NEAR_M:
+                surfaces.setdefault(tuple(plane_keys[row]), []).append(row)
+        uv_min, uv_max = uv.min(axis=1), uv.max(axis=1)                  # (Q, 2) image bounding boxes
+        # shoelace: area = 1/2 |sum x_i y_i+1 - x_i+1 y_i|, (Q,)
+        uv_next = uv[:, [1, 2, 3, 0]]
+        area = 0.5 * np.abs(np.sum(uv[..., 0] * uv_next[..., 1] - uv_next[..., 0] * uv[..., 1], axis=1))
+        hidden = np.zeros(len(index), bool)
+        for rows in surfaces.values():
+            # a quad can only hide inside the surface's bounding box: most surfaces (a marker) hide none
+            if not np.any((uv_min >= uv_min[rows].min(axis=0)).all(axis=1)
+                          & (uv_max <= uv_max[rows].max(axis=0)).all(axis=1) & ~np.isin(np.arange(len(index)), rows)):
+                continue
+            hull = cv2.convexHull(uv[rows].reshape(-1, 2).astype(np.float32)).reshape(-1, 2).astype(float)
+            hull_area = _polygon_area(hull)
+            if hull_area < 1.0 or area[rows].sum() < hull_area * (1.0 - 1e-4):
+                continue  # the quads leave gaps in their hull (a missing tile: far more than 1e-4 of it)
+            # signed distance of every corner p of every quad to every hull edge e from v:
+            # d = (e x (p - v)) / |e|, (Q, 4 corners, E edges); one sign all round = inside
+            e = np.roll(hull, -1, axis=0) - hull
+            rel = uv[:, :, None, :] - hull[None, None]
+            d = (e[..., 0] * rel[..., 1] - e[..., 1] * rel[..., 0]) / np.maximum(np.linalg.norm(e, axis=1), 1e-12)
+            inside = (d >= OCCLUSION_MARGIN_PX).all(axis=(1, 2)) | (d <= -OCCLUSION_MARGIN_PX).all(axis=(1, 2))
+            # behind: every corner beyond the plane n . X = c, on the side away from the camera (the origin)
+            row = rows[0]
+            beyond_m = (corners @ unit_n[row] - distance_m[row]) * np.sign(distance_m[row])  # (Q, 4)
+            hidden |= inside & (beyond_m > OCCLUSION_DEPTH_M).all(axis=1)
+        return set(index[hidden].tolist())
+
+    def _draw_quad(self, color, inv_depth, label, index, quad, corners_cam, polygon, normal, plane_c) -> None:
+        """Blend one quad into the canvas where it is nearer than what is there; each step one pass over its ROI."""
         cw, ch = self.canvas_size
         # ideal projection of the clipped polygon: u = K p / z
         projected = polygon @ self.canvas_K.T
@@ -290,7 +354,9 @@ class Renderer:
         y1 = min(int(math.ceil(uv[:, 1].max())) + 2, ch)
         if x1 <= x0 or y1 <= y0:
             return
-        roi_w, roi_h = x1 - x0, y1 - y0
+        if abs(plane_c) < 1e-12 * float(np.linalg.norm(normal)):
+            return  # seen exactly edge-on
+        roi_size = (x1 - x0, y1 - y0)
 
         tex_w, tex_h = quad.texture.size_px
         tl, tr, _, bl = corners_cam
@@ -300,78 +366,77 @@ class Renderer:
         H0 = self.canvas_K @ np.column_stack([a / tex_w, b / tex_h, tl + a / (2 * tex_w) + b / (2 * tex_h)])
         level, blend = _mip_levels(H0, uv, len(quad.texture.levels))
         shift_roi = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
-        warped = self._warp_level(quad.texture.levels, level, blend, H0, shift_roi, (roi_w, roi_h),
-                                  cv2.BORDER_REPLICATE)
+        # shade = texture * gain + offset, trilinear between two mip levels
+        shade = _warp_level(quad.texture.levels, level, blend, H0, shift_roi, roi_size, cv2.BORDER_REPLICATE,
+                            quad.gain, quad.offset)
 
-        coverage = np.zeros((roi_h, roi_w), np.uint8)
+        coverage = np.zeros(roi_size[::-1], np.uint8)
         shift = 4
         points = np.round((uv - [x0, y0]) * (1 << shift)).astype(np.int32)
         cv2.fillConvexPoly(coverage, points, 255, lineType=cv2.LINE_AA, shift=shift)
-        alpha = coverage.astype(np.float32) * (1.0 / 255.0)
+        alpha = np.multiply(coverage, np.float32(1.0 / 255.0), dtype=np.float32)
         if quad.texture.alpha_levels is not None:
-            warped_alpha = self._warp_level(quad.texture.alpha_levels, level, blend, H0, shift_roi,
-                                            (roi_w, roi_h), cv2.BORDER_CONSTANT)
-            alpha *= warped_alpha * np.float32(1.0 / 255.0)
+            alpha *= _warp_level(quad.texture.alpha_levels, level, blend, H0, shift_roi, roi_size,
+                                 cv2.BORDER_CONSTANT, 1.0 / 255.0, 0.0)
 
-        # plane n.X = c in the camera frame; along the ray X = z K^-1 [u, v, 1]:
+        # along the ray X = z K^-1 [u, v, 1] the plane n.X = c gives
         # 1/z = n . K^-1 [u, v, 1] / c, affine in (u, v)
-        normal = np.cross(a, b)
-        c = float(normal @ tl)
-        if abs(c) < 1e-12 * float(np.linalg.norm(normal)):
-            return  # seen exactly edge-on
-        A, B, C = (normal @ self._canvas_K_inv) / c
+        A, B, C = (normal @ self._canvas_K_inv) / plane_c
         xs = np.arange(x0, x1, dtype=np.float32)
         ys = np.arange(y0, y1, dtype=np.float32)
-        quad_inv_depth = (np.float32(A) * xs[None, :] + np.float32(B) * ys[:, None]
-                          + np.float32(C))
+        quad_inv_depth = np.float32(A) * xs[None, :] + np.float32(B) * ys[:, None]
+        quad_inv_depth += np.float32(C)
 
         roi = (slice(y0, y1), slice(x0, x1))
-        in_front = (alpha > 0.0) & (quad_inv_depth > inv_depth[roi])
-        alpha = np.where(in_front, alpha, 0.0)
-        shade = warped * np.float32(quad.gain) + np.float32(quad.offset)
-        color[roi] += alpha * (shade - color[roi])
-        solid = in_front & (alpha >= 0.5)
-        inv_depth[roi][solid] = quad_inv_depth[solid]
-        label[roi][solid] = index
+        color_roi, inv_depth_roi = color[roi], inv_depth[roi]
+        # alpha: the coverage where the quad is nearer than what is drawn, 0 elsewhere
+        alpha *= quad_inv_depth > inv_depth_roi
+        # color += alpha (shade - color), in place
+        shade -= color_roi
+        shade *= alpha
+        color_roi += shade
+        solid = alpha >= 0.5
+        np.copyto(inv_depth_roi, quad_inv_depth, where=solid)
+        if label is not None:
+            np.copyto(label[roi], index, where=solid)
 
-    @staticmethod
-    def _warp_level(levels, level: int, blend: float, H0: np.ndarray, shift_roi: np.ndarray, size,
-                    border: int) -> np.ndarray:
-        """(h, w) float32: mip ``level`` warped into the ROI, mixed with the next level by ``blend``."""
-        def warp(k: int) -> np.ndarray:
-            s = 2.0 ** k
-            # cv2.pyrDown centres level-k texel x_k on level-0 texel x_0 = 2^k x_k
-            H = shift_roi @ H0 @ np.diag([s, s, 1.0])
-            return cv2.warpPerspective(levels[k], H, size, flags=cv2.INTER_LINEAR, borderMode=border,
-                                       borderValue=0).astype(np.float32)
-
-        warped = warp(level)
-        if blend > 0.0:
-            # trilinear: (1 - b) level + b (level + 1)
-            warped += np.float32(blend) * (warp(level + 1) - warped)
-        return warped
-
-    def _finish(self, color: np.ndarray, label: np.ndarray) -> Rendering:
+    def _finish(self, color: np.ndarray, label: np.ndarray | None) -> Rendering:
         s = self.supersample
         if s > 1:
             h, w = color.shape
             color = cv2.resize(color, (w // s, h // s), interpolation=cv2.INTER_AREA)
-            label = np.ascontiguousarray(label[s // 2::s, s // 2::s][: h // s, : w // s])
+            if label is not None:
+                label = np.ascontiguousarray(label[s // 2::s, s // 2::s][: h // s, : w // s])
         if self._undistort_map is not None:
             color = cv2.remap(color, self._undistort_map, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            label = cv2.remap(label.astype(np.float32), self._undistort_map, None, cv2.INTER_NEAREST,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=-1).astype(np.int32)
-        image = np.clip(np.rint(color), 0, 255).astype(np.uint8)
-        return Rendering(image=image, label=label)
+            if label is not None:
+                label = cv2.remap(label.astype(np.float32), self._undistort_map, None, cv2.INTER_NEAREST,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=-1).astype(np.int32)
+        np.rint(color, out=color)
+        np.clip(color, 0, 255, out=color)
+        return Rendering(image=color.astype(np.uint8), label=label)
 
 
-def _faces_camera(corners_cam: np.ndarray) -> bool:
-    """True if the quad's front (TL -> TR -> BR clockwise in the image) faces the camera."""
-    tl, tr, _, bl = corners_cam
-    # the front normal is b x a (a = TL->TR, b = TL->BL); it points at the camera
-    # (origin) when n . (0 - tl) > 0
-    front = np.cross(bl - tl, tr - tl)
-    return float(front @ -tl) > 0.0
+def _warp_level(levels, level: int, blend: float, H0: np.ndarray, shift_roi: np.ndarray, size, border: int,
+                gain: float, offset: float) -> np.ndarray:
+    """(h, w) float32: gain * (mip ``level`` warped into the ROI, mixed with the next level by ``blend``) + offset."""
+    def warp(k: int) -> np.ndarray:
+        s = 2.0 ** k
+        # cv2.pyrDown centres level-k texel x_k on level-0 texel x_0 = 2^k x_k
+        H = shift_roi @ H0 @ np.diag([s, s, 1.0])
+        return cv2.warpPerspective(levels[k], H, size, flags=cv2.INTER_LINEAR, borderMode=border, borderValue=0)
+
+    warped = warp(level)
+    if blend > 0.0:
+        # trilinear: gain ((1 - b) level + b (level + 1)) + offset
+        return cv2.addWeighted(warped, (1.0 - blend) * gain, warp(level + 1), blend * gain, offset, dtype=cv2.CV_32F)
+    return cv2.addWeighted(warped, gain, warped, 0.0, offset, dtype=cv2.CV_32F)
+
+
+def _polygon_area(points: np.ndarray) -> float:
+    """Area of a simple polygon (K, 2) by the shoelace formula: 1/2 |sum x_i y_i+1 - x_i+1 y_i|."""
+    x, y = points[:, 0], points[:, 1]
+    return 0.5 * abs(float(x @ np.roll(y, -1) - np.roll(x, -1) @ y))
 
 
 def _mip_levels(H_canvas_tex: np.ndarray, uv_polygon: np.ndarray, n_levels: int) -> tuple[int, float]:
