@@ -4,10 +4,13 @@
 points by. The detector computes it from what it measured
 (``companion.detect.detector``):
 
-* square path: ``sigma_px = k_square residual cell_px^(1/3)``, the
-  whole-pattern alignment's misfit (``MarkerFit.residual``, a share of the
-  marker's contrast) and the marker's cell size in pixels; times
-  ``CUT_SIGMA_FACTOR`` when the frame's border cuts the marker's grid;
+* square path: ``corner_cov_px2 = k_square^2`` times the whole-pattern
+  alignment's own (8, 8) corner covariance (``MarkerFit.corner_cov_px2``),
+  ``sigma_px`` the root of its mean variance (where the alignment did not
+  hold: ``0.043 residual cell_px^(1/3)``, its misfit); times
+  ``CUT_SIGMA_FACTOR`` when the frame's border cuts the marker's grid. The
+  four corners' errors together are also scored against sigma^2 I and
+  against the covariance (d^2 with 8 degrees of freedom);
 * circles path: ``sigma_px = k_circles rms_cells cell_px``, the RMS misfit
   of the edge-refined homography.
 
