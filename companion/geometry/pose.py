@@ -9,7 +9,9 @@ the reason in ``status``). The steps:
    points against image points. Each point's noise is the detection's own
    ``corner_sigma_px`` (what the detector measured), else
    ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` added in
-   quadrature; the map's own error (``map_sd_m``, ``map_sd_deg``) moves all
+   quadrature; the four corners' joint (8, 8) covariance where the detection
+   states one (``Detection.corner_cov_px2``: the square path's corners come
+   from one alignment, their errors correlated); the map's own error (``map_sd_m``, ``map_sd_deg``) moves all
    of a marker's points together, so a marker's errors are weighed by the
    inverse of their joint covariance. Every squared error below is in those
    units (chi-square).
