@@ -4,10 +4,13 @@
 points by. The detector computes it from what it measured
 (``companion.detect.detector``):
 
-* square path: ``sigma_px = k_square residual cell_px^(1/3)``, the
-  whole-pattern alignment's misfit (``MarkerFit.residual``, a share of the
-  marker's contrast) and the marker's cell size in pixels; times
-  ``CUT_SIGMA_FACTOR`` when the frame's border cuts the marker's grid;
+* square path: ``corner_cov_px2 = k_square^2`` times the whole-pattern
+  alignment's own (8, 8) corner covariance (``MarkerFit.corner_cov_px2``),
+  ``sigma_px`` the root of its mean variance (where the alignment did not
+  hold: ``0.043 residual cell_px^(1/3)``, its misfit); times
+  ``CUT_SIGMA_FACTOR`` when the frame's border cuts the marker's grid. The
+  four corners' errors together are also scored against sigma^2 I and
+  against the covariance (d^2 with 8 degrees of freedom);
 * circles path: ``sigma_px = k_circles rms_cells cell_px``, the RMS misfit
   of the edge-refined homography.
 
@@ -33,6 +36,7 @@ import sys
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 
 import common  # noqa: F401  (puts the working tree's companion first)
 from companion.detect import detector as detector_module
@@ -58,6 +62,7 @@ class Sample:
     feature: float
     sigma_px: float
     errors_px: np.ndarray
+    cov_px2: np.ndarray | None = None
 
 
 def samples(condition: SceneCondition, path: str, scenes_per_band: int, seed: int, index: int) -> list[Sample]:
@@ -77,10 +82,17 @@ def samples(condition: SceneCondition, path: str, scenes_per_band: int, seed: in
                 if t is None or d.path != path or d.corner_sigma_px is None or \
                         (path == "square" and not t.corners_visible.all()):
                     continue
-                constant = (detector_module.SQUARE_SIGMA_PER_RESIDUAL if path == "square"
-                            else detector_module.CIRCLES_SIGMA_PER_MISFIT)
-                found.append(Sample(d.corner_sigma_px / constant, d.corner_sigma_px, d.corners_px - t.corners_px))
+                constant = square_constant(d) if path == "square" else detector_module.CIRCLES_SIGMA_PER_MISFIT
+                found.append(Sample(d.corner_sigma_px / constant, d.corner_sigma_px, d.corners_px - t.corners_px,
+                                    d.corner_cov_px2))
     return found
+
+
+def square_constant(detection) -> float:
+    """The square path's constant behind this detection's sigma: the alignment covariance's scale, or
+    (an alignment that did not hold) the misfit's."""
+    return (detector_module.SQUARE_COV_SCALE if detection.corner_cov_px2 is not None
+            else detector_module.SQUARE_SIGMA_PER_RESIDUAL)
 
 
 def row(name: str, found: list[Sample], constant: float) -> str:
@@ -88,13 +100,28 @@ def row(name: str, found: list[Sample], constant: float) -> str:
         return f"{name:<18} {0:>5}"
     errors = np.stack([s.errors_px for s in found])                   # (N, 4, 2)
     sigma = np.array([s.sigma_px for s in found])[:, None, None]
-    per_constant = sigma / constant                                  # sigma / k
+    ratio = float(np.sqrt(np.mean((errors / sigma) ** 2)))          # the honest k over the one in use
     # k_rms: sqrt(mean((error / (sigma / k))^2)) over every corner coordinate
-    k_rms = float(np.sqrt(np.mean((errors / per_constant) ** 2)))
+    k_rms = ratio * constant
     inside = float(np.mean(np.abs(errors / sigma) <= 2.0))
     error_rms = float(np.sqrt(np.mean(errors ** 2)))
     return (f"{name:<18} {len(found):>5} {error_rms:9.4f} {float(np.median(sigma)):9.4f} {k_rms:8.4f} "
-            f"{k_rms / constant:6.2f} {inside:8.1%}")
+            f"{ratio:6.2f} {inside:8.1%}{joint(found)}")
+
+
+def joint(found: list[Sample]) -> str:
+    """The four corners' errors together (8 coordinates) against sigma^2 I and against the detection's
+    (8, 8) ``corner_cov_px2``: median d^2 (honest 7.34) and the share inside the 95 % ellipsoid."""
+    with_cov = [s for s in found if s.cov_px2 is not None]
+    if not with_cov:
+        return ""
+    errors = np.stack([s.errors_px.reshape(8) for s in with_cov])
+    # d^2 = e^T Sigma^-1 e
+    d2_diagonal = np.sum(errors ** 2, axis=1) / np.array([s.sigma_px for s in with_cov]) ** 2
+    d2_joint = np.array([e @ np.linalg.solve(s.cov_px2, e) for e, s in zip(errors, with_cov)])
+    limit = chi2.ppf(0.95, 8)
+    return (f" {len(with_cov):>5} {np.median(d2_diagonal):7.2f} {np.mean(d2_diagonal <= limit):6.1%}"
+            f" {np.median(d2_joint):7.2f} {np.mean(d2_joint <= limit):6.1%}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -107,11 +134,18 @@ def main(argv: list[str] | None = None) -> int:
     square_conditions = SQUARE_CONDITIONS[:2] if args.quick else SQUARE_CONDITIONS
     circles_conditions = CIRCLES_CONDITIONS[:1] if args.quick else CIRCLES_CONDITIONS
     head = f"{'condition':<18} {'marks':>5} {'err_rms':>9} {'sigma_med':>9} {'k_rms':>8} {'k/used':>6} {'in 2 sig':>8}"
-    for path, conditions, constant in (("square", square_conditions, detector_module.SQUARE_SIGMA_PER_RESIDUAL),
+    joint_head = f" {'cov':>5} {'d2_diag':>7} {'in95':>6} {'d2_cov':>7} {'in95':>6}"
+    for path, conditions, constant in (("square", square_conditions, detector_module.SQUARE_COV_SCALE),
                                        ("circles", circles_conditions, detector_module.CIRCLES_SIGMA_PER_MISFIT)):
-        print(f"\n{path} path: sigma = k x feature, k in use {constant} "
+        what = ("k^2 x the alignment's (8, 8) corner covariance (sigma: its mean variance's root; "
+                f"k {detector_module.SQUARE_SIGMA_PER_RESIDUAL} x the misfit where the alignment did not hold)"
+                if path == "square" else "sigma = k x feature")
+        print(f"\n{path} path: {what}, k in use {constant} "
               f"(err_rms, sigma_med: px per corner coordinate; k_rms: the honest k for the condition)")
-        print(head)
+        if path == "square":
+            print("  4 corners together: cov detections with corner_cov_px2; d2 = e^T Sigma^-1 e (8 coordinates; "
+                  "honest median 7.34, 95 % inside) with Sigma = sigma^2 I (diag) and = corner_cov_px2 (cov)")
+        print(head + (joint_head if path == "square" else ""))
         for index, condition in enumerate(conditions):
             print(row(condition.name, samples(condition, path, scenes, args.seed, index), constant))
     print(f"\nbase degradations of the benchmark conditions: {BASE_DEGRADATIONS}")

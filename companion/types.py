@@ -62,6 +62,13 @@ class Detection:
         (corners and circle centres), estimated by the detector from how
         well the marker fitted the image; None when the detector does not
         say (the pose stage then assumes ``PoseParams.corner_sigma_px``).
+    corner_cov_px2: (8, 8) float64 joint covariance of ``corners_px``
+        flattened row by row (x_TL, y_TL, x_TR, y_TR, x_BR, y_BR, x_BL, y_BL),
+        pixels^2, or None. The square path's four corners come from one
+        whole-pattern alignment (one homography), so their errors are
+        correlated; its diagonal's mean is ``corner_sigma_px``^2. When given,
+        the pose stage uses it for the corners instead of
+        ``corner_sigma_px`` (which still applies to circle centres).
     """
 
     symbol: str
@@ -73,6 +80,7 @@ class Detection:
     circles_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     circle_ids: np.ndarray = field(default_factory=lambda: np.zeros((0,), dtype=int))
     corner_sigma_px: float | None = None
+    corner_cov_px2: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -368,3 +368,20 @@ def test_the_homography_helper_agrees_with_opencv():
     moved = homography.project(H[0], points[:8])
     moved[0] += [2 * cell_px, 0.0]
     assert homography.fit_error_cells(H[0], points[:8], moved) == pytest.approx(2 / np.sqrt(8), rel=1e-6)
+
+
+def test_square_path_detections_state_their_corners_joint_covariance():
+    """The aligned corners' (8, 8) covariance comes with each square-path detection, at the detection's own
+    sigma (its diagonal's mean is corner_sigma_px^2), symmetric and positive definite."""
+    detector = Detector()
+    textures = [raster.rs_marker_texture(detector.layout, i, 16) for i in range(3)]
+    rng = np.random.default_rng(4)
+    scene = scenes.random_marker_scene(rng, (640, 480), textures, (40.0, 90.0), scenes.CONDITIONS["clean"],
+                                       max_tilt_deg=40)
+    square = [d for d in detector.detect(scene.image) if d.path == "square"]
+    assert square
+    for d in square:
+        assert d.corner_cov_px2.shape == (8, 8)
+        np.testing.assert_allclose(np.trace(d.corner_cov_px2) / 8, d.corner_sigma_px ** 2, rtol=1e-9)
+        np.testing.assert_allclose(d.corner_cov_px2, d.corner_cov_px2.T, atol=1e-15)
+        assert np.linalg.eigvalsh(d.corner_cov_px2).min() > 0

@@ -276,3 +276,40 @@ def test_the_robust_layout_is_refined_too():
     assert fit.refined
     assert mean_corner_error(fit.corners_px, truth.corners_px) < 0.3 * mean_corner_error(initial, truth.corners_px)
     assert np.median(np.linalg.norm(fit.circles_px - truth.circles_px, axis=1)) < 0.08
+
+
+# ------------------------------------------------------------ corner covariance
+
+def test_the_corner_covariance_has_the_shape_of_the_corners_scatter(layout, textures):
+    """One tilted marker under 200 independent noise draws: the stated (8, 8) corner covariance's correlations
+    are those of the refined corners' scatter (its scale is the misfit's, which blur's model error dominates)."""
+    T = facing_pose(1.6, (300, 250), spin_deg=20, tilt_deg=40)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), np.zeros(5), W, H)
+    rendering = renderer.render([raster.marker_quad(textures[7], SIZE_M, T, gain=0.85, offset=15.0)], np.eye(4), 120.0)
+    truth = raster.marker_truth(renderer, rendering, textures[7], SIZE_M, T, np.eye(4), 0)
+    blurred = degrade.gaussian_blur(rendering.image, 0.6)
+    refiner = MarkerRefiner(layout)
+    corners, covariances = [], []
+    for seed in range(200):
+        fit = refiner.refine(degrade.sensor_noise(blurred, np.random.default_rng(seed), 6.0, 0.0), 7,
+                             truth.corners_px + 0.3)
+        assert fit.refined and fit.corner_cov_px2.shape == (8, 8)
+        np.testing.assert_allclose(fit.corner_cov_px2, fit.corner_cov_px2.T, atol=1e-15)
+        assert np.linalg.eigvalsh(fit.corner_cov_px2).min() > 0
+        corners.append(fit.corners_px.reshape(8))
+        covariances.append(fit.corner_cov_px2)
+
+    def correlations(cov):
+        sd = np.sqrt(np.diag(cov))
+        return (cov / np.outer(sd, sd))[np.triu_indices(8, 1)]
+
+    stated, scattered = correlations(np.mean(covariances, axis=0)), correlations(np.cov(np.array(corners).T))
+    assert np.abs(stated).max() > 0.1  # there is a structure to compare
+    assert np.corrcoef(stated, scattered)[0, 1] > 0.6
+    assert np.abs(stated - scattered).max() < 0.25
+
+
+def test_a_fit_that_did_not_hold_states_no_covariance(layout):
+    blank = np.full((H, W), 128, np.uint8)
+    fit = MarkerRefiner(layout).refine(blank, 3, np.array([[100.0, 100], [160, 100], [160, 160], [100, 160]]))
+    assert not fit.refined and fit.corner_cov_px2 is None

@@ -646,3 +646,71 @@ def test_the_maps_error_lets_markers_disagree_by_it_and_widens_the_covariance():
     assert taped.status == "ok" and taped.rejected_ids == () and first.id in taped.measurement.marker_ids
     assert np.trace(taped.measurement.covariance_ned[:3, :3]) > 10 * np.trace(exact.measurement.covariance_ned[:3, :3])
     assert position_error_m(taped.measurement, AISLE_VIEW) < 0.03
+
+
+# ------------------------------------------------------- joint corner covariance
+
+def correlated_corner_cov_px2(shift_sd_px: float, own_sd_px: float) -> np.ndarray:
+    """(8, 8): a shift common to the four corners (sd shift_sd_px in x and in y) plus each coordinate's own noise."""
+    common = np.tile(np.eye(2), (4, 4))  # x with every x, y with every y
+    return shift_sd_px ** 2 * common + own_sd_px ** 2 * np.eye(8)
+
+
+def test_a_joint_corner_covariance_describes_correlated_corner_noise():
+    """Corners moved together (one whole-pattern alignment): with the detections' (8, 8) covariance the pose
+    errors' scatter, whitened by the pose covariance, is the same in every direction (second moment I);
+    one sigma per coordinate (the same variances) gets some directions wrong by a factor of several."""
+    rng = np.random.default_rng(8)
+    cov_px2 = correlated_corner_cov_px2(0.6, 0.02)
+    root = np.linalg.cholesky(cov_px2)
+    sigma_px = float(np.sqrt(np.mean(np.diag(cov_px2))))
+    solver = PoseSolver(FACILITY, CAMERA, replace(EXACT_MAP, model_sigma_px=0.0))
+    truth_ned = FACILITY.T_ned_map @ B_VIEW
+    exact = detections_for(B_VIEW)
+    whitened = {"joint": [], "diagonal": []}
+    for _ in range(200):
+        noisy = [replace(d, corners_px=d.corners_px + (root @ rng.normal(size=8)).reshape(4, 2),
+                         corner_sigma_px=sigma_px) for d in exact]
+        for name, detections in (("joint", [replace(d, corner_cov_px2=cov_px2) for d in noisy]),
+                                 ("diagonal", noisy)):
+            m = solver.solve(detections, t_ns=0, prior_T_map_body=B_VIEW)
+            if m is None:
+                continue
+            dp = m.T_ned_body[:3, 3] - truth_ned[:3, 3]
+            dtheta = frames.rotvec_from_rotation(m.T_ned_body[:3, :3] @ truth_ned[:3, :3].T)
+            # z = L^-1 e, C = L L^T: unit variance in every direction if C is honest
+            whitened[name].append(np.linalg.solve(np.linalg.cholesky(m.covariance_ned), np.concatenate([dp, dtheta])))
+    assert len(whitened["joint"]) >= 190
+    moments = {name: np.linalg.eigvalsh(np.cov(np.array(z).T, bias=True)) for name, z in whitened.items()}
+    assert 0.6 < moments["joint"].min() and moments["joint"].max() < 1.6
+    assert moments["diagonal"].max() > 3.0 or moments["diagonal"].min() < 0.3
+
+
+def test_a_corner_with_a_huge_variance_is_left_to_the_others():
+    """A corner 4 px off, its variance stated 1e4 px^2 in the joint covariance: the pose follows the other
+    three corners (and the marker's other ones), far closer than with the same sigma for every corner."""
+    detections = detections_for(AISLE_VIEW)
+    cov_px2 = 0.01 * np.eye(8)
+    cov_px2[0, 0] = 1e4
+    moved_first = []
+    for d in detections:
+        corners = d.corners_px.copy()
+        corners[0, 0] += 4.0
+        moved_first.append(replace(d, corners_px=corners, corner_sigma_px=0.1))
+    solver = PoseSolver(FACILITY, CAMERA, replace(EXACT_MAP, model_sigma_px=0.0, max_rms_px=10.0,
+                                                  gate_probability=1.0))
+    with_cov = solver.solve([replace(d, corner_cov_px2=cov_px2) for d in moved_first], t_ns=0,
+                            prior_T_map_body=AISLE_VIEW)
+    without = solver.solve(moved_first, t_ns=0, prior_T_map_body=AISLE_VIEW)
+    assert with_cov is not None and without is not None
+    assert position_error_m(with_cov, AISLE_VIEW) < 0.002
+    assert position_error_m(without, AISLE_VIEW) > 10 * position_error_m(with_cov, AISLE_VIEW)
+
+
+@pytest.mark.parametrize("bad", [np.full((8, 8), np.nan), np.eye(4), -np.eye(8), np.triu(np.ones((8, 8)))])
+def test_an_unusable_corner_covariance_falls_back_to_the_sigma(bad):
+    detections = with_sigma(detections_for(AISLE_VIEW), 0.1)
+    solver = PoseSolver(FACILITY, CAMERA, EXACT_MAP)
+    plain = solver.solve(detections, t_ns=0)
+    odd = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve([replace(d, corner_cov_px2=bad) for d in detections], t_ns=0)
+    np.testing.assert_allclose(odd.covariance_ned, plain.covariance_ned, rtol=1e-9, atol=1e-15)

@@ -168,10 +168,16 @@ class Detector:
         where the alignment does not hold, the corners of the inner square's edge lines."""
         fit = self.refiner.refine(gray, detection.id, detection.corners_px)
         corners_px = fit.corners_px if fit.refined else self._edge_corners(gray, detection.corners_px[None])[0]
-        sigma_px = square_corner_sigma_px(fit.residual, _cell_px(corners_px, self.layout.inner_cells))
+        cov_px2 = square_corner_cov_px2(fit.corner_cov_px2) if fit.refined else None
+        if cov_px2 is not None:
+            # sigma_px^2 = the mean variance of the 8 corner coordinates
+            sigma_px = float(np.sqrt(np.trace(cov_px2) / 8))
+        else:
+            sigma_px = square_corner_sigma_px(fit.residual, _cell_px(corners_px, self.layout.inner_cells))
         if sigma_px is not None and not self._pattern_inside(corners_px, gray.shape):
             sigma_px *= CUT_SIGMA_FACTOR
-        return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px)
+            cov_px2 = None if cov_px2 is None else cov_px2 * CUT_SIGMA_FACTOR ** 2
+        return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px, corner_cov_px2=cov_px2)
 
     def _pattern_inside(self, corners_px: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether the marker's whole printed grid lies inside the frame (the alignment saw all of it)."""
@@ -310,8 +316,11 @@ class Detector:
 
 # Point noise of a detection from what the detector measured, calibrated on rendered scenes against
 # their ground truth (benchmarks/bench_corner_sigma.py prints both constants again from new scenes):
-# square path: the whole-pattern alignment's misfit (MarkerFit.residual, a share of the contrast);
+# square path: the whole-pattern alignment's own corner covariance (MarkerFit.corner_cov_px2: its misfit's
+# variance through its normal equations; the misfit's spatial correlation left out, hence the scale), and
+# where the alignment did not hold, its misfit (MarkerFit.residual, a share of the contrast);
 # circles path: the RMS misfit of the edge-refined homography (EdgeFit.rms_cells).
+SQUARE_COV_SCALE = 0.45
 SQUARE_SIGMA_PER_RESIDUAL = 0.043
 CIRCLES_SIGMA_PER_MISFIT = 2.5
 # A square-path marker whose printed grid the frame's border cuts is aligned on what is visible:
@@ -324,6 +333,16 @@ def square_corner_sigma_px(residual: float, cell_px: float) -> float | None:
     if not (np.isfinite(residual) and residual > 0):
         return None
     return float(SQUARE_SIGMA_PER_RESIDUAL * residual * np.cbrt(cell_px))
+
+
+def square_corner_cov_px2(alignment_cov_px2: np.ndarray | None) -> np.ndarray | None:
+    """Square path: the (8, 8) corner covariance, k^2 times the alignment's own (None if it has none or it is
+    not finite and positive)."""
+    if alignment_cov_px2 is None or not np.all(np.isfinite(alignment_cov_px2)):
+        return None
+    if not np.trace(alignment_cov_px2) > 0:
+        return None
+    return SQUARE_COV_SCALE ** 2 * alignment_cov_px2
 
 
 def circles_corner_sigma_px(rms_cells: float, cell_px: float) -> float | None:

@@ -57,7 +57,7 @@ detections only.
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import cv2
@@ -141,6 +141,15 @@ class MarkerFit:
     initial_residual: the same at the initial corners.
     contrast: fitted white - black gray levels (NaN if not measured).
     iterations: Gauss-Newton steps taken.
+    corner_cov_px2: (8, 8) float64 covariance of ``corners_px`` flattened
+        (x_TL, y_TL, x_TR, y_TR, x_BR, y_BR, x_BL, y_BL), frame pixels^2: the
+        alignment's own parameter covariance, ``residual^2 (J^T J)^-1`` over
+        the template points read, through corner = H(model corner). The four
+        corners come from one homography, so their errors are strongly
+        correlated. The misfit's spatial correlation (blur, interpolation) is
+        not in it: the detector scales it by a constant calibrated on
+        rendered truth (``detector.SQUARE_COV_SCALE``). None when
+        ``refined`` is False.
     """
 
     corners_px: np.ndarray
@@ -153,6 +162,7 @@ class MarkerFit:
     initial_residual: float
     contrast: float
     iterations: int
+    corner_cov_px2: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,8 +329,40 @@ class MarkerRefiner:
         status = self._verdict(first, last, corners, initial, cell_px)
         if status != "refined":
             return self._fit(gray, initial, H0, status, **kept)
-        return self._fit(gray, corners, H, "refined", residual=last.rms, initial_residual=first.rms,
-                         contrast=last.contrast, steps=steps, circles=circles)
+        fit = self._fit(gray, corners, H, "refined", residual=last.rms, initial_residual=first.rms,
+                        contrast=last.contrast, steps=steps, circles=circles)
+        return replace(fit, corner_cov_px2=self._corner_cov_px2(M, template, last, corners))
+
+    def _corner_cov_px2(self, M: np.ndarray, template: _Template, last: _Sample,
+                        corners_px: np.ndarray) -> np.ndarray:
+        """(8, 8) covariance of the 4 corners in frame pixels^2 (see ``MarkerFit.corner_cov_px2``)."""
+        if last.used is None:
+            hessian_inverse = template.hessian_inverse
+        else:
+            steepest = template.steepest[last.used].astype(np.float64)
+            hessian_inverse = np.linalg.pinv(steepest.T @ steepest)
+        # Cov(p) = sigma_r^2 (J^T J)^-1, sigma_r the misfit RMS in the template's units (a share of the contrast)
+        cov_p = last.rms ** 2 * hessian_inverse
+        x, y = homography.project(self.N_norm_grid, self._corners_grid).T
+        zero, one = np.zeros_like(x), np.ones_like(x)
+        # a step dp moves the model corner by -dW/dp dp (inverse composition), then M projects it
+        dW_dp = np.stack([np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1),
+                          np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1)], axis=1)  # (4, 2, 8)
+        J = _projection_jacobian(M, np.column_stack([x, y])) @ dW_dp  # (4, 2, 8) ideal pixels per dp
+        if self.camera is not None:
+            J = self._lens_jacobian(corners_px) @ J
+        J = J.reshape(8, 8)
+        cov = J @ cov_p @ J.T
+        return 0.5 * (cov + cov.T)
+
+    def _lens_jacobian(self, corners_px: np.ndarray) -> np.ndarray:
+        """(4, 2, 2) d(frame pixels)/d(ideal pixels) at the corners (central differences, 0.01 px)."""
+        ideal = self._to_ideal(corners_px)
+        step = 0.01
+        offsets = np.array([[step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]])
+        moved = self._to_frame((ideal[:, None, :] + offsets[None]).reshape(-1, 2)).reshape(4, 4, 2)
+        return np.stack([(moved[:, 0] - moved[:, 1]) / (2 * step), (moved[:, 2] - moved[:, 3]) / (2 * step)],
+                        axis=2)
 
     # ------------------------------------------------------------------ steps
 
@@ -529,6 +571,15 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
                      steepest=steepest.astype(np.float32),
                      hessian_inverse=np.linalg.inv(steepest.T @ steepest), sum=float(values.sum()),
                      sum_squares=float(values @ values))
+
+
+def _projection_jacobian(M: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(K, 2, 2) d project(M, x)/dx at the (K, 2) points xy, M a (3, 3) homography."""
+    h = np.column_stack([xy, np.ones(len(xy))]) @ M.T  # (K, 3)
+    w = h[:, 2:3]
+    u = h[:, :2] / w
+    # d(h_i / w)/dx_j = (M_ij - u_i M_2j) / w
+    return (M[None, :2, :2] - u[:, :, None] * M[None, 2:3, :2]) / w[:, :, None]
 
 
 def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:

@@ -9,7 +9,9 @@ the reason in ``status``). The steps:
    points against image points. Each point's noise is the detection's own
    ``corner_sigma_px`` (what the detector measured), else
    ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` added in
-   quadrature; the map's own error (``map_sd_m``, ``map_sd_deg``) moves all
+   quadrature; the four corners' joint (8, 8) covariance where the detection
+   states one (``Detection.corner_cov_px2``: the square path's corners come
+   from one alignment, their errors correlated); the map's own error (``map_sd_m``, ``map_sd_deg``) moves all
    of a marker's points together, so a marker's errors are weighed by the
    inverse of their joint covariance. Every squared error below is in those
    units (chi-square).
@@ -152,6 +154,9 @@ class MarkerObservation:
     points_map: (K, 3) map-frame points (4 corners TL, TR, BR, BL, then circle centres).
     points_px: (K, 2) their image positions.
     sigma_px: standard deviation of each point's x and y.
+    corner_cov_px2: (8, 8) joint covariance of the 4 corners (x, y each,
+        TL first), the detection's ``corner_cov_px2``, or None (then
+        ``sigma_px`` for them too).
     """
 
     marker: MapMarker
@@ -159,6 +164,7 @@ class MarkerObservation:
     points_map: np.ndarray
     points_px: np.ndarray
     sigma_px: float
+    corner_cov_px2: np.ndarray | None = None
 
     @property
     def side_px(self) -> float:
@@ -176,7 +182,8 @@ class _Points:
     starts, counts: (M,) each observation's first point and number of
     points; marker_ids: (M,) their map ids; sigma_px: (M,) each
     observation's point noise (the detection's and the model's); centres:
-    (M, 3) the markers' centres in the map.
+    (M, 3) the markers' centres in the map; corner_cov_px2: per observation,
+    its corners' (8, 8) covariance with the model's noise added, or None.
     """
 
     map: np.ndarray
@@ -187,16 +194,21 @@ class _Points:
     marker_ids: np.ndarray
     sigma_px: np.ndarray
     centres: np.ndarray
+    corner_cov_px2: tuple[np.ndarray | None, ...] = ()
 
     @classmethod
     def of(cls, observations: list[MarkerObservation], params: PoseParams) -> _Points:
         counts = np.array([len(o.points_map) for o in observations])
         # sigma^2 = sigma_detection^2 + sigma_model^2
         sigma_px = np.sqrt(np.array([o.sigma_px for o in observations]) ** 2 + params.model_sigma_px ** 2)
+        # Sigma_corners = Sigma_detection + sigma_model^2 I
+        model_px2 = params.model_sigma_px ** 2 * np.eye(8)
+        corner_cov_px2 = tuple(None if o.corner_cov_px2 is None else o.corner_cov_px2 + model_px2
+                               for o in observations)
         return cls(np.vstack([o.points_map for o in observations]), np.vstack([o.points_px for o in observations]),
                    np.repeat(np.arange(len(observations)), counts), np.cumsum(counts) - counts, counts,
                    np.array([o.marker.id for o in observations]), sigma_px,
-                   np.array([o.marker.T_map_marker[:3, 3] for o in observations]))
+                   np.array([o.marker.T_map_marker[:3, 3] for o in observations]), corner_cov_px2)
 
     def of_markers(self, members: np.ndarray) -> _Points:
         """The points of the observations ``members`` (indices, ascending)."""
@@ -206,18 +218,32 @@ class _Points:
         counts = self.counts[members]
         return _Points(self.map[keep], self.px[keep], np.repeat(np.arange(len(members)), counts),
                        np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members],
-                       self.centres[members])
+                       self.centres[members], tuple(self.corner_cov_px2[m] for m in members))
+
+    @property
+    def correlated(self) -> bool:
+        """Some observation's corners have a joint covariance (not sigma^2 I)."""
+        return any(cov is not None for cov in self.corner_cov_px2)
+
+    def noise_px2(self, m: int) -> np.ndarray:
+        """(2n, 2n) covariance of observation m's own point noise (x, y of each point in turn)."""
+        noise = self.sigma_px[m] ** 2 * np.eye(2 * self.counts[m])
+        if self.corner_cov_px2[m] is not None:
+            noise[:8, :8] = self.corner_cov_px2[m]
+        return noise
 
 
 @dataclass(frozen=True, eq=False)
 class _Weights:
     """How a frame's point errors are weighed: per marker, ``Sigma^-1/2`` of its (2n, 2n) error covariance.
 
-    ``Sigma = sigma^2 I + G S G^T``: the points' own noise, and the map's
-    error of the marker's pose, S = diag(map_sd_m^2 (3), map_sd_rad^2 (3)),
-    seen through G = d(pixels)/d(the marker's pose in the map), which moves
-    all its points together. ``inverse_roots`` is None without map error
-    (then ``Sigma^-1/2 = I / sigma``).
+    ``Sigma = N + G S G^T``: the points' own noise N (sigma^2 I, or with the
+    corners' joint covariance from the detector's alignment in its first
+    8 x 8 block), and the map's error of the marker's pose,
+    S = diag(map_sd_m^2 (3), map_sd_rad^2 (3)), seen through
+    G = d(pixels)/d(the marker's pose in the map), which moves all its
+    points together. ``inverse_roots`` is None without map error and
+    without joint corner covariances (then ``Sigma^-1/2 = I / sigma``).
     """
 
     points: _Points
@@ -454,7 +480,8 @@ class PoseSolver:
         sigma_px = detection.corner_sigma_px
         if sigma_px is None or not (math.isfinite(sigma_px) and sigma_px > 0):
             sigma_px = self.params.corner_sigma_px
-        return MarkerObservation(marker, detection, points_map, points_px, float(sigma_px))
+        return MarkerObservation(marker, detection, points_map, points_px, float(sigma_px),
+                                 _corner_cov_px2(detection.corner_cov_px2))
 
     def _points_of(self, marker: MapMarker) -> tuple[np.ndarray, np.ndarray]:
         """((4, 3) inner corners, (12, 3) corner-circle centres) of a marker in the map frame, computed once."""
@@ -614,25 +641,32 @@ class PoseSolver:
 
     def _weights(self, T_camera_map: np.ndarray, points: _Points) -> _Weights:
         """The points' weights at a camera pose (see ``_Weights``)."""
-        if self.params.map_sd_m == 0 and self.params.map_sd_deg == 0:
+        map_error = not (self.params.map_sd_m == 0 and self.params.map_sd_deg == 0)
+        if not map_error and not points.correlated:
             return _Weights(points, None)
-        R, t = T_camera_map[:3, :3], T_camera_map[:3, 3]
-        # d(pixels)/dX_map = d(pixels)/dX_c R: (K, 2, 3)
-        D = self.camera.projection_jacobian(points.map @ R.T + t) @ R
-        # the marker moved by dt and turned by dtheta about its centre c: dX = dt + dtheta x (X - c);
-        # row a of D gives a . (dtheta x r) = dtheta . (r x a)
-        r = points.map - np.repeat(points.centres, points.counts, axis=0)
-        G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
-        S = np.array([self.params.map_sd_m ** 2] * 3 + [math.radians(self.params.map_sd_deg) ** 2] * 3)
+        if map_error:
+            R, t = T_camera_map[:3, :3], T_camera_map[:3, 3]
+            # d(pixels)/dX_map = d(pixels)/dX_c R: (K, 2, 3)
+            D = self.camera.projection_jacobian(points.map @ R.T + t) @ R
+            # the marker moved by dt and turned by dtheta about its centre c: dX = dt + dtheta x (X - c);
+            # row a of D gives a . (dtheta x r) = dtheta . (r x a)
+            r = points.map - np.repeat(points.centres, points.counts, axis=0)
+            G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
+            S = np.array([self.params.map_sd_m ** 2] * 3 + [math.radians(self.params.map_sd_deg) ** 2] * 3)
         roots: list[np.ndarray | None] = [None] * len(points.counts)
         for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
             markers = np.flatnonzero(points.counts == count)
-            g = np.stack([G[points.starts[m]:points.starts[m] + count].reshape(2 * count, 6) for m in markers])
-            sigma2 = points.sigma_px[markers, None] ** 2
-            # Sigma = sigma^2 I + G S G^T = V diag(l) V^T; Sigma^-1/2 = V diag(l^-1/2) V^T (l >= sigma^2: a
+            noise = np.stack([points.noise_px2(m) for m in markers])
+            sigma, floor = noise, 0.0
+            if map_error:
+                g = np.stack([G[points.starts[m]:points.starts[m] + count].reshape(2 * count, 6) for m in markers])
+                sigma = noise + (g * S) @ g.transpose(0, 2, 1)
+                # the smallest variance of the points' own noise: no direction of Sigma is surer than that
+                floor = np.linalg.eigvalsh(noise)[:, :1] if points.correlated else points.sigma_px[markers, None] ** 2
+            # Sigma = N + G S G^T = V diag(l) V^T; Sigma^-1/2 = V diag(l^-1/2) V^T (l >= the floor: a
             # point behind the camera of a wild hypothesis gives a huge G, and Cholesky would fail)
-            values, vectors = np.linalg.eigh(sigma2[:, :, None] * np.eye(2 * count) + (g * S) @ g.transpose(0, 2, 1))
-            inverse_roots = (vectors / np.sqrt(np.maximum(values, sigma2))[:, None, :]) @ vectors.transpose(0, 2, 1)
+            values, vectors = np.linalg.eigh(sigma)
+            inverse_roots = (vectors / np.sqrt(np.maximum(values, floor))[:, None, :]) @ vectors.transpose(0, 2, 1)
             for m, root in zip(markers, inverse_roots):
                 roots[m] = root
         return _Weights(points, roots)
@@ -749,6 +783,18 @@ class PoseSolver:
 def position_sd_m(measurement: PoseMeasurement) -> float:
     """Standard deviation of the position along its worst axis, metres."""
     return math.sqrt(max(float(np.linalg.eigvalsh(measurement.covariance_ned[:3, :3])[-1]), 0.0))
+
+
+def _corner_cov_px2(cov_px2) -> np.ndarray | None:
+    """A detection's (8, 8) corner covariance if usable (finite, symmetric, positive definite), else None."""
+    if cov_px2 is None:
+        return None
+    cov = np.asarray(cov_px2, dtype=float)
+    if cov.shape != (8, 8) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T, rtol=1e-6, atol=1e-12):
+        return None
+    if not np.linalg.eigvalsh(cov)[0] > 0:
+        return None
+    return cov
 
 
 def _best(fits: list[Fit]) -> Fit | None:
