@@ -385,3 +385,36 @@ def test_square_path_detections_state_their_corners_joint_covariance():
         np.testing.assert_allclose(np.trace(d.corner_cov_px2) / 8, d.corner_sigma_px ** 2, rtol=1e-9)
         np.testing.assert_allclose(d.corner_cov_px2, d.corner_cov_px2.T, atol=1e-15)
         assert np.linalg.eigvalsh(d.corner_cov_px2).min() > 0
+
+
+def test_the_blob_table_agrees_with_opencv_on_drawn_shapes():
+    """The contour table (Pick's and Green's theorems over the compressed contours, vectorised) against
+    OpenCV on the same regions: areas and centres against its connected components, second moments
+    against cv2.moments of each outer contour's polygon (plus a pixel's own 1/12 px^2). Filled ellipses
+    at several sizes and angles, a rotated rectangle, a single pixel and a straight run."""
+    from companion.detect.circles import PIXEL_VARIANCE_PX2, _contour_table
+
+    binary = np.zeros((200, 300), np.uint8)
+    for centre, axes, angle in [((40, 40), (12, 12), 0), ((100, 40), (14, 6), 30), ((160, 45), (9, 4), 75),
+                                ((230, 50), (20, 11), 130), ((50, 120), (5, 5), 0), ((120, 130), (3, 2), 45)]:
+        cv2.ellipse(binary, centre, axes, angle, 0, 360, 255, -1)
+    cv2.fillConvexPoly(binary, cv2.boxPoints(((220, 140), (40, 18), 20)).round().astype(np.int32), 255)
+    binary[180, 20] = 255            # a single pixel
+    binary[185, 60:70] = 255         # a straight run: a contour polygon of no area
+    table = _contour_table(binary, max_area_px=binary.size)
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    assert len(table.areas) == count - 1 == len(contours) == 9
+    for label in range(1, count):
+        row = int(np.argmin(np.linalg.norm(table.centres - centroids[label], axis=1)))
+        assert table.areas[row] == stats[label, cv2.CC_STAT_AREA]  # Pick: exactly the pixel count
+        np.testing.assert_allclose(table.centres[row], centroids[label], atol=0.05)
+    for contour in contours:
+        m = cv2.moments(contour)
+        if m["m00"] == 0:
+            continue  # the pixel and the run: no polygon
+        row = int(np.argmin(np.linalg.norm(table.centres - [m["m10"] / m["m00"], m["m01"] / m["m00"]], axis=1)))
+        expected = np.array([m["mu20"], m["mu02"], m["mu11"]]) / m["m00"] + [PIXEL_VARIANCE_PX2, PIXEL_VARIANCE_PX2, 0]
+        np.testing.assert_allclose(table.moments[row], expected, rtol=1e-9, atol=1e-9)
+    single = int(np.argmin(np.linalg.norm(table.centres - [20, 180], axis=1)))
+    np.testing.assert_allclose(table.moments[single], [PIXEL_VARIANCE_PX2, PIXEL_VARIANCE_PX2, 0], atol=1e-12)
