@@ -68,6 +68,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap, GeodeticOrigin
 from companion.mavlink import messages as mm
+from companion.mavlink.interval import StreamRequest
 from companion.sim import occluders, raster
 from companion.sim.degrade import Degradations
 from companion.sim.simulate import World, build_world
@@ -197,10 +198,8 @@ class SimStateStream:
         self.rate_hz = rate_hz
         self.request_retry_s = request_retry_s
         self.received = 0
-        self.requests = 0
         self.unusable = 0
-        self._arrivals_s: collections.deque[float] = collections.deque()
-        self._last_request_s = -math.inf
+        self.request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SIM_STATE, rate_hz, request_retry_s)
         self.clock = SendClock()
 
     def on_message(self, message, receive_ns: int) -> None:
@@ -213,19 +212,15 @@ class SimStateStream:
             return
         if self.history.add(state):
             self.received += 1
-            self._arrivals_s.append(receive_ns * 1e-9)
+            self.request.arrived(receive_ns)
+
+    @property
+    def requests(self) -> int:
+        return self.request.requests
 
     def requests_due(self, now_s: float, target_system: int, target_component: int) -> list:
         """MAV_CMD_SET_MESSAGE_INTERVAL for SIM_STATE while it is missing or slow, every ``request_retry_s``."""
-        while self._arrivals_s and self._arrivals_s[0] < now_s - self.request_retry_s:
-            self._arrivals_s.popleft()
-        slow = len(self._arrivals_s) < 0.5 * self.rate_hz * self.request_retry_s
-        if not slow or now_s - self._last_request_s < self.request_retry_s:
-            return []
-        self._last_request_s = now_s
-        self.requests += 1
-        return [mm.set_message_interval(target_system, target_component, mm.mavlink2.MAVLINK_MSG_ID_SIM_STATE,
-                                        self.rate_hz)]
+        return self.request.due(now_s, target_system, target_component)
 
 
 def sim_state_from_message(message, receive_ns: int, origin: GeodeticOrigin) -> SimState | None:

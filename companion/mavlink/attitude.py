@@ -31,6 +31,7 @@ from typing import Callable
 from companion.geometry import frames
 from companion.geometry.attitude import AttitudeHistory
 from companion.mavlink import messages as mm
+from companion.mavlink.interval import StreamRequest
 from companion.types import AttitudeSample
 
 log = logging.getLogger(__name__)
@@ -88,9 +89,7 @@ class AttitudeStream:
         self.clock = BootClock(window_s)
         self.on_sample: Callable[[AttitudeSample], None] | None = None   # each sample filed (the recording)
         self.received = 0
-        self.requests = 0
-        self._arrivals_s: collections.deque[float] = collections.deque()
-        self._last_request_s = -math.inf
+        self.request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_ATTITUDE, rate_hz, request_retry_s)
 
     def on_message(self, message, receive_ns: int) -> AttitudeSample | None:
         """File an ATTITUDE or ATTITUDE_QUATERNION received at ``receive_ns``; returns the sample filed."""
@@ -105,26 +104,22 @@ class AttitudeStream:
         sample = AttitudeSample(self.clock.to_monotonic_ns(boot_ms, receive_ns), roll_rad, pitch_rad)
         if self.history.add(sample):
             self.received += 1
-            self._arrivals_s.append(receive_ns * 1e-9)
+            self.request.arrived(receive_ns)
             if self.on_sample is not None:
                 self.on_sample(sample)
         return sample
 
+    @property
+    def requests(self) -> int:
+        return self.request.requests
+
     def requests_due(self, now_s: float, target_system: int, target_component: int) -> list:
         """The SET_MESSAGE_INTERVAL command to send now, if ATTITUDE is missing or slow (else [])."""
-        while self._arrivals_s and self._arrivals_s[0] < now_s - self.request_retry_s:
-            self._arrivals_s.popleft()
-        slow = len(self._arrivals_s) < 0.5 * self.rate_hz * self.request_retry_s
-        if not slow or now_s - self._last_request_s < self.request_retry_s:
-            return []
-        self._last_request_s = now_s
-        self.requests += 1
-        return [mm.set_message_interval(target_system, target_component, mm.mavlink2.MAVLINK_MSG_ID_ATTITUDE,
-                                        self.rate_hz)]
+        return self.request.due(now_s, target_system, target_component)
 
     def autopilot_appeared(self) -> None:
         """A flight controller was seen (again): ask at once."""
-        self._last_request_s = -math.inf
+        self.request.ask_at_once()
 
 
 def _roll_pitch(message) -> tuple[float, float]:
