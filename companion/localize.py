@@ -34,8 +34,6 @@ from companion.geometry.pose import PoseParams, PoseSolution, PoseSolver
 from companion.capture.replay import ReplaySource, open_recording, read_sequence_info, sequence_map_path
 from companion.types import AttitudeSample
 
-GET_TIMEOUT_S = 1.0
-
 
 class LocalizeError(ValueError):
     """The sequence, map or camera cannot be used; the message says which."""
@@ -151,12 +149,7 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
     source = ReplaySource(recording, realtime=False)
     source.start()
     try:
-        while True:
-            frame = source.get(GET_TIMEOUT_S)
-            if frame is None:
-                if source.finished:
-                    break
-                continue
+        for frame in source.frames():
             t_ns = int(recorded_t_ns[frame.index])
             detections = detector.detect(frame.image)
             sample = attitude.at(t_ns) if attitude is not None else None

@@ -214,6 +214,15 @@ class ReplaySource(ThreadedSource):
         super().start()
         self._started.wait(timeout=5.0)
 
+    def frames(self, poll_s: float = 1.0):
+        """Every frame of a started replay, in order, until it has finished (for offline tools)."""
+        while True:
+            frame = self.get(poll_s)
+            if frame is not None:
+                yield frame
+            elif self.finished:
+                return
+
     def attitude_lookup(self, max_age_s: float = DEFAULT_MAX_AGE_S) -> AttitudeLookup | None:
         """The recording's attitude at each replayed frame's recorded capture time; None without attitude.csv.
 

@@ -25,7 +25,6 @@ from companion.geometry.camera import CameraModel
 from companion.markers.layout import MarkerLayout
 from companion.types import Detection
 
-GET_TIMEOUT_S = 1.0
 # the kinds of point a sighting gives, each with its own noise: the square path's corners (aligned on the whole
 # printed pattern), the circles path's corners and its circle centres
 POINT_KINDS = ("corner", "circles-path corner", "circle centre")
@@ -120,12 +119,7 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
                    disable=not progress, file=sys.stderr)
         first = True
         try:
-            while True:
-                frame = source.get(GET_TIMEOUT_S)
-                if frame is None:
-                    if source.finished:
-                        break
-                    continue
+            for frame in source.frames():
                 if first:
                     check_frame_size(frame.image, camera, sequence)
                     first = False
