@@ -5,7 +5,11 @@ points by. The detector computes it from what it measured
 (``companion.detect.detector``):
 
 * square path: ``corner_cov_px2 = k_square^2`` times the whole-pattern
-  alignment's own (8, 8) corner covariance (``MarkerFit.corner_cov_px2``),
+  alignment's own (8, 8) corner covariance (``MarkerFit.corner_cov_px2``:
+  per marker, the misfit's noise measured along its edges plus the
+  template's mismatch (``refine.TEMPLATE_MISMATCH``, ``refine.SMEAR_MISMATCH``
+  per unit of the image gradient's anisotropy), through the image's own
+  gradient, so it follows the marker's noise, blur and smear),
   ``sigma_px`` the root of its mean variance (where the alignment did not
   hold: ``0.043 residual cell_px^(1/3)``, its misfit); times
   ``CUT_SIGMA_FACTOR`` when the frame's border cuts the marker's grid. The
@@ -40,6 +44,7 @@ from scipy.stats import chi2
 
 import common  # noqa: F401  (puts the working tree's companion first)
 from companion.detect import detector as detector_module
+from companion.detect import refine
 from companion.detect.detector import Detector
 from companion.sim import raster
 from companion.sim.scenes import BASE_DEGRADATIONS, CONDITIONS, SceneCondition, random_marker_scene
@@ -140,7 +145,9 @@ def main(argv: list[str] | None = None) -> int:
         what = ("k^2 x the alignment's (8, 8) corner covariance (sigma: its mean variance's root; "
                 f"k {detector_module.SQUARE_SIGMA_PER_RESIDUAL} x the misfit where the alignment did not hold)"
                 if path == "square" else "sigma = k x feature")
-        print(f"\n{path} path: {what}, k in use {constant} "
+        mismatch = (f" (template mismatch {refine.TEMPLATE_MISMATCH}, smear {refine.SMEAR_MISMATCH})"
+                    if path == "square" else "")
+        print(f"\n{path} path: {what}, k in use {constant}{mismatch} "
               f"(err_rms, sigma_med: px per corner coordinate; k_rms: the honest k for the condition)")
         if path == "square":
             print("  4 corners together: cov detections with corner_cov_px2; d2 = e^T Sigma^-1 e (8 coordinates; "

@@ -309,6 +309,56 @@ def test_the_corner_covariance_has_the_shape_of_the_corners_scatter(layout, text
     assert np.abs(stated - scattered).max() < 0.25
 
 
+def _stated_and_scattered(refiner, image, truth, noise_dn: float, draws: int = 60):
+    """(8,) mean stated corner variance and (8,) variance of the refined corners over independent noise draws."""
+    corners, variances = [], []
+    for seed in range(draws):
+        fit = refiner.refine(degrade.sensor_noise(image, np.random.default_rng(seed), noise_dn, 0.0), 7,
+                             truth.corners_px + 0.3)
+        assert fit.refined
+        corners.append(fit.corners_px.reshape(8))
+        variances.append(np.diag(fit.corner_cov_px2))
+    return np.mean(variances, axis=0), np.var(np.array(corners), axis=0)
+
+
+@pytest.fixture(scope="module")
+def tilted_marker(textures):
+    """(image blurred like a camera's, truth) of marker 7, 1.6 m away, spun 20 and tilted 40 degrees."""
+    T = facing_pose(1.6, (300, 250), spin_deg=20, tilt_deg=40)
+    renderer = raster.Renderer(intrinsics_from_hfov(W, H, 70.0), np.zeros(5), W, H)
+    rendering = renderer.render([raster.marker_quad(textures[7], SIZE_M, T, gain=0.85, offset=15.0)], np.eye(4), 120.0)
+    truth = raster.marker_truth(renderer, rendering, textures[7], SIZE_M, T, np.eye(4), 0)
+    return degrade.gaussian_blur(rendering.image, 0.6), truth
+
+
+def test_the_stated_corner_variance_grows_with_the_images_noise_as_the_scatter_does(layout, tilted_marker):
+    """From 2 to 12 DN of sensor noise the corners' scatter grows ~30x; the stated variance grows by about as much
+    (the misfit's noise is measured along the marker's edges, apart from the template's mismatch)."""
+    image, truth = tilted_marker
+    refiner = MarkerRefiner(layout)
+    stated_low, scattered_low = _stated_and_scattered(refiner, image, truth, 2.0)
+    stated_high, scattered_high = _stated_and_scattered(refiner, image, truth, 12.0)
+    assert scattered_high.mean() > 10 * scattered_low.mean()
+    grown = (stated_high.mean() - stated_low.mean()) / (scattered_high.mean() - scattered_low.mean())
+    assert 0.4 < grown < 1.5
+
+
+def test_a_motion_smear_widens_the_stated_variance_along_it(layout, tilted_marker):
+    """A 6 px horizontal smear: the refined corners scatter more in x than in y, against the unsmeared marker,
+    and the stated variances say so by about as much (the image's own gradient, not the sharp template's)."""
+    image, truth = tilted_marker
+    refiner = MarkerRefiner(layout)
+    ratios = {}
+    for name, frame in (("sharp", image), ("smeared", degrade.motion_blur(image, 6.0, 0.0))):
+        stated, scattered = _stated_and_scattered(refiner, frame, truth, 4.0)
+        ratios[name] = (stated[0::2].mean() / stated[1::2].mean(), scattered[0::2].mean() / scattered[1::2].mean())
+    (stated_sharp, scattered_sharp), (stated_smeared, scattered_smeared) = ratios["sharp"], ratios["smeared"]
+    assert scattered_smeared > 2 * scattered_sharp  # the smear is there to see
+    assert stated_smeared > 2 * stated_sharp
+    for stated, scattered in ratios.values():
+        assert 0.6 < stated / scattered < 1.6
+
+
 def test_a_fit_that_did_not_hold_states_no_covariance(layout):
     blank = np.full((H, W), 128, np.uint8)
     fit = MarkerRefiner(layout).refine(blank, 3, np.array([[100.0, 100], [160, 100], [160, 160], [100, 160]]))

@@ -316,11 +316,12 @@ class Detector:
 
 # Point noise of a detection from what the detector measured, calibrated on rendered scenes against
 # their ground truth (benchmarks/bench_corner_sigma.py prints both constants again from new scenes):
-# square path: the whole-pattern alignment's own corner covariance (MarkerFit.corner_cov_px2: its misfit's
-# variance through its normal equations; the misfit's spatial correlation left out, hence the scale), and
+# square path: the whole-pattern alignment's own corner covariance (MarkerFit.corner_cov_px2: the misfit's
+# noise measured along the marker's edges plus the template's mismatch, through the normal equations with
+# the image's own gradient; the scale: the noise of neighbouring template points is not independent), and
 # where the alignment did not hold, its misfit (MarkerFit.residual, a share of the contrast);
 # circles path: the RMS misfit of the edge-refined homography (EdgeFit.rms_cells).
-SQUARE_COV_SCALE = 0.45
+SQUARE_COV_SCALE = 1.08
 SQUARE_SIGMA_PER_RESIDUAL = 0.043
 CIRCLES_SIGMA_PER_MISFIT = 2.5
 # A square-path marker whose printed grid the frame's border cuts is aligned on what is visible:

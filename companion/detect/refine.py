@@ -59,6 +59,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import Literal
+from weakref import WeakKeyDictionary
 
 import cv2
 import numpy as np
@@ -72,6 +73,12 @@ DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # OpenCV's lens model: k1 k2 p1 p2 [k
 UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-9)
 OUTSIDE_PX = -1e6  # a frame position that reads as outside any frame
 IDEAL_MARGIN = 0.25  # the ideal image is looked up at most this share of the frame's size beyond it
+# The corner covariance's model of what the template does not match (``MarkerFit.corner_cov_px2``), in the
+# misfit's units (a share of the contrast), calibrated with benchmarks/bench_corner_sigma.py against rendered
+# truth: a floor (the template's pixel grid against the image's) and a smear term per unit of the gradient's
+# anisotropy (a motion smear the sharp template does not model moves the fit along it).
+TEMPLATE_MISMATCH = 0.0375
+SMEAR_MISMATCH = 0.28
 
 
 class MarkerRefineError(ValueError):
@@ -143,11 +150,20 @@ class MarkerFit:
     iterations: Gauss-Newton steps taken.
     corner_cov_px2: (8, 8) float64 covariance of ``corners_px`` flattened
         (x_TL, y_TL, x_TR, y_TR, x_BR, y_BR, x_BL, y_BL), frame pixels^2: the
-        alignment's own parameter covariance, ``residual^2 (J^T J)^-1`` over
-        the template points read, through corner = H(model corner). The four
+        alignment's own parameter covariance over the template points read,
+        through corner = H(model corner), from what this marker's image
+        shows: ``(sigma_noise^2 + TEMPLATE_MISMATCH^2 + SMEAR_MISMATCH^2
+        (s_max / s_min - 1)^2) B (J^T J) B^T``, B = (J^T J_image)^-1.
+        sigma_noise: the misfit's noise, from the differences of the misfit
+        at neighbours along an edge (same template value and gradient: the
+        template's mismatch is the same there, the noise is not; the whole
+        misfit is mostly that mismatch, which hardly moves the corners).
+        J_image: the steepest descent with the image's own gradient, A times
+        the template's, A (2 x 2) fitted from the two (blur and a motion
+        smear lower the information the image holds, in their direction);
+        s_max / s_min: A's singular values' ratio, the smear. The four
         corners come from one homography, so their errors are strongly
-        correlated. The misfit's spatial correlation (blur, interpolation) is
-        not in it: the detector scales it by a constant calibrated on
+        correlated. The detector scales it by a constant calibrated on
         rendered truth (``detector.SQUARE_COV_SCALE``). None when
         ``refined`` is False.
     """
@@ -294,6 +310,7 @@ class MarkerRefiner:
         self._outline_grid = np.concatenate([np.column_stack([side, ends[0]]), np.column_stack([ends[1], side]),
                                              np.column_stack([side, ends[1]]), np.column_stack([ends[0], side])])
         self._templates: OrderedDict[tuple[int, int], _Template] = OrderedDict()
+        self._lattices: WeakKeyDictionary[_Template, _Lattice] = WeakKeyDictionary()
 
     def refine(self, gray: np.ndarray, marker_id: int, corners_px: np.ndarray) -> MarkerFit:
         """Align marker ``marker_id`` to an (H, W) uint8 frame, starting from its corners.
@@ -336,13 +353,10 @@ class MarkerRefiner:
     def _corner_cov_px2(self, M: np.ndarray, template: _Template, last: _Sample,
                         corners_px: np.ndarray) -> np.ndarray:
         """(8, 8) covariance of the 4 corners in frame pixels^2 (see ``MarkerFit.corner_cov_px2``)."""
-        if last.used is None:
-            hessian_inverse = template.hessian_inverse
-        else:
-            steepest = template.steepest[last.used].astype(np.float64)
-            hessian_inverse = np.linalg.pinv(steepest.T @ steepest)
-        # Cov(p) = sigma_r^2 (J^T J)^-1, sigma_r the misfit RMS in the template's units (a share of the contrast)
-        cov_p = last.rms ** 2 * hessian_inverse
+        lattice = self._lattices.get(template)
+        if lattice is None:
+            lattice = self._lattices[template] = _Lattice.of(template)
+        cov_p = _parameter_cov(template, lattice, last)
         x, y = homography.project(self.N_norm_grid, self._corners_grid).T
         zero, one = np.zeros_like(x), np.ones_like(x)
         # a step dp moves the model corner by -dW/dp dp (inverse composition), then M projects it
@@ -571,6 +585,106 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
                      steepest=steepest.astype(np.float32),
                      hessian_inverse=np.linalg.inv(steepest.T @ steepest), sum=float(values.sum()),
                      sum_squares=float(values @ values))
+
+
+@dataclass(frozen=True, eq=False)
+class _Lattice:
+    """Where each template point's neighbours are on the template's pixel lattice (for the covariance).
+
+    right, left, down, up: (P,) int index of the point one template pixel away, -1 if not a template point.
+    pairs: (R, 2) int points two pixels apart along an edge: the same template value and gradient.
+    """
+
+    right: np.ndarray
+    left: np.ndarray
+    down: np.ndarray
+    up: np.ndarray
+    pairs: np.ndarray
+
+    @classmethod
+    def of(cls, template: _Template) -> _Lattice:
+        xy = template.points[0].astype(np.float64)
+        step = float(np.diff(np.unique(xy[:, 0])).min())
+        column = np.round((xy[:, 0] - xy[:, 0].min()) / step).astype(np.int64)
+        row = np.round((xy[:, 1] - xy[:, 1].min()) / step).astype(np.int64)
+        width = int(column.max()) + 3
+        key = row * width + column
+        order = np.argsort(key)
+        sorted_keys = key[order]
+
+        def neighbour(offset: int) -> np.ndarray:
+            at = np.minimum(np.searchsorted(sorted_keys, key + offset), len(key) - 1)
+            return np.where(sorted_keys[at] == key + offset, order[at], -1)
+
+        # the template's own gradient: steepest columns 2 and 5 (dW/dp2 = (1, 0), dW/dp5 = (0, 1))
+        profile = np.column_stack([template.values, template.steepest[:, 2], template.steepest[:, 5]])
+        pairs = []
+        for offset in (2, 2 * width):
+            other = neighbour(offset)
+            i = np.nonzero(other >= 0)[0]
+            j = other[i]
+            same = np.all(np.abs(profile[i] - profile[j]) < 1e-6, axis=1)
+            pairs.append(np.column_stack([i[same], j[same]]))
+        return cls(neighbour(1), neighbour(-1), neighbour(width), neighbour(-width), np.concatenate(pairs))
+
+
+def _parameter_cov(template: _Template, lattice: _Lattice, last: _Sample) -> np.ndarray:
+    """(8, 8) covariance of the alignment's parameters (see ``MarkerFit.corner_cov_px2``), template units."""
+    count = len(template.values)
+    # the misfit at every template point, NaN where not read
+    residual = np.full(count, np.nan)
+    residual[slice(None) if last.used is None else last.used] = last.residual
+    values = template.values.astype(np.float64)
+    steepest = template.steepest.astype(np.float64)
+    # sigma_noise^2 = mean((r_i - r_j)^2) / 2 over along-edge pairs (the template's mismatch cancels)
+    differences = residual[lattice.pairs[:, 0]] - residual[lattice.pairs[:, 1]]
+    differences = differences[np.isfinite(differences)]
+    total = last.rms ** 2
+    noise = min(float(np.mean(differences ** 2) / 2), total) if len(differences) >= 20 else total
+    read = np.isfinite(residual)
+    J = steepest[read]
+    J_image, smear = _image_steepest(template, lattice, residual, values)
+    J_image = J_image[read]
+    # sigma^2 = sigma_noise^2 + the template's mismatch: its floor and the smear it does not model
+    variance = noise + TEMPLATE_MISMATCH ** 2 + (SMEAR_MISMATCH * (smear - 1.0)) ** 2
+    # dp = (J^T J_image)^-1 J^T r: Cov(p) = sigma^2 B (J^T J) B^T, B = (J^T J_image)^-1
+    normal = J.T @ J
+    try:
+        B = np.linalg.inv(J.T @ J_image)
+    except np.linalg.LinAlgError:
+        B = np.linalg.pinv(normal)
+    return variance * B @ normal @ B.T
+
+
+def _image_steepest(template: _Template, lattice: _Lattice, residual: np.ndarray,
+                    values: np.ndarray) -> tuple[np.ndarray, float]:
+    """((P, 8) the steepest-descent images with the image's gradient in place of the template's, the smear
+    s_max / s_min >= 1 of A): the image's gradient ~ A the template's, A (2, 2) fitted (least squares) on
+    lattice central differences of both at the points whose four neighbours were read. The template's
+    steepest descent and 1 where A cannot be fitted."""
+    image = residual + values  # the image at the template points, in template units (levels fitted)
+    inner = np.all(np.stack([lattice.right, lattice.left, lattice.down, lattice.up]) >= 0, axis=0)
+    i = np.nonzero(inner)[0]
+    r, le, d, u = lattice.right[i], lattice.left[i], lattice.down[i], lattice.up[i]
+    grad_template = np.column_stack([values[r] - values[le], values[d] - values[u]])
+    grad_image = np.column_stack([image[r] - image[le], image[d] - image[u]])
+    keep = np.all(np.isfinite(grad_image), axis=1)
+    grad_template, grad_image = grad_template[keep], grad_image[keep]
+    gram = grad_template.T @ grad_template
+    steepest = template.steepest.astype(np.float64)
+    if len(grad_template) < 20 or not np.linalg.cond(gram) < 1e6:
+        return steepest, 1.0
+    A = np.linalg.solve(gram, grad_template.T @ grad_image).T  # grad_image ~ A grad_template
+    singular = np.linalg.svd(A, compute_uv=False)
+    if not singular[1] > 1e-3 * singular[0]:
+        return steepest, 1.0
+    x, y = template.points[0, :, 0].astype(np.float64), template.points[0, :, 1].astype(np.float64)
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    gradient = steepest[:, [2, 5]] @ A.T
+    # J_image = g_x dW/dp (x row) + g_y dW/dp (y row)
+    dW_dp_x = np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1)
+    dW_dp_y = np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1)
+    return gradient[:, :1] * dW_dp_x + gradient[:, 1:] * dW_dp_y, float(singular[0] / singular[1])
 
 
 def _projection_jacobian(M: np.ndarray, xy: np.ndarray) -> np.ndarray:
