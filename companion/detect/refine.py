@@ -589,17 +589,25 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
 
 @dataclass(frozen=True, eq=False)
 class _Lattice:
-    """Where each template point's neighbours are on the template's pixel lattice (for the covariance).
+    """One template's points on its pixel lattice, for the corner covariance (built once per template).
 
-    right, left, down, up: (P,) int index of the point one template pixel away, -1 if not a template point.
-    pairs: (R, 2) int points two pixels apart along an edge: the same template value and gradient.
+    pairs: (R, 2) int points two template pixels apart along an edge (the same template value and gradient).
+    inner: (N,) int points whose four lattice neighbours are template points; neighbours: (4, N) int their
+        right, left, lower and upper neighbours; grad_template: (N, 2) float64 the template's central
+        differences there (x, y); transfer: (2, N) float64 (G^T G)^-1 G^T, G = grad_template (None if G
+        has not both directions).
+    cross: (2, 2, 8, 8) float64 sum_i s_i g_a,i dW_b,i^T over all points (s the steepest descent, g_a the
+        template's gradient component a, dW_b the warp's row b): J^T J_image = sum_ab A_ba cross_ab.
+    normal: (8, 8) float64 J^T J over all points.
     """
 
-    right: np.ndarray
-    left: np.ndarray
-    down: np.ndarray
-    up: np.ndarray
     pairs: np.ndarray
+    inner: np.ndarray
+    neighbours: np.ndarray
+    grad_template: np.ndarray
+    transfer: np.ndarray | None
+    cross: np.ndarray
+    normal: np.ndarray
 
     @classmethod
     def of(cls, template: _Template) -> _Lattice:
@@ -616,8 +624,10 @@ class _Lattice:
             at = np.minimum(np.searchsorted(sorted_keys, key + offset), len(key) - 1)
             return np.where(sorted_keys[at] == key + offset, order[at], -1)
 
+        steepest = template.steepest.astype(np.float64)
         # the template's own gradient: steepest columns 2 and 5 (dW/dp2 = (1, 0), dW/dp5 = (0, 1))
-        profile = np.column_stack([template.values, template.steepest[:, 2], template.steepest[:, 5]])
+        gradient = steepest[:, [2, 5]]
+        profile = np.column_stack([template.values, gradient])
         pairs = []
         for offset in (2, 2 * width):
             other = neighbour(offset)
@@ -625,66 +635,89 @@ class _Lattice:
             j = other[i]
             same = np.all(np.abs(profile[i] - profile[j]) < 1e-6, axis=1)
             pairs.append(np.column_stack([i[same], j[same]]))
-        return cls(neighbour(1), neighbour(-1), neighbour(width), neighbour(-width), np.concatenate(pairs))
+        neighbours = np.stack([neighbour(1), neighbour(-1), neighbour(width), neighbour(-width)])
+        inner = np.nonzero(np.all(neighbours >= 0, axis=0))[0]
+        neighbours = neighbours[:, inner]
+        values = template.values.astype(np.float64)
+        grad_template = np.column_stack([values[neighbours[0]] - values[neighbours[1]],
+                                         values[neighbours[2]] - values[neighbours[3]]])
+        return cls(np.concatenate(pairs), inner, neighbours, grad_template, _least_squares(grad_template),
+                   _cross(steepest, gradient, xy), steepest.T @ steepest)
+
+
+def _warp_rows(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """dW/dp (x row, y row), each (P, 8), at p = 0 for W(x; p) = (I + D(p)) x at (P, 2) points."""
+    x, y = xy[:, 0], xy[:, 1]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    return (np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1),
+            np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1))
+
+
+def _cross(steepest: np.ndarray, gradient: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(2, 2, 8, 8) sum_i s_i g_a,i dW_b,i^T (see ``_Lattice.cross``)."""
+    rows = _warp_rows(xy)
+    return np.array([[(steepest * gradient[:, a:a + 1]).T @ rows[b] for b in range(2)] for a in range(2)])
 
 
 def _parameter_cov(template: _Template, lattice: _Lattice, last: _Sample) -> np.ndarray:
     """(8, 8) covariance of the alignment's parameters (see ``MarkerFit.corner_cov_px2``), template units."""
-    count = len(template.values)
-    # the misfit at every template point, NaN where not read
-    residual = np.full(count, np.nan)
-    residual[slice(None) if last.used is None else last.used] = last.residual
-    values = template.values.astype(np.float64)
-    steepest = template.steepest.astype(np.float64)
+    if last.used is None:
+        residual = last.residual.astype(np.float64)
+        cross, normal = lattice.cross, lattice.normal
+    else:  # the misfit at every template point, NaN where not read
+        residual = np.full(len(template.values), np.nan)
+        residual[last.used] = last.residual
+        steepest = template.steepest[last.used].astype(np.float64)
+        cross = _cross(steepest, steepest[:, [2, 5]], template.points[0][last.used].astype(np.float64))
+        normal = steepest.T @ steepest
     # sigma_noise^2 = mean((r_i - r_j)^2) / 2 over along-edge pairs (the template's mismatch cancels)
     differences = residual[lattice.pairs[:, 0]] - residual[lattice.pairs[:, 1]]
     differences = differences[np.isfinite(differences)]
     total = last.rms ** 2
-    noise = min(float(np.mean(differences ** 2) / 2), total) if len(differences) >= 20 else total
-    read = np.isfinite(residual)
-    J = steepest[read]
-    J_image, smear = _image_steepest(template, lattice, residual, values)
-    J_image = J_image[read]
+    noise = min(float(differences @ differences / (2 * len(differences))), total) if len(differences) >= 20 else total
+    A, smear = _gradient_transfer(template, lattice, residual)
     # sigma^2 = sigma_noise^2 + the template's mismatch: its floor and the smear it does not model
     variance = noise + TEMPLATE_MISMATCH ** 2 + (SMEAR_MISMATCH * (smear - 1.0)) ** 2
-    # dp = (J^T J_image)^-1 J^T r: Cov(p) = sigma^2 B (J^T J) B^T, B = (J^T J_image)^-1
-    normal = J.T @ J
+    # dp = (J^T J_image)^-1 J^T r: Cov(p) = sigma^2 B (J^T J) B^T, B = (J^T J_image)^-1, J^T J_image = sum A_ba cross_ab
     try:
-        B = np.linalg.inv(J.T @ J_image)
+        B = np.linalg.inv(np.einsum("ba,abij->ij", A, cross))
     except np.linalg.LinAlgError:
         B = np.linalg.pinv(normal)
     return variance * B @ normal @ B.T
 
 
-def _image_steepest(template: _Template, lattice: _Lattice, residual: np.ndarray,
-                    values: np.ndarray) -> tuple[np.ndarray, float]:
-    """((P, 8) the steepest-descent images with the image's gradient in place of the template's, the smear
-    s_max / s_min >= 1 of A): the image's gradient ~ A the template's, A (2, 2) fitted (least squares) on
-    lattice central differences of both at the points whose four neighbours were read. The template's
-    steepest descent and 1 where A cannot be fitted."""
-    image = residual + values  # the image at the template points, in template units (levels fitted)
-    inner = np.all(np.stack([lattice.right, lattice.left, lattice.down, lattice.up]) >= 0, axis=0)
-    i = np.nonzero(inner)[0]
-    r, le, d, u = lattice.right[i], lattice.left[i], lattice.down[i], lattice.up[i]
-    grad_template = np.column_stack([values[r] - values[le], values[d] - values[u]])
-    grad_image = np.column_stack([image[r] - image[le], image[d] - image[u]])
-    keep = np.all(np.isfinite(grad_image), axis=1)
-    grad_template, grad_image = grad_template[keep], grad_image[keep]
-    gram = grad_template.T @ grad_template
-    steepest = template.steepest.astype(np.float64)
-    if len(grad_template) < 20 or not np.linalg.cond(gram) < 1e6:
-        return steepest, 1.0
-    A = np.linalg.solve(gram, grad_template.T @ grad_image).T  # grad_image ~ A grad_template
-    singular = np.linalg.svd(A, compute_uv=False)
-    if not singular[1] > 1e-3 * singular[0]:
-        return steepest, 1.0
-    x, y = template.points[0, :, 0].astype(np.float64), template.points[0, :, 1].astype(np.float64)
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    gradient = steepest[:, [2, 5]] @ A.T
-    # J_image = g_x dW/dp (x row) + g_y dW/dp (y row)
-    dW_dp_x = np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1)
-    dW_dp_y = np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1)
-    return gradient[:, :1] * dW_dp_x + gradient[:, 1:] * dW_dp_y, float(singular[0] / singular[1])
+def _gradient_transfer(template: _Template, lattice: _Lattice, residual: np.ndarray) -> tuple[np.ndarray, float]:
+    """(A (2, 2), smear s_max / s_min >= 1 of A): the image's gradient ~ A the template's, fitted (least
+    squares) on lattice central differences of both at the points whose four neighbours were read; the
+    identity and 1 where A cannot be fitted."""
+    # the image at the template points in template units (levels fitted) is the template + the misfit, so
+    # its central differences are the template's + the misfit's: A^T = I + (G^T G)^-1 G^T dR
+    r = residual[lattice.neighbours]  # (4, N)
+    misfit = np.column_stack([r[0] - r[1], r[2] - r[3]])
+    transfer = lattice.transfer
+    if not np.isfinite(residual).all():  # the points whose four neighbours were read
+        keep = np.all(np.isfinite(misfit), axis=1)
+        transfer = _least_squares(lattice.grad_template[keep]) if np.count_nonzero(keep) >= 20 else None
+        misfit = misfit[keep]
+    if transfer is None:
+        return np.eye(2), 1.0
+    A = (np.eye(2) + transfer @ misfit).T
+    # A's singular values: s^2 = (t +- sqrt(t^2 - 4 det^2)) / 2, t = sum of A's squares
+    t, det = float(np.sum(A * A)), abs(float(A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]))
+    root = np.sqrt(max(t * t - 4.0 * det * det, 0.0))
+    s_max, s_min = np.sqrt((t + root) / 2.0), np.sqrt(max((t - root) / 2.0, 0.0))
+    if not s_min > 1e-3 * s_max:
+        return np.eye(2), 1.0
+    return A, float(s_max / s_min)
+
+
+def _least_squares(G: np.ndarray) -> np.ndarray | None:
+    """(2, N) (G^T G)^-1 G^T of (N, 2) G, None unless G has 20 rows or more in both directions
+    (det(G^T G) not ~0 against its trace^2)."""
+    gram = G.T @ G
+    if len(G) < 20 or not np.linalg.det(gram) > 1e-6 * np.trace(gram) ** 2:
+        return None
+    return np.linalg.solve(gram, G.T)
 
 
 def _projection_jacobian(M: np.ndarray, xy: np.ndarray) -> np.ndarray:
