@@ -193,6 +193,10 @@ def test_a_marker_partly_outside_the_frame(layout, textures):
     circles_inside = (truth.circles_px[:, 0] >= -0.5) & (truth.circles_px[:, 0] <= W - 0.5)
     assert 0 < circles_inside.sum() < 12
     np.testing.assert_array_equal(fit.circles_in_image, circles_inside)
+    # the covariance is made of the points read: the corners extrapolated beyond them are stated less sure
+    assert np.linalg.eigvalsh(fit.corner_cov_px2).min() > 0
+    variance = np.diag(fit.corner_cov_px2).reshape(4, 2).sum(axis=1)
+    assert variance[outside].min() > 2 * variance[~outside].max()
 
 
 def camera_with(dist) -> CameraModel:
