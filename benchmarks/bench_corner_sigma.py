@@ -27,9 +27,12 @@ matched to a marker of the scene, the corner error against the truth; per
 condition, the constant ``k`` that makes the normalised errors' RMS 1
 (``k_rms``), the share of corner coordinates inside 2 sigma with the
 detector's constants (95.4 % if honest), and the constants in use.
-The detector's constants are the ``camera`` row's ``k_rms``: the condition the
-simulated flights (``bench_pose``) are rendered under; a real camera's
-images call for running this on its own conditions.
+The square path's constants (``SQUARE_COV_SCALE``, ``refine.TEMPLATE_MISMATCH``,
+``refine.SMEAR_MISMATCH``) were fitted together so that ``k/used`` is about 1
+in every condition and size band at once; the circles path's
+``CIRCLES_SIGMA_PER_MISFIT`` is one constant on its misfit (its rows say how
+well it holds). A real camera's images call for running this on its own
+conditions.
 
     PYTHONPATH=. python benchmarks/bench_corner_sigma.py [--quick] [--scenes 12] [--seed 5]
 """

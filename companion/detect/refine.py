@@ -592,8 +592,8 @@ class _Lattice:
     """One template's points on its pixel lattice, for the corner covariance (built once per template).
 
     pairs: (R, 2) int points two template pixels apart along an edge (the same template value and gradient).
-    inner: (N,) int points whose four lattice neighbours are template points; neighbours: (4, N) int their
-        right, left, lower and upper neighbours; grad_template: (N, 2) float64 the template's central
+    neighbours: (4, N) int the right, left, lower and upper lattice neighbours of the N points that have
+        all four; grad_template: (N, 2) float64 the template's central
         differences there (x, y); transfer: (2, N) float64 (G^T G)^-1 G^T, G = grad_template (None if G
         has not both directions).
     cross: (2, 2, 8, 8) float64 sum_i s_i g_a,i dW_b,i^T over all points (s the steepest descent, g_a the
@@ -602,7 +602,6 @@ class _Lattice:
     """
 
     pairs: np.ndarray
-    inner: np.ndarray
     neighbours: np.ndarray
     grad_template: np.ndarray
     transfer: np.ndarray | None
@@ -612,51 +611,51 @@ class _Lattice:
     @classmethod
     def of(cls, template: _Template) -> _Lattice:
         xy = template.points[0].astype(np.float64)
-        step = float(np.diff(np.unique(xy[:, 0])).min())
-        column = np.round((xy[:, 0] - xy[:, 0].min()) / step).astype(np.int64)
-        row = np.round((xy[:, 1] - xy[:, 1].min()) / step).astype(np.int64)
-        width = int(column.max()) + 3
-        key = row * width + column
-        order = np.argsort(key)
-        sorted_keys = key[order]
+        # the lattice step: the smallest gap between points (neighbours in a row lie one step apart)
+        gaps = np.abs(np.diff(xy[:, 0]))
+        step = float(gaps[gaps > 1e-9].min())
+        pad = 2
+        column = np.round((xy[:, 0] - xy[:, 0].min()) / step).astype(np.intp) + pad
+        row = np.round((xy[:, 1] - xy[:, 1].min()) / step).astype(np.intp) + pad
+        index = np.full((int(row.max()) + 1 + pad, int(column.max()) + 1 + pad), -1, np.intp)
+        index[row, column] = np.arange(len(xy))
 
-        def neighbour(offset: int) -> np.ndarray:
-            at = np.minimum(np.searchsorted(sorted_keys, key + offset), len(key) - 1)
-            return np.where(sorted_keys[at] == key + offset, order[at], -1)
+        def neighbour(down: int, right: int) -> np.ndarray:
+            return index[row + down, column + right]
 
         steepest = template.steepest.astype(np.float64)
         # the template's own gradient: steepest columns 2 and 5 (dW/dp2 = (1, 0), dW/dp5 = (0, 1))
         gradient = steepest[:, [2, 5]]
         profile = np.column_stack([template.values, gradient])
         pairs = []
-        for offset in (2, 2 * width):
-            other = neighbour(offset)
+        for down, right in ((0, 2), (2, 0)):
+            other = neighbour(down, right)
             i = np.nonzero(other >= 0)[0]
             j = other[i]
             same = np.all(np.abs(profile[i] - profile[j]) < 1e-6, axis=1)
             pairs.append(np.column_stack([i[same], j[same]]))
-        neighbours = np.stack([neighbour(1), neighbour(-1), neighbour(width), neighbour(-width)])
-        inner = np.nonzero(np.all(neighbours >= 0, axis=0))[0]
-        neighbours = neighbours[:, inner]
+        neighbours = np.stack([neighbour(0, 1), neighbour(0, -1), neighbour(1, 0), neighbour(-1, 0)])
+        neighbours = neighbours[:, np.all(neighbours >= 0, axis=0)]
         values = template.values.astype(np.float64)
         grad_template = np.column_stack([values[neighbours[0]] - values[neighbours[1]],
                                          values[neighbours[2]] - values[neighbours[3]]])
-        return cls(np.concatenate(pairs), inner, neighbours, grad_template, _least_squares(grad_template),
+        return cls(np.concatenate(pairs), neighbours, grad_template, _least_squares(grad_template),
                    _cross(steepest, gradient, xy), steepest.T @ steepest)
 
 
-def _warp_rows(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """dW/dp (x row, y row), each (P, 8), at p = 0 for W(x; p) = (I + D(p)) x at (P, 2) points."""
-    x, y = xy[:, 0], xy[:, 1]
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    return (np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1),
-            np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1))
-
-
 def _cross(steepest: np.ndarray, gradient: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """(2, 2, 8, 8) sum_i s_i g_a,i dW_b,i^T (see ``_Lattice.cross``)."""
-    rows = _warp_rows(xy)
-    return np.array([[(steepest * gradient[:, a:a + 1]).T @ rows[b] for b in range(2)] for a in range(2)])
+    """(2, 2, 8, 8) sum_i s_i g_a,i dW_b,i^T (see ``_Lattice.cross``).
+
+    dW/dp at p = 0 for W(x; p) = (I + D(p)) x: x row (x, y, 1, 0, 0, 0, -x^2, -xy), y row (0, 0, 0, x, y, 1,
+    -xy, -y^2): both from the sums against (x, y, 1, x^2, xy, y^2)."""
+    x, y = xy[:, 0], xy[:, 1]
+    monomials = np.column_stack([x, y, np.ones_like(x), x * x, x * y, y * y])
+    cross = np.zeros((2, 2, 8, 8))
+    for a in range(2):
+        c = (steepest * gradient[:, a:a + 1]).T @ monomials  # (8, 6)
+        cross[a, 0, :, :3], cross[a, 0, :, 6], cross[a, 0, :, 7] = c[:, :3], -c[:, 3], -c[:, 4]
+        cross[a, 1, :, 3:6], cross[a, 1, :, 6], cross[a, 1, :, 7] = c[:, :3], -c[:, 4], -c[:, 5]
+    return cross
 
 
 def _parameter_cov(template: _Template, lattice: _Lattice, last: _Sample) -> np.ndarray:
@@ -675,7 +674,7 @@ def _parameter_cov(template: _Template, lattice: _Lattice, last: _Sample) -> np.
     differences = differences[np.isfinite(differences)]
     total = last.rms ** 2
     noise = min(float(differences @ differences / (2 * len(differences))), total) if len(differences) >= 20 else total
-    A, smear = _gradient_transfer(template, lattice, residual)
+    A, smear = _gradient_transfer(lattice, residual)
     # sigma^2 = sigma_noise^2 + the template's mismatch: its floor and the smear it does not model
     variance = noise + TEMPLATE_MISMATCH ** 2 + (SMEAR_MISMATCH * (smear - 1.0)) ** 2
     # dp = (J^T J_image)^-1 J^T r: Cov(p) = sigma^2 B (J^T J) B^T, B = (J^T J_image)^-1, J^T J_image = sum A_ba cross_ab
@@ -686,7 +685,7 @@ def _parameter_cov(template: _Template, lattice: _Lattice, last: _Sample) -> np.
     return variance * B @ normal @ B.T
 
 
-def _gradient_transfer(template: _Template, lattice: _Lattice, residual: np.ndarray) -> tuple[np.ndarray, float]:
+def _gradient_transfer(lattice: _Lattice, residual: np.ndarray) -> tuple[np.ndarray, float]:
     """(A (2, 2), smear s_max / s_min >= 1 of A): the image's gradient ~ A the template's, fitted (least
     squares) on lattice central differences of both at the points whose four neighbours were read; the
     identity and 1 where A cannot be fitted."""
@@ -717,7 +716,7 @@ def _least_squares(G: np.ndarray) -> np.ndarray | None:
     gram = G.T @ G
     if len(G) < 20 or not np.linalg.det(gram) > 1e-6 * np.trace(gram) ** 2:
         return None
-    return np.linalg.solve(gram, G.T)
+    return np.linalg.inv(gram) @ G.T
 
 
 def _projection_jacobian(M: np.ndarray, xy: np.ndarray) -> np.ndarray:
