@@ -150,8 +150,8 @@ class Detector:
         detections = [self._aligned(gray, d) for d in detections]
         clock.lap("square_align")
         if run == "always" or (run == "when_square_empty" and not detections):
-            if blobs_pending is not None:
-                blobs = blobs_pending.result()
+            if blobs_pending is not None and not blobs_pending.cancel():
+                blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
             elif expected_px is not None and detections:
                 windows = self._windows_of_missing(expected_px, detections, gray.shape)
                 blobs = find_window_blobs(gray, windows, self.params.circles) if len(windows) else None
