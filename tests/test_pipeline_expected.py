@@ -56,3 +56,14 @@ def test_expected_places_from_the_fused_pose_match_the_markers_found():
             assert errors.min() < 0.1 * np.linalg.norm(detection.corners_px[1] - detection.corners_px[0]) + 2.0
             matched += 1
     assert matched >= 20
+
+
+def test_no_mapped_marker_in_view_expects_none():
+    # far from every mapped marker: an empty (0, 4, 2) set, not an error; no prior or another frame size: None
+    facility_map, camera = resources(SEQUENCE, None, None)
+    pipeline = Pipeline(Detector(camera=camera), PoseSolver(facility_map, camera), PoseFilter(), None,
+                        frames.invert_transform(facility_map.T_ned_map))
+    far_away = frames.make_transform(np.eye(3), np.array([1.0e4, 1.0e4, 0.0]))
+    assert pipeline._expected_markers_px(far_away, (camera.height, camera.width)).shape == (0, 4, 2)
+    assert pipeline._expected_markers_px(None, (camera.height, camera.width)) is None
+    assert pipeline._expected_markers_px(far_away, (camera.height + 2, camera.width)) is None

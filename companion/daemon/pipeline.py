@@ -172,6 +172,8 @@ class Pipeline:
         size_px = np.array([camera.width, camera.height])
         in_view = ((corners_camera[..., 2] > 0) & (pinhole_px >= -0.25 * size_px).all(axis=-1)
                    & (pinhole_px <= 1.25 * size_px).all(axis=-1)).all(axis=1)
+        if not in_view.any():
+            return np.zeros((0, 4, 2))
         return camera.project(corners_camera[in_view].reshape(-1, 3)).reshape(-1, 4, 2)
 
     def _attitude_at(self, frame: Frame) -> AttitudeSample | None:
