@@ -305,3 +305,48 @@ def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
     messages = [r.getMessage() for r in caplog.records if "disagrees with the map" in r.getMessage()]
     assert [facility_map.markers[m].symbol for m in watch.reported] == ["O"]
     assert len(messages) == 1 and messages[0].startswith("marker O disagrees with the map")
+
+
+def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog):
+    """Rendered frames of O, N and DOWN on the north wall, N moved 10 cm along the wall in the map: the pose
+    stage poses from O and DOWN (the renderer's pose to a few mm) and names N in rejected_ids; the daemon's
+    pipeline with its MapWatch reports N within the watch's window (30 frames, 20 left out)."""
+    import logging
+    from dataclasses import replace
+
+    from companion.daemon.map_watch import MapWatch, MapWatchParams
+    from companion.daemon.pipeline import Pipeline
+    from companion.detect.detector import Detector, DetectorParams
+    from companion.fusion import PoseFilter
+    from companion.geometry.pose import PoseParams, PoseSolver
+    from companion.types import Frame
+
+    truth = load_map(MAP)
+    model = CameraModel.from_config({**CAMERA, "mount": {"facing": "forward", "tilt_down_deg": 0.0}}, "test camera")
+    sim = simulate.Simulator(simulate.build_world(truth), model, trajectory.hover([9.5, 8.0, 1.3], 90.0, 8.0, seed=1),
+                             seed=2)
+    n = truth.marker_by_symbol("N")
+    T_moved = n.T_map_marker.copy()
+    T_moved[:3, 3] += 0.10 * T_moved[:3, 0]
+    moved = replace(truth, markers={**truth.markers, n.id: replace(n, T_map_marker=T_moved)})
+    detector = Detector(DetectorParams(parity=truth.parity, dictionary=truth.dictionary), camera=model)
+    pipeline = Pipeline(detector, PoseSolver(moved, model, PoseParams()), PoseFilter(), None,
+                        frames.invert_transform(truth.T_ned_map))
+    params = MapWatchParams()
+    watch = MapWatch(moved, link=None, params=params)
+    pipeline.observers.append(watch)
+    reported_at = None
+    with caplog.at_level(logging.WARNING, logger="companion"):
+        for index in range(params.window):
+            rendered = sim.render_frame(index, index * 125_000_000)
+            record = pipeline.process(Frame(rendered.image, rendered.t_ns, index))
+            assert sorted(d.symbol for d in record.detections) == ["DOWN", "N", "O"]
+            solution = record.solution
+            assert solution.status == "ok" and solution.rejected_ids == (n.id,)
+            assert sorted(moved.markers[m].symbol for m in solution.marker_ids) == ["DOWN", "O"]
+            error_m = np.linalg.norm(solution.measurement.T_map_body[:3, 3] - rendered.T_map_body[:3, 3])
+            assert error_m < 0.005
+            if watch.reported and reported_at is None:
+                reported_at = index
+    assert watch.reported == [n.id] and reported_at == params.min_rejected - 1
+    assert sum("marker N disagrees with the map" in r.getMessage() for r in caplog.records) == 1
