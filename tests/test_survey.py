@@ -143,6 +143,8 @@ def test_survey_maps_the_wall_from_one_anchor_close_to_the_rendered_truth(tmp_pa
         entry = by_symbol[symbol]
         assert 0 < entry["sd_position_m"] < 0.01 and 0 < entry["sd_angle_deg"] < 0.5 and entry["frames"] >= 3
         assert f"{entry['frames']} frames" in surveyed.marker_by_symbol(symbol).note
+    # markers seen together from all along the wall: none weakly linked
+    assert numbers["weakly_linked"] == [] and "weakly linked" not in result.stderr
     image = cv2.imread(str(report / "survey.png"))
     assert image is not None and image.shape[0] > 400
     assert "frames read" in result.stdout
@@ -276,6 +278,54 @@ def test_survey_extends_an_existing_map_and_resurveys_a_moved_marker(tmp_path, n
                                             truth.marker_by_symbol(symbol).T_map_marker)
         assert position_m < 0.01 and angle_deg < 0.5
     assert new.marker_by_symbol("A").T_map_marker.tolist() == truth.marker_by_symbol("A").T_map_marker.tolist()
+
+
+def standpoint_walk(out: Path, stops, fps: float = 6.0) -> Path:
+    """A walk of (x, y, heading_deg, seconds to get there) stops at eye height 1.4 m, each leg eased in and out
+    (a pan when only the heading changes), written as a sequence folder."""
+    times_s, poses, start_s = [], [], 0.0
+    for (x0, y0, h0, _), (x1, y1, h1, duration_s) in zip(stops[:-1], stops[1:]):
+        for s in np.arange(0.0, 1.0, 1.0 / (duration_s * fps)):
+            w = s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s)   # minimum jerk
+            R = trajectory.R_map_body_from_attitude(h0 + w * (h1 - h0))
+            times_s.append(start_s + s * duration_s)
+            poses.append(frames.make_transform(R, [x0 + w * (x1 - x0), y0 + w * (y1 - y0), 1.4]))
+        start_s += duration_s
+    model = CameraModel.from_config(CAMERA, "test camera")
+    walk = trajectory.SampledTrajectory(np.array(times_s), np.array(poses), {"pattern": "standpoints"})
+    simulate.write_sequence(out, simulate.Simulator(simulate.build_world(load_map(MAP)), model, walk, seed=5), fps,
+                            str(MAP), progress=False)
+    (out / "camera.yaml").write_text(yaml.safe_dump({"camera": model.to_config()}))
+    return out
+
+
+def test_a_marker_linked_only_through_a_far_view_is_named_and_its_sd_covers_its_error(tmp_path):
+    """A pans across A (close) and ENTRY (4.5 m away on the dock wall, ~25 px) from one standpoint, then films the
+    dock wall (ENTRY, T, S) from another: ENTRY and the markers placed through it hang on that one far view, whose
+    frames fit a second placement nearly as well. The survey names them on stderr, in survey.json and in the map's
+    notes, and each one's reported sd covers its error against the renderer's map."""
+    walk = standpoint_walk(tmp_path / "walk", [(4.5, 3.9, 187.0, 0.0), (4.5, 3.9, 203.0, 3.0),
+                                              (2.0, 5.0, 200.0, 4.0), (2.0, 5.0, 160.0, 4.0)])
+    document = yaml.safe_load(MAP.read_text())
+    document["markers"] = [m for m in document["markers"] if m["symbol"] == "A"]
+    (tmp_path / "anchors.yaml").write_text(yaml.safe_dump(document))
+    out, report = tmp_path / "map.yaml", tmp_path / "report"
+    result = run("survey", str(walk), "--camera", str(walk / "camera.yaml"), "--anchors", str(tmp_path / "anchors.yaml"),
+                 "--out", str(out), "--size-m", "0.2", "--report", str(report))
+    assert result.returncode == 0, result.stderr
+    named = [line for line in result.stderr.splitlines() if "weakly linked to the anchors" in line]
+    assert len(named) == 1 and "ENTRY" in named[0]
+    summary = json.loads((report / "survey.json").read_text())
+    weak = set(summary["weakly_linked"])
+    assert "ENTRY" in weak and weak <= {"ENTRY", "T", "S"} and all(symbol in named[0] for symbol in weak)
+    truth, surveyed = load_map(MAP), load_map(out)
+    for entry in summary["markers"]:
+        assert entry["weakly_linked"] is (entry["symbol"] in weak)
+        if entry["symbol"] in weak:
+            position_m, angle_deg = pose_errors(surveyed.marker_by_symbol(entry["symbol"]).T_map_marker,
+                                                truth.marker_by_symbol(entry["symbol"]).T_map_marker)
+            assert position_m <= entry["sd_position_m"] and angle_deg <= entry["sd_angle_deg"], entry
+            assert "weakly linked" in surveyed.marker_by_symbol(entry["symbol"]).note
 
 
 # ------------------------------------------------------------------ daemon watch
