@@ -79,7 +79,7 @@ def plot(result: SurveyResult, path) -> None:
         T = s.marker.T_map_marker
         x, y = T[:2, 3]
         along = T[:2, 0] * s.marker.size_m * 2.0  # the face, drawn twice its width
-        colour = "black" if s.anchor else _colour(s.sd_position_m)
+        colour = "black" if s.anchor else "tab:red" if s.weakly_linked else _colour(s.sd_position_m)
         axes.plot([x - along[0], x + along[0]], [y - along[1], y + along[1]], color=colour, linewidth=2.5)
         label = s.marker.symbol + (" ?" if s.weakly_linked else "")
         axes.annotate(label, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7, color=colour,
