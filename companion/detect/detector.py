@@ -194,10 +194,13 @@ class Detector:
         frame deconvolved with the best one and the square path run again there (quads inside the found
         markers' grids skipped)."""
         params = self.params.smear
-        sides_px = [_cell_px(d.corners_px, self.layout.inner_cells) * self.layout.inner_cells for d in found]
-        marker = found[self.smear.pick(sides_px)]
+        corners_px = np.stack([d.corners_px for d in found])  # (M, 4, 2)
+        sides = corners_px - corners_px[:, [3, 0, 1, 2]]
+        sides_px = np.sqrt((sides * sides).sum(axis=2)).mean(axis=1)
+        pick = self.smear.pick(sides_px)
+        marker = found[pick]
         H = homography.from_quad(self.layout.inner_corners_cells, marker.corners_px)
-        widths_px = self.edges.step_widths_px(gray, H, _cell_px(marker.corners_px, self.layout.inner_cells))
+        widths_px = self.edges.step_widths_px(gray, H, sides_px[pick] / self.layout.inner_cells)
         # the smear widens both edges of a pair alike; one widened edge is more likely an occluder or a shadow
         if not max(min(widths_px[0], widths_px[2]), min(widths_px[1], widths_px[3])) >= params.min_edge_width_px:
             return []
@@ -208,7 +211,7 @@ class Detector:
         candidates = self.square.find(sharp)
         if len(candidates.corners_px) == 0:
             return []
-        H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
+        H = homography.from_quads(self.layout.inner_corners_cells, corners_px)
         new = ~sampling.inside_grids(candidates.corners_px.mean(axis=1), H, self.layout.n_cells)
         detections = self._decode_quads(sharp, candidates.corners_px[new], candidates.from_aruco[new])
         return [self._aligned(sharp, d) for d in detections]
