@@ -316,6 +316,28 @@ def test_occluded_marker_beside_a_clean_one_is_found_by_default(layout):
     assert Detector(DetectorParams(circles=CircleParams(run="never"))).detect(strip_only) == []
 
 
+def test_expected_places_limit_the_circles_search_once_the_square_path_found_a_marker(layout):
+    # the daemon tells the detector where mapped markers should be: the occluded one is found where it is
+    # expected (a prediction 8 px off), not where nothing is expected; with nothing found by the square
+    # path the whole frame is searched whatever is expected
+    clean_texture, strip_texture = raster.rs_marker_texture(layout, 3), raster.rs_marker_texture(layout, 40)
+    T_strip = facing_pose(1.0, 30, 15, offset_px=(150, 0))
+    strip = occluders.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
+    image, truths = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
+                                  (strip_texture, T_strip)], occluders=[strip])
+    clean_px, strip_px = truths[0].corners_px, truths[1].corners_px
+    detector = Detector()
+
+    def found(expected_px):
+        return {(d.id, d.path) for d in detector.detect(image, expected_px=expected_px)}
+
+    assert found(np.stack([clean_px, strip_px + [8.0, -8.0]])) == {(3, "square"), (40, "circles")}
+    assert found(clean_px[None]) == found(np.zeros((0, 4, 2))) == {(3, "square")}
+    assert found(np.stack([clean_px, clean_px + [0.0, 200.0]])) == {(3, "square")}
+    strip_only, _ = render_scene([(strip_texture, T_strip)], occluders=[strip])
+    assert [(d.id, d.path) for d in detector.detect(strip_only, expected_px=np.zeros((0, 4, 2)))] == [(40, "circles")]
+
+
 def test_a_60_px_marker_in_an_8000_by_6000_image_is_found(layout, detector):
     """The smallest marker is an absolute size in pixels (square.min_side_px), not a share of the image."""
     texture = raster.rs_marker_texture(layout, 17)

@@ -45,7 +45,7 @@ import numpy as np
 
 from companion.detect import homography, sampling
 from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, corner_triples,
-                                      find_frame_blobs, missing_corner_cells, refine_centres)
+                                      find_frame_blobs, find_window_blobs, missing_corner_cells, refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -135,12 +135,20 @@ class Detector:
         self.last_stage_ms: dict[str, float] = {}
         self._blob_worker: ThreadPoolExecutor | None = None
 
-    def detect(self, gray: np.ndarray) -> list[Detection]:
-        """All RS markers in an (H, W) uint8 frame, each once."""
+    def detect(self, gray: np.ndarray, expected_px: np.ndarray | None = None) -> list[Detection]:
+        """All RS markers in an (H, W) uint8 frame, each once.
+
+        expected_px: optional (K, 4, 2) inner-square corners (TL, TR, BR, BL of the upright marker) where
+        markers are expected, e.g. the mapped markers seen from the daemon's current pose. With them, in a
+        frame where the square path found a marker, the circles path looks only around the expected
+        markers it did not find that face the camera and are large enough for it
+        (``circles.expected_margin_fraction``, ``circles.min_side_px``), and not at all when there are
+        none; without them, or when the square path found nothing, it searches the whole frame.
+        """
         gray = _as_gray(gray)
         clock = _StageClock()
         run = self.params.circles.run
-        blobs_pending = self._blob_search_beside(gray) if run == "always" else None
+        blobs_pending = self._blob_search_beside(gray) if run == "always" and expected_px is None else None
         candidates = self.square.find(gray)
         clock.lap("square")
         detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
@@ -151,8 +159,15 @@ class Detector:
             detections += self._smeared_markers(gray, detections)
             clock.lap("smear")
         if run == "always" or (run == "when_square_empty" and not detections):
-            blobs = find_frame_blobs(gray, self.params.circles) if blobs_pending is None else blobs_pending.result()
-            detections += self._circles_path(gray, blobs, detections, clock)
+            if blobs_pending is not None and not blobs_pending.cancel():
+                blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
+            elif expected_px is not None and detections:
+                windows = self._windows_of_missing(expected_px, detections, gray.shape)
+                blobs = find_window_blobs(gray, windows, self.params.circles) if len(windows) else None
+            else:
+                blobs = find_frame_blobs(gray, self.params.circles)
+            if blobs is not None:
+                detections += self._circles_path(gray, blobs, detections, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
 
@@ -171,6 +186,37 @@ class Detector:
         if self._blob_worker is None:
             self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
         return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
+
+    def _windows_of_missing(self, expected_px: np.ndarray, found: list[Detection],
+                            gray_shape: tuple[int, int]) -> np.ndarray:
+        """(B, 4) int windows (x0, y0, x1, y1) inside the frame around the expected markers (K, 4, 2) that
+        face the camera (clockwise in the image), have a mean side of ``circles.min_side_px`` or more, and
+        whose centres no found marker's whole grid covers: each one's square grown about its centre to
+        the whole grid, its bounding box grown by ``circles.expected_margin_fraction`` of its larger side."""
+        expected = np.asarray(expected_px, dtype=np.float64).reshape(-1, 4, 2)
+        with np.errstate(invalid="ignore"):
+            x, y = expected[..., 0], expected[..., 1]
+            # shoelace: twice the signed area, > 0 for TL, TR, BR, BL clockwise on the screen (y down)
+            facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
+            usable = facing & (_mean_side_px(expected) >= self.params.circles.min_side_px)
+        expected = expected[usable]
+        if len(expected) == 0:
+            return np.zeros((0, 4), np.int64)
+        inner = self.layout.inner_corners_cells
+        found_H = homography.from_quads(inner, np.stack([d.corners_px for d in found]))
+        expected = expected[~sampling.inside_grids(expected.mean(axis=1), found_H, self.layout.n_cells)]
+        if len(expected) == 0:
+            return np.zeros((0, 4), np.int64)
+        # the corners' order does not matter for the outline's bounding box: the grid shares the inner
+        # square's centre, (n / inner) times its size
+        centre = expected.mean(axis=1, keepdims=True)
+        outline = centre + (expected - centre) * (self.layout.n_cells / self.layout.inner_cells)
+        low, high = outline.min(axis=1), outline.max(axis=1)
+        margin = self.params.circles.expected_margin_fraction * (high - low).max(axis=1, keepdims=True)
+        height, width = gray_shape
+        boxes = np.concatenate([np.floor(low - margin), np.ceil(high + margin) + 1], axis=1)
+        boxes = boxes[(boxes[:, 0] < width) & (boxes[:, 1] < height) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)]
+        return np.clip(boxes, 0, [width, height, width, height]).astype(np.int64)
 
     def _aligned(self, gray: np.ndarray, detection: Detection) -> Detection:
         """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``), with their noise;
@@ -392,6 +438,11 @@ def circles_corner_sigma_px(rms_cells: float, cell_px: float) -> float | None:
 def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:
     """Mean side of the inner square in the image over its cells."""
     return float(np.mean(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)) / inner_cells)
+
+
+def _mean_side_px(quads: np.ndarray) -> np.ndarray:
+    """(M,) mean side of M quads (M, 4, 2)."""
+    return np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).mean(axis=1)
 
 
 def _unique(detections: list[Detection], offset_fraction: float) -> list[Detection]:
