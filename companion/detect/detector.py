@@ -18,6 +18,9 @@ Stages (one module each in ``companion.detect``, run in this order):
 5. ``refine``: each decoded square-path marker's whole pattern is aligned
    to the image for its final corners (through the camera's lens model when
    the detector has the camera).
+   ``smear``: where a found marker's edges are wide, the frame's motion
+   smear is measured on its known pattern, the frame deconvolved with it and
+   the square path (1-5) run again there for the markers the smear hid.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
    (found at a pyramid level, on a second thread beside ArUco when OpenCV
@@ -46,6 +49,7 @@ from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, asse
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
+from companion.detect.smear import SmearEstimator, SmearParams, deconvolve
 from companion.detect.square import SquareFinder, SquareParams
 from companion.markers.codec import DecoderParams, GridDecoder
 from companion.markers.dictionary import SIZES, DictionaryError, load_dictionary
@@ -82,6 +86,7 @@ class DetectorParams:
     circles: CircleParams = field(default_factory=CircleParams)
     decoder: DecoderParams = field(default_factory=DecoderParams)
     refine: RefineParams = field(default_factory=RefineParams)
+    smear: SmearParams = field(default_factory=SmearParams)
 
     def __post_init__(self):
         require(self.parity in (2, 4), "parity", "2 or 4", self.parity)
@@ -119,6 +124,7 @@ class Detector:
         self.square = SquareFinder(self.layout, params.square, min_contrast_gray, screen=self.decoder.plausible)
         self.edges = EdgeRefiner(self.layout, params.edges, min_contrast_gray)
         self.refiner = MarkerRefiner(self.layout, params.refine, camera)
+        self.smear = SmearEstimator(self.layout, params.smear)
         self.probe = sampling.CellProbe(self.layout)
         self._border = self.layout.border_mask
         self._gap = sampling.gap_ring_mask(self.layout)
@@ -149,6 +155,9 @@ class Detector:
         clock.lap("square_decode")
         detections = [self._aligned(gray, d) for d in detections]
         clock.lap("square_align")
+        if self.params.smear.recover and detections:
+            detections += self._smeared_markers(gray, detections)
+            clock.lap("smear")
         if run == "always" or (run == "when_square_empty" and not detections):
             if blobs_pending is not None and not blobs_pending.cancel():
                 blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
@@ -224,6 +233,34 @@ class Detector:
             sigma_px *= CUT_SIGMA_FACTOR
             cov_px2 = None if cov_px2 is None else cov_px2 * CUT_SIGMA_FACTOR ** 2
         return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px, corner_cov_px2=cov_px2)
+
+    def _smeared_markers(self, gray: np.ndarray, found: list[Detection]) -> list[Detection]:
+        """Markers the square path missed in a smeared frame (``smear``): the edges of one found marker
+        measured (a sharp frame stops there), its pattern compared with the image under line smears, the
+        frame deconvolved with the best one and the square path run again there (quads inside the found
+        markers' grids skipped)."""
+        params = self.params.smear
+        corners_px = np.stack([d.corners_px for d in found])  # (M, 4, 2)
+        sides = corners_px - corners_px[:, [3, 0, 1, 2]]
+        sides_px = np.sqrt((sides * sides).sum(axis=2)).mean(axis=1)
+        pick = self.smear.pick(sides_px)
+        marker = found[pick]
+        H = homography.from_quad(self.layout.inner_corners_cells, marker.corners_px)
+        widths_px = self.edges.step_widths_px(gray, H, sides_px[pick] / self.layout.inner_cells)
+        # the smear widens both edges of a pair alike; one widened edge is more likely an occluder or a shadow
+        if not max(min(widths_px[0], widths_px[2]), min(widths_px[1], widths_px[3])) >= params.min_edge_width_px:
+            return []
+        smear = self.smear.estimate(gray, marker.id, marker.corners_px)
+        if smear is None or smear.length_px < params.min_recover_length_px:
+            return []
+        sharp = deconvolve(gray, smear, params.noise_to_signal)
+        candidates = self.square.find(sharp)
+        if len(candidates.corners_px) == 0:
+            return []
+        H = homography.from_quads(self.layout.inner_corners_cells, corners_px)
+        new = ~sampling.inside_grids(candidates.corners_px.mean(axis=1), H, self.layout.n_cells)
+        detections = self._decode_quads(sharp, candidates.corners_px[new], candidates.from_aruco[new])
+        return [self._aligned(sharp, d) for d in detections]
 
     def _pattern_inside(self, corners_px: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether the marker's whole printed grid lies inside the frame (the alignment saw all of it)."""
