@@ -214,14 +214,21 @@ def marker_errors(surveyed: FacilityMap, truth: FacilityMap, anchors) -> tuple[n
 def localization_median_m(flight: Path, facility_map: FacilityMap, map_sd_m: float,
                           map_sd_deg: float) -> tuple[float, int, int]:
     """(median position error m, frames with a pose, frames) of the flight localized on the map, the pose
-    stage told how far its markers may be from where the map says (``PoseParams.map_sd_m``, ``map_sd_deg``:
-    0 for the true and the surveyed maps, as the pose stage weighed them before it had that term; 2 cm and
-    2 degrees for the tape map, whose markers' disagreements its gates would otherwise refuse)."""
+    stage told how far its markers may be from where the map says (``PoseParams.map_sd_m``, ``map_sd_deg``):
+    0 for the true map (exact), 2 cm and 2 degrees for the tape map, and for a surveyed map the median of
+    the standard deviations the survey states for its markers (``surveyed_sd``)."""
     _, camera = resources(flight, str(MAP_PATH), None)
     solver = PoseSolver(facility_map, camera, PoseParams(map_sd_m=map_sd_m, map_sd_deg=map_sd_deg))
     results = list(localize(flight, solver, groundtruth(flight), detector=map_detector(facility_map, camera)))
     errors = [r.error_m for r in results if r.error_m is not None]
     return (float(np.median(errors)) if errors else math.inf), len(errors), len(results)
+
+
+def surveyed_sd(result) -> tuple[float, float]:
+    """(m, deg) the median over the surveyed (non-anchor) markers of the standard deviations the survey states
+    for them (the notes it writes into the map; ``SurveyedMarker.sd_position_m``, ``sd_angle_deg``)."""
+    surveyed = [s for s in result.markers if not s.anchor]
+    return (float(np.median([s.sd_position_m for s in surveyed])), float(np.median([s.sd_angle_deg for s in surveyed])))
 
 
 def verdict(ok: bool) -> str:
@@ -238,7 +245,7 @@ def survey_runs(walks: dict[str, Path], truth: FacilityMap, anchor_sets) -> dict
     """
     print(f"\n{'walk':<10} {'anchors':<8} {'frames':>6} {'adjusted':>8} {'mapped':>6} {'seen>=3':>7} "
           f"{'pos_med_mm':>10} {'pos_max_mm':>10} {'ang_med_deg':>11} {'ang_max_deg':>11} {'detect_s':>8} "
-          f"{'adjust_s':>8} {'load':>5}  worst")
+          f"{'adjust_s':>8} {'load':>5} {'in_3sd':>6}  worst  weak")
     maps, checks = {}, []
     for walk_name, walk in walks.items():
         camera = CameraModel.from_config(yaml.safe_load((walk / "sequence.yaml").read_text())["camera"], str(walk))
@@ -259,29 +266,35 @@ def survey_runs(walks: dict[str, Path], truth: FacilityMap, anchor_sets) -> dict
             seen_enough = {s.marker.symbol for s in result.markers if s.frames >= 3}
             mapped = {m.symbol for m in result.facility_map.markers.values()}
             worst = names[int(np.argmax(position))] if len(position) else "-"
+            weak = ",".join(s.marker.symbol for s in result.markers if s.weakly_linked) or "-"
+            sd_m = {s.marker.symbol: s.sd_position_m for s in result.markers}
+            covered = sum(e <= 3.0 * sd_m[name] for e, name in zip(position, names))
             print(f"{walk_name:<10} {anchor_name:<8} {result.frames_read:>6} {result.frames_adjusted:>8} "
                   f"{len(mapped):>6} {len(seen_enough):>7} {np.median(position) * 1000:>10.1f} "
                   f"{position.max() * 1000:>10.1f} {np.median(angle):>11.3f} {angle.max():>11.3f} {detect_s:>8.1f} "
-                  f"{adjust_s:>8.1f} {load:>5.2f}  {worst}")
-            maps[(walk_name, anchor_name)] = result.facility_map
+                  f"{adjust_s:>8.1f} {load:>5.2f} {f'{covered}/{len(position)}':>6}  {worst:<6} {weak}")
+            maps[(walk_name, anchor_name)] = (result.facility_map, *surveyed_sd(result))
             checks.append((walk_name, anchor_name, position, angle, seen_enough <= mapped, len(seen),
                            result.frames_read, detect_s + adjust_s, load))
     return {"maps": maps, "checks": checks}
 
 
 def localization_runs(flights: dict[str, Path], truth: FacilityMap, surveyed: dict) -> list:
-    print(f"\n{'flight':<7} {'map':<18} {'frames_posed':>12} {'median_err_mm':>13} {'vs_true':>7}")
+    print(f"\n{'flight':<7} {'map':<18} {'map_sd_mm':>9} {'map_sd_deg':>10} {'frames_posed':>12} {'median_err_mm':>13} "
+          f"{'vs_true':>7}")
     rows = []
     for flight_name, flight in flights.items():
         reference, posed, total = localization_median_m(flight, truth, 0.0, 0.0)
-        print(f"{flight_name:<7} {'true':<18} {posed:>5}/{total:<6} {reference * 1000:>13.2f} {1.0:>7.2f}")
+        print(f"{flight_name:<7} {'true':<18} {0.0:>9.1f} {0.0:>10.2f} {posed:>5}/{total:<6} {reference * 1000:>13.2f} "
+              f"{1.0:>7.2f}")
         tape, posed, total = localization_median_m(flight, tape_map(truth), 0.02, 2.0)
-        print(f"{flight_name:<7} {'tape (2 cm, 2 deg)':<18} {posed:>5}/{total:<6} {tape * 1000:>13.2f} "
-              f"{tape / reference:>7.2f}")
-        for (walk_name, anchor_name), facility_map in surveyed.items():
-            median, posed, total = localization_median_m(flight, facility_map, 0.0, 0.0)
+        print(f"{flight_name:<7} {'tape (2 cm, 2 deg)':<18} {20.0:>9.1f} {2.0:>10.2f} {posed:>5}/{total:<6} "
+              f"{tape * 1000:>13.2f} {tape / reference:>7.2f}")
+        for (walk_name, anchor_name), (facility_map, sd_m, sd_deg) in surveyed.items():
+            median, posed, total = localization_median_m(flight, facility_map, sd_m, sd_deg)
             label = f"surveyed {walk_name}/{anchor_name}"
-            print(f"{flight_name:<7} {label:<18} {posed:>5}/{total:<6} {median * 1000:>13.2f} {median / reference:>7.2f}")
+            print(f"{flight_name:<7} {label:<18} {sd_m * 1000:>9.1f} {sd_deg:>10.2f} {posed:>5}/{total:<6} "
+                  f"{median * 1000:>13.2f} {median / reference:>7.2f}")
             rows.append((flight_name, label, median, reference, tape))
     return rows
 

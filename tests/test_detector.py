@@ -18,6 +18,7 @@ from companion.geometry.camera import CameraModel, intrinsics_from_hfov
 from companion.detect import homography
 from companion.detect.circles import CircleParams
 from companion.detect.detector import Detector, DetectorError, DetectorParams
+from companion.detect.smear import Smear, SmearParams, deconvolve
 from companion.markers.codec import GridDecoder
 from companion.markers.layout import UNKNOWN, MarkerLayout
 from companion.params import ParamsError
@@ -167,7 +168,7 @@ def test_golden_frames_exist_for_every_case():
     notes = {path.stem for path in GOLDEN}
     assert {"square_rotations", "circles_rotations", "strip_1_8", "strip_1_4", "strip_1_4_parity4", "blob",
             "marker_free_clutter", "other_families", "too_occluded", "side_corners", "clean_beside_occluded",
-            "motion_blur"} <= notes
+            "motion_blur", "motion_blur_small"} <= notes
 
 
 @pytest.mark.parametrize("golden", GOLDEN, ids=lambda path: path.stem)
@@ -200,6 +201,55 @@ def assert_circles_consistent(d, layout):
     expected = cv2.perspectiveTransform(layout.circles[ids, :2].reshape(1, -1, 2), H_grid)[0]
     cell_px = np.linalg.norm(d.corners_px[1] - d.corners_px[0]) / layout.inner_cells
     assert np.linalg.norm(expected - d.circles_px, axis=1).max() < 0.25 * cell_px
+
+
+# ------------------------------------------------------------- motion smear
+
+def golden(name: str):
+    path = Path(__file__).parent / "data" / "detector" / f"{name}.json"
+    return cv2.imread(str(path.with_suffix(".png")), cv2.IMREAD_GRAYSCALE), json.loads(path.read_text())
+
+
+def test_a_small_smeared_marker_is_found_only_with_the_smear_undone():
+    # 38 px marker under a 9 px smear: ArUco finds no quad for it; the 67 px one beside it shows the smear
+    image, expected = golden("motion_blur_small")
+    small = expected["markers"][1]
+    without = Detector(DetectorParams(smear=SmearParams(recover=False))).detect(image)
+    assert small["id"] not in by_id(without)
+    found = by_id(Detector().detect(image))
+    assert small["id"] in found
+    assert np.abs(found[small["id"]].corners_px - np.array(small["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
+
+
+def test_the_smear_is_measured_on_a_found_marker(detector):
+    # the golden frame was smeared 9 px at 60 degrees (tests/data/detector/generate.py)
+    image, expected = golden("motion_blur_small")
+    large = expected["markers"][0]
+    smear = detector.smear.estimate(image, large["id"], np.array(large["corners"]))
+    assert abs(smear.length_px - 9.0) <= 1.0
+    assert abs(math.degrees(smear.angle_rad) - 60.0) <= 6.0
+
+
+def test_a_sharp_marker_shows_no_smear(layout, detector):
+    texture = raster.rs_marker_texture(layout, 7)
+    image, truths = render_scene([(texture, facing_pose(0.7, spin_deg=20, tilt_deg=15))])
+    assert detector.smear.estimate(image, 7, truths[0].corners_px) is None
+    cell_px = np.linalg.norm(truths[0].corners_px[1] - truths[0].corners_px[0]) / layout.inner_cells
+    H_grid = homography.from_quad(layout.inner_corners_cells, truths[0].corners_px)
+    assert np.nanmax(detector.edges.step_widths_px(image, H_grid, cell_px)) < SmearParams().min_edge_width_px
+
+
+def test_deconvolution_undoes_a_known_smear(layout):
+    texture = raster.rs_marker_texture(layout, 3)
+    sharp, truths = render_scene([(texture, facing_pose(1.0, spin_deg=10))], blur_sigma_px=0.0)
+    smeared = degrade.motion_blur(sharp, 9.0, math.radians(35))  # the simulator's own kernel
+    restored = deconvolve(smeared, Smear(9.0, math.radians(35), 1.0), SmearParams().noise_to_signal)
+    x0, y0 = truths[0].corners_px.min(axis=0).astype(int) - 10
+    x1, y1 = truths[0].corners_px.max(axis=0).astype(int) + 10
+    marker = (slice(y0, y1), slice(x0, x1))
+    before = np.abs(smeared.astype(float) - sharp)[marker].mean()
+    after = np.abs(restored.astype(float) - sharp)[marker].mean()
+    assert after < 0.5 * before
 
 
 # ------------------------------------------------------------- circles path
@@ -264,6 +314,28 @@ def test_occluded_marker_beside_a_clean_one_is_found_by_default(layout):
     assert [(d.id, d.path) for d in Detector(DetectorParams(circles=CircleParams(run="when_square_empty")))
             .detect(strip_only)] == [(40, "circles")]
     assert Detector(DetectorParams(circles=CircleParams(run="never"))).detect(strip_only) == []
+
+
+def test_expected_places_limit_the_circles_search_once_the_square_path_found_a_marker(layout):
+    # the daemon tells the detector where mapped markers should be: the occluded one is found where it is
+    # expected (a prediction 8 px off), not where nothing is expected; with nothing found by the square
+    # path the whole frame is searched whatever is expected
+    clean_texture, strip_texture = raster.rs_marker_texture(layout, 3), raster.rs_marker_texture(layout, 40)
+    T_strip = facing_pose(1.0, 30, 15, offset_px=(150, 0))
+    strip = occluders.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
+    image, truths = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
+                                  (strip_texture, T_strip)], occluders=[strip])
+    clean_px, strip_px = truths[0].corners_px, truths[1].corners_px
+    detector = Detector()
+
+    def found(expected_px):
+        return {(d.id, d.path) for d in detector.detect(image, expected_px=expected_px)}
+
+    assert found(np.stack([clean_px, strip_px + [8.0, -8.0]])) == {(3, "square"), (40, "circles")}
+    assert found(clean_px[None]) == found(np.zeros((0, 4, 2))) == {(3, "square")}
+    assert found(np.stack([clean_px, clean_px + [0.0, 200.0]])) == {(3, "square")}
+    strip_only, _ = render_scene([(strip_texture, T_strip)], occluders=[strip])
+    assert [(d.id, d.path) for d in detector.detect(strip_only, expected_px=np.zeros((0, 4, 2)))] == [(40, "circles")]
 
 
 def test_a_60_px_marker_in_an_8000_by_6000_image_is_found(layout, detector):

@@ -85,7 +85,7 @@ def summary(result: SurveyResult) -> str:
     """A table of the markers (anchors first) and one line on the frames."""
     lines = [f"{'marker':<7} {'kind':<9} {'frames':>6} {'sd_mm':>6} {'sd_deg':>6} {'rms_px':>6}"]
     for s in sorted(result.markers, key=lambda s: (not s.anchor, s.marker.id)):
-        kind = "anchor" if s.anchor else "surveyed"
+        kind = "anchor" if s.anchor else "weak" if s.weakly_linked else "surveyed"
         sd = "     -      -" if s.anchor else f"{s.sd_position_m * 1000:>6.1f} {s.sd_angle_deg:>6.2f}"
         rms = f"{s.rms_px:>6.2f}" if math.isfinite(s.rms_px) else "     -"
         lines.append(f"{s.marker.symbol:<7} {kind:<9} {s.frames:>6} {sd} {rms}")
@@ -105,6 +105,11 @@ def _notes(result: SurveyResult) -> None:
     for a in result.anchors:
         print(f"companion survey: anchor {a.symbol}: the images move it by {a.position_m * 1000:.1f} mm, "
               f"{a.angle_deg:.2f} deg", file=sys.stderr)
+    weak = [s.marker.symbol for s in result.markers if s.weakly_linked]
+    if weak:
+        print(f"companion survey: weakly linked to the anchors, need another look: {', '.join(weak)} (the images "
+              f"fit another place for them nearly as well, their sd covers both; film them again together with "
+              f"mapped markers, from more than one place and closer)", file=sys.stderr)
     for check in result.moved:
         print(f"companion survey: marker {check.symbol} disagrees with the map by {check.position_error_m * 100:.1f} cm, "
               f"{check.angle_error_deg:.1f} deg: surveyed again", file=sys.stderr)

@@ -120,13 +120,15 @@ class Pipeline:
         self.attitude = attitude
         self.stats = PipelineStats()
         self.observers: list[FrameObserver] = []
+        self._corners_map: np.ndarray | None = None  # (M, 4, 3) the mapped markers' inner corners, once
 
     def process(self, frame: Frame) -> FrameRecord:
         t0 = time.perf_counter_ns()
-        detections = self.detector.detect(frame.image)
+        prior = self._prior()
+        detections = self.detector.detect(frame.image, expected_px=self._expected_markers_px(prior, frame.image.shape))
         t1 = time.perf_counter_ns()
         attitude = self._attitude_at(frame)
-        solution = self.solver.solve_detailed(detections, frame.t_ns, self._prior(), attitude) if detections else None
+        solution = self.solver.solve_detailed(detections, frame.t_ns, prior, attitude) if detections else None
         measurement = None if solution is None else solution.measurement
         t2 = time.perf_counter_ns()
         estimate = self.pose_filter.step(frame.t_ns, measurement)
@@ -150,6 +152,29 @@ class Pipeline:
             return None
         R = frames.rotation_from_euler_321(estimate.roll_rad, estimate.pitch_rad, estimate.yaw_rad)
         return self.T_map_ned @ frames.make_transform(R, estimate.position_ned_m)
+
+    def _expected_markers_px(self, prior_T_map_body: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray | None:
+        """(K, 4, 2) inner-square corners (TL, TR, BR, BL) of the mapped markers in view, seen from the prior
+        pose (None without one, or when the frame is not the camera model's size): the detector's circles
+        path then looks for occluded markers only there, once its square path found a marker."""
+        camera = self.solver.camera
+        if prior_T_map_body is None or tuple(shape[:2]) != (camera.height, camera.width):
+            return None
+        if self._corners_map is None:
+            markers = list(self.solver.facility_map.markers.values())
+            self._corners_map = np.stack([m.corners_map() for m in markers]) if markers else np.zeros((0, 4, 3))
+        T_camera_map = camera.T_camera_body @ frames.invert_transform(prior_T_map_body)
+        corners_camera = frames.transform_points(T_camera_map, self._corners_map.reshape(-1, 3)).reshape(-1, 4, 3)
+        # in view: in front of the camera, and the pinhole image of every corner within the frame grown by a
+        # quarter of its size on each side (further out the lens model's polynomial is no prediction)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pinhole_px = corners_camera[..., :2] / corners_camera[..., 2:] * camera.K[[0, 1], [0, 1]] + camera.K[:2, 2]
+        size_px = np.array([camera.width, camera.height])
+        in_view = ((corners_camera[..., 2] > 0) & (pinhole_px >= -0.25 * size_px).all(axis=-1)
+                   & (pinhole_px <= 1.25 * size_px).all(axis=-1)).all(axis=1)
+        if not in_view.any():
+            return np.zeros((0, 4, 2))
+        return camera.project(corners_camera[in_view].reshape(-1, 3)).reshape(-1, 4, 2)
 
     def _attitude_at(self, frame: Frame) -> AttitudeSample | None:
         """The attitude at the frame's capture time; None without a source or when it is stale or missing."""

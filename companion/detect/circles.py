@@ -57,6 +57,12 @@ class CircleParams:
         path do not explain), "when_square_empty" (only in frames where the
         square path found nothing), or "never".
 
+    expected_margin_fraction: with the markers' expected places given
+        (``Detector.detect``'s ``expected_px``: the daemon's prediction from its
+        pose and the map), the window searched around each expected marker the
+        square path did not find: its whole printed grid's bounding box grown
+        by this share of its larger side on every side (the prediction's error).
+
     Blobs (looked for at a pyramid level, see ``blob_level``; sizes are in frame pixels):
     min_side_px: the smallest marker (inner-square side, pixels) the
         path looks for: circles are searched at the coarsest pyramid level at
@@ -126,6 +132,7 @@ class CircleParams:
     """
 
     run: str = "always"
+    expected_margin_fraction: float = 0.5
     min_side_px: float = 20.0
     min_level_side_px: float = 20.0
     threshold_block_px: int = 31
@@ -178,7 +185,7 @@ class CircleParams:
                 self.min_circles_for_homography)
         require(self.min_side_px >= self.min_level_side_px > 0, "min_side_px",
                 f">= min_level_side_px ({self.min_level_side_px}) > 0", self.min_side_px)
-        for key in ("threshold_offset_gray", "min_area_px", "ring_margin_px", "min_ring_contrast_gray"):
+        for key in ("expected_margin_fraction", "threshold_offset_gray", "min_area_px", "ring_margin_px", "min_ring_contrast_gray"):
             require(getattr(self, key) >= 0, key, ">= 0", getattr(self, key))
         for key in ("threshold_ratio", "max_speck_fraction", "max_area_fraction", "min_fill",
                     "ring_dark_contrast_fraction", "max_darkness_ratio", "min_arm_fraction",
@@ -237,24 +244,69 @@ def find_frame_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
     return find_blobs(reduce(gray, scale), params, scale)
 
 
-def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1) -> Blobs:
+def find_window_blobs(gray: np.ndarray, boxes_px: np.ndarray, params: CircleParams) -> Blobs:
+    """The blobs of an (H, W) uint8 frame inside the windows ``boxes_px`` (B, 4) int (x0, y0, x1, y1),
+    clipped to the frame; overlapping windows are searched as one (their bounding box). Sizes are
+    judged against the whole frame, as ``find_frame_blobs`` does."""
+    scale = 2 ** blob_level(params)
+    height, width = gray.shape
+    boxes = [box for box in _merged_boxes(np.clip(np.asarray(boxes_px, np.int64).reshape(-1, 4),
+                                                  0, [width, height, width, height]))
+             if box[2] - box[0] >= 2 * scale and box[3] - box[1] >= 2 * scale]
+    found = []
+    for x0, y0, x1, y1 in boxes:
+        x0, y0 = x0 // scale * scale, y0 // scale * scale  # the window on the level's pixel grid
+        blobs = find_blobs(reduce(gray[y0:y1, x0:x1], scale), params, scale, frame_pixels=gray.size / scale ** 2)
+        found.append(Blobs(blobs.centres_px + [x0, y0], blobs.areas_px))
+    if not found:
+        return Blobs(np.zeros((0, 2)), np.zeros(0))
+    return Blobs(np.concatenate([b.centres_px for b in found]), np.concatenate([b.areas_px for b in found]))
+
+
+def _merged_boxes(boxes: np.ndarray) -> list[np.ndarray]:
+    """Boxes (B, 4) (x0, y0, x1, y1) with every group of overlapping ones replaced by its bounding box."""
+    merged = [box.copy() for box in boxes if box[2] > box[0] and box[3] > box[1]]
+    joined = True
+    while joined:
+        joined = False
+        for a, b in itertools.combinations(range(len(merged)), 2):
+            first, second = merged[a], merged[b]
+            if first[0] < second[2] and second[0] < first[2] and first[1] < second[3] and second[1] < first[3]:
+                merged[a] = np.r_[np.minimum(first[:2], second[:2]), np.maximum(first[2:], second[2:])]
+                del merged[b]
+                joined = True
+                break
+    return merged
+
+
+def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1,
+               frame_pixels: float | None = None) -> Blobs:
     """Dark, compact blobs on bright surroundings.
 
-    level_image: (h, w) uint8, the frame reduced ``scale`` times (``reduce``); the parameters are in
-    frame pixels. Returns the blobs in frame pixels (centres to a few tenths of a level pixel;
-    ``refine_centres`` reads the frame).
+    level_image: (h, w) uint8, the frame (or a window of it) reduced ``scale`` times (``reduce``); the
+    parameters are in frame pixels. frame_pixels: the whole frame's pixel count at the level (the
+    largest blob is a share of it; default: the image's). Returns the blobs in pixels of the image
+    given, at full resolution (centres to a few tenths of a level pixel; ``refine_centres`` reads the frame).
     """
     smooth = cv2.blur(level_image, (3, 3)) if params.pre_blur else level_image
     binary = dark_pixels(smooth, params, scale)
-    max_area_px = params.max_area_fraction * level_image.size
-    table = (_contour_table if _use_contours(binary, params) else _component_table)(binary, max_area_px)
+    max_area_px = params.max_area_fraction * (level_image.size if frame_pixels is None else frame_pixels)
+    min_area_px = params.min_area_px / scale ** 2
+    if _use_contours(binary, params):
+        # a contour of one or two points is a speck or a straight run of k + 1 pixels; the run passes the
+        # elongation test below only while its variance along, k^2 / 4 + 1/12, is at most max_aspect^2 / 12
+        # (across: 1/12): so none of them where blobs need more pixels than the longest such run has
+        longest_run_px = 1 + np.floor(np.sqrt((params.max_aspect ** 2 - 1) / 3))
+        table = _contour_table(binary, max_area_px, min_points=3 if min_area_px > longest_run_px else 1)
+    else:
+        table = _component_table(binary, max_area_px)
     var_x, var_y, cov = table.moments.T
     # eigenvalues of the shape's covariance: its squared half axes / 4 for a filled ellipse
     half_sum, half_diff = (var_x + var_y) / 2, np.hypot((var_x - var_y) / 2, cov)
     major, minor = half_sum + half_diff, half_sum - half_diff
     with np.errstate(invalid="ignore", divide="ignore"):
         # fill: area over the area of the ellipse of the same moments (pi a b = 4 pi sqrt(major minor))
-        shape_ok = ((table.areas >= params.min_area_px / scale ** 2)
+        shape_ok = ((table.areas >= min_area_px)
                     & (table.areas <= max_area_px)
                     & (minor > 0) & (major <= params.max_aspect ** 2 * minor)
                     & (table.areas >= params.min_fill * 4 * np.pi * np.sqrt(major * minor)))
@@ -307,10 +359,10 @@ def _use_contours(binary: np.ndarray, params: CircleParams) -> bool:
     return cv2.countNonZero(specks) <= params.max_speck_fraction * binary.size
 
 
-def _contour_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
+def _contour_table(binary: np.ndarray, max_area_px: float, min_points: int = 1) -> _BlobTable:
     """The blobs of the binary image from their outer contours, vectorised.
 
-    Contours (OpenCV's, straight runs of boundary pixels compressed to their
+    Contours of fewer than ``min_points`` compressed points are left out (specks). Contours (OpenCV's, straight runs of boundary pixels compressed to their
     ends) longer than a blob of ``max_area_px`` can be (a 1:4 ellipse of that
     area has a perimeter of 5.2 sqrt(area); edges and large regions of
     clutter are most of the points) are dropped first; the others are
@@ -326,7 +378,8 @@ def _contour_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
     if not contours:
         return _BlobTable(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)))
     lengths = np.fromiter(map(len, contours), np.intp, len(contours))
-    kept = np.flatnonzero((hierarchy[0, :, 3] < 0) & (lengths <= MAX_LENGTH_PER_SQRT_AREA * np.sqrt(max_area_px)))
+    kept = np.flatnonzero((hierarchy[0, :, 3] < 0) & (lengths >= min_points)
+                          & (lengths <= MAX_LENGTH_PER_SQRT_AREA * np.sqrt(max_area_px)))
     if len(kept) == 0:
         return _BlobTable(np.zeros((0, 2)), np.zeros(0), np.zeros((0, 3)))
     contours, lengths = [contours[i] for i in kept], lengths[kept]

@@ -18,6 +18,9 @@ Stages (one module each in ``companion.detect``, run in this order):
 5. ``refine``: each decoded square-path marker's whole pattern is aligned
    to the image for its final corners (through the camera's lens model when
    the detector has the camera).
+   ``smear``: where a found marker's edges are wide, the frame's motion
+   smear is measured on its known pattern, the frame deconvolved with it and
+   the square path (1-5) run again there for the markers the smear hid.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
    (found at a pyramid level, on a second thread beside ArUco when OpenCV
@@ -42,10 +45,11 @@ import numpy as np
 
 from companion.detect import homography, sampling
 from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, corner_triples,
-                                      find_frame_blobs, missing_corner_cells, refine_centres)
+                                      find_frame_blobs, find_window_blobs, missing_corner_cells, refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
+from companion.detect.smear import SmearEstimator, SmearParams, deconvolve
 from companion.detect.square import SquareFinder, SquareParams
 from companion.markers.codec import DecoderParams, GridDecoder
 from companion.markers.dictionary import SIZES, DictionaryError, load_dictionary
@@ -82,6 +86,7 @@ class DetectorParams:
     circles: CircleParams = field(default_factory=CircleParams)
     decoder: DecoderParams = field(default_factory=DecoderParams)
     refine: RefineParams = field(default_factory=RefineParams)
+    smear: SmearParams = field(default_factory=SmearParams)
 
     def __post_init__(self):
         require(self.parity in (2, 4), "parity", "2 or 4", self.parity)
@@ -119,6 +124,7 @@ class Detector:
         self.square = SquareFinder(self.layout, params.square, min_contrast_gray, screen=self.decoder.plausible)
         self.edges = EdgeRefiner(self.layout, params.edges, min_contrast_gray)
         self.refiner = MarkerRefiner(self.layout, params.refine, camera)
+        self.smear = SmearEstimator(self.layout, params.smear)
         self.probe = sampling.CellProbe(self.layout)
         self._border = self.layout.border_mask
         self._gap = sampling.gap_ring_mask(self.layout)
@@ -129,21 +135,39 @@ class Detector:
         self.last_stage_ms: dict[str, float] = {}
         self._blob_worker: ThreadPoolExecutor | None = None
 
-    def detect(self, gray: np.ndarray) -> list[Detection]:
-        """All RS markers in an (H, W) uint8 frame, each once."""
+    def detect(self, gray: np.ndarray, expected_px: np.ndarray | None = None) -> list[Detection]:
+        """All RS markers in an (H, W) uint8 frame, each once.
+
+        expected_px: optional (K, 4, 2) inner-square corners (TL, TR, BR, BL of the upright marker) where
+        markers are expected, e.g. the mapped markers seen from the daemon's current pose. With them, in a
+        frame where the square path found a marker, the circles path looks only around the expected
+        markers it did not find that face the camera and are large enough for it
+        (``circles.expected_margin_fraction``, ``circles.min_side_px``), and not at all when there are
+        none; without them, or when the square path found nothing, it searches the whole frame.
+        """
         gray = _as_gray(gray)
         clock = _StageClock()
         run = self.params.circles.run
-        blobs_pending = self._blob_search_beside(gray) if run == "always" else None
+        blobs_pending = self._blob_search_beside(gray) if run == "always" and expected_px is None else None
         candidates = self.square.find(gray)
         clock.lap("square")
         detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
         clock.lap("square_decode")
         detections = [self._aligned(gray, d) for d in detections]
         clock.lap("square_align")
+        if self.params.smear.recover and detections:
+            detections += self._smeared_markers(gray, detections)
+            clock.lap("smear")
         if run == "always" or (run == "when_square_empty" and not detections):
-            blobs = find_frame_blobs(gray, self.params.circles) if blobs_pending is None else blobs_pending.result()
-            detections += self._circles_path(gray, blobs, detections, clock)
+            if blobs_pending is not None and not blobs_pending.cancel():
+                blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
+            elif expected_px is not None and detections:
+                windows = self._windows_of_missing(expected_px, detections, gray.shape)
+                blobs = find_window_blobs(gray, windows, self.params.circles) if len(windows) else None
+            else:
+                blobs = find_frame_blobs(gray, self.params.circles)
+            if blobs is not None:
+                detections += self._circles_path(gray, blobs, detections, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
 
@@ -163,6 +187,37 @@ class Detector:
             self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
         return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
 
+    def _windows_of_missing(self, expected_px: np.ndarray, found: list[Detection],
+                            gray_shape: tuple[int, int]) -> np.ndarray:
+        """(B, 4) int windows (x0, y0, x1, y1) inside the frame around the expected markers (K, 4, 2) that
+        face the camera (clockwise in the image), have a mean side of ``circles.min_side_px`` or more, and
+        whose centres no found marker's whole grid covers: each one's square grown about its centre to
+        the whole grid, its bounding box grown by ``circles.expected_margin_fraction`` of its larger side."""
+        expected = np.asarray(expected_px, dtype=np.float64).reshape(-1, 4, 2)
+        with np.errstate(invalid="ignore"):
+            x, y = expected[..., 0], expected[..., 1]
+            # shoelace: twice the signed area, > 0 for TL, TR, BR, BL clockwise on the screen (y down)
+            facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
+            usable = facing & (_mean_side_px(expected) >= self.params.circles.min_side_px)
+        expected = expected[usable]
+        if len(expected) == 0:
+            return np.zeros((0, 4), np.int64)
+        inner = self.layout.inner_corners_cells
+        found_H = homography.from_quads(inner, np.stack([d.corners_px for d in found]))
+        expected = expected[~sampling.inside_grids(expected.mean(axis=1), found_H, self.layout.n_cells)]
+        if len(expected) == 0:
+            return np.zeros((0, 4), np.int64)
+        # the corners' order does not matter for the outline's bounding box: the grid shares the inner
+        # square's centre, (n / inner) times its size
+        centre = expected.mean(axis=1, keepdims=True)
+        outline = centre + (expected - centre) * (self.layout.n_cells / self.layout.inner_cells)
+        low, high = outline.min(axis=1), outline.max(axis=1)
+        margin = self.params.circles.expected_margin_fraction * (high - low).max(axis=1, keepdims=True)
+        height, width = gray_shape
+        boxes = np.concatenate([np.floor(low - margin), np.ceil(high + margin) + 1], axis=1)
+        boxes = boxes[(boxes[:, 0] < width) & (boxes[:, 1] < height) & (boxes[:, 2] > 0) & (boxes[:, 3] > 0)]
+        return np.clip(boxes, 0, [width, height, width, height]).astype(np.int64)
+
     def _aligned(self, gray: np.ndarray, detection: Detection) -> Detection:
         """Square-path corners aligned on the decoded marker's whole pattern (see ``refine``), with their noise;
         where the alignment does not hold, the corners of the inner square's edge lines."""
@@ -178,6 +233,34 @@ class Detector:
             sigma_px *= CUT_SIGMA_FACTOR
             cov_px2 = None if cov_px2 is None else cov_px2 * CUT_SIGMA_FACTOR ** 2
         return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px, corner_cov_px2=cov_px2)
+
+    def _smeared_markers(self, gray: np.ndarray, found: list[Detection]) -> list[Detection]:
+        """Markers the square path missed in a smeared frame (``smear``): the edges of one found marker
+        measured (a sharp frame stops there), its pattern compared with the image under line smears, the
+        frame deconvolved with the best one and the square path run again there (quads inside the found
+        markers' grids skipped)."""
+        params = self.params.smear
+        corners_px = np.stack([d.corners_px for d in found])  # (M, 4, 2)
+        sides = corners_px - corners_px[:, [3, 0, 1, 2]]
+        sides_px = np.sqrt((sides * sides).sum(axis=2)).mean(axis=1)
+        pick = self.smear.pick(sides_px)
+        marker = found[pick]
+        H = homography.from_quad(self.layout.inner_corners_cells, marker.corners_px)
+        widths_px = self.edges.step_widths_px(gray, H, sides_px[pick] / self.layout.inner_cells)
+        # the smear widens both edges of a pair alike; one widened edge is more likely an occluder or a shadow
+        if not max(min(widths_px[0], widths_px[2]), min(widths_px[1], widths_px[3])) >= params.min_edge_width_px:
+            return []
+        smear = self.smear.estimate(gray, marker.id, marker.corners_px)
+        if smear is None or smear.length_px < params.min_recover_length_px:
+            return []
+        sharp = deconvolve(gray, smear, params.noise_to_signal)
+        candidates = self.square.find(sharp)
+        if len(candidates.corners_px) == 0:
+            return []
+        H = homography.from_quads(self.layout.inner_corners_cells, corners_px)
+        new = ~sampling.inside_grids(candidates.corners_px.mean(axis=1), H, self.layout.n_cells)
+        detections = self._decode_quads(sharp, candidates.corners_px[new], candidates.from_aruco[new])
+        return [self._aligned(sharp, d) for d in detections]
 
     def _pattern_inside(self, corners_px: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether the marker's whole printed grid lies inside the frame (the alignment saw all of it)."""
@@ -355,6 +438,11 @@ def circles_corner_sigma_px(rms_cells: float, cell_px: float) -> float | None:
 def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:
     """Mean side of the inner square in the image over its cells."""
     return float(np.mean(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)) / inner_cells)
+
+
+def _mean_side_px(quads: np.ndarray) -> np.ndarray:
+    """(M,) mean side of M quads (M, 4, 2)."""
+    return np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).mean(axis=1)
 
 
 def _unique(detections: list[Detection], offset_fraction: float) -> list[Detection]:

@@ -61,7 +61,8 @@ def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     x, y = flat[:, 0], flat[:, 1]
     with np.errstate(invalid="ignore"):
         inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)  # False for NaN
-    np.nan_to_num(flat, copy=False, nan=-10.0, posinf=-10.0, neginf=-10.0)
+    # points outside (NaN and inf among them) read NaN below: any finite position off the image will do
+    np.copyto(flat, -10.0, where=~inside[:, None])
     # remap wants maps under 32767 columns: lay the points out in rows of REMAP_ROW
     count = len(flat)
     cols = max(min(count, REMAP_ROW), 1)

@@ -573,7 +573,8 @@ class PoseSolver:
             agreeing = np.flatnonzero([self._within_noise(c, 2 * n) for c, n in zip(chi2_m, points.counts)])
             if np.array_equal(agreeing, members):
                 break
-            members = agreeing
+            members = agreeing if np.isin(members, agreeing).all() or len(members) < 3 else \
+                self._consensus(T_camera_map, weights, members, gravity)
         if len(members) == 0:
             return None
         attitude_chi2 = 0.0
@@ -581,6 +582,35 @@ class PoseSolver:
             attitude_chi2 = float(np.sum(gravity.residual(self._R_map_body(T_camera_map))[0] ** 2))
         return Fit(T_camera_map, tuple(int(i) for i in members), chi2_m, float(chi2_m[members].sum()), attitude_chi2,
                    float(sse_m[members].sum()), int(points.counts[members].sum()), gravity is not None)
+
+    def _consensus(self, T_camera_map: np.ndarray, weights: _Weights, members: np.ndarray,
+                   gravity: _Gravity | None) -> np.ndarray:
+        """The markers of ``members`` (indices, ascending) that agree on one pose, when a fit to all of them
+        leaves some of them out: leave-one-out by chi-square, a consensus over markers as RANSAC's.
+
+        Each marker in turn is left out and the pose fitted to the others; the one whose absence fits the
+        others best (lowest chi-square per degree of freedom) goes, until the others all pass the
+        per-marker test. The moved marker's pull on a joint fit can make every marker fail it; fitted
+        without it, the others agree. At most a minority goes; fewer than three markers cannot outvote one.
+        """
+        keep_at_least = len(members) // 2 + 1
+        while len(members) > max(keep_at_least, 2):
+            best = None
+            for left_out in range(len(members)):
+                rest = np.delete(members, left_out)
+                T_rest = self._refine(T_camera_map, weights.of_markers(rest), gravity)
+                if T_rest is None:
+                    continue
+                chi2_rest = self._marker_errors(T_rest, weights.points, weights)[0][rest]
+                dof = max(2 * int(weights.points.counts[rest].sum()) - 6, 1)
+                if best is None or chi2_rest.sum() / dof < best[0]:
+                    best = (chi2_rest.sum() / dof, rest, chi2_rest)
+            if best is None:
+                break
+            _, members, chi2_rest = best
+            if all(self._within_noise(c, 2 * n) for c, n in zip(chi2_rest, weights.points.counts[members])):
+                break
+        return members
 
     def _within_noise(self, chi2_value: float, dof: int) -> bool:
         """Chi-square test: squared errors explained by the points' noise."""

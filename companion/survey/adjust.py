@@ -74,6 +74,8 @@ class Adjustment:
     noise_px: point kind -> the noise of one coordinate of that kind of point the residuals show (RMS,
         corrected for the parameters fitted to them), for the kinds present; points_of_kind: how many points.
     iterations: steps taken; converged: the last step no longer lowered the cost.
+    cost: half the sum of squared residuals in standard deviations (Huber on the points) at the solution;
+    variance: the residuals' variance in standard deviations, s^2 (the covariance's factor).
     point_errors_px: (P, 2) projected minus detected pixels of every point, sighting by sighting;
     point_kinds: (P,) index into POINT_KINDS; sighting_starts: (S + 1,) each sighting's first point.
     """
@@ -91,6 +93,8 @@ class Adjustment:
     point_errors_px: np.ndarray
     point_kinds: np.ndarray
     sighting_starts: np.ndarray
+    cost: float = math.nan
+    variance: float = math.nan
 
     def sighting_chi2(self, noise_px: dict[str, float]) -> np.ndarray:
         """(S,) each sighting's squared point errors in units of its points' noise (chi-square, 2 K dof)."""
@@ -360,7 +364,7 @@ class BundleAdjustment:
         covariance = self._marker_covariance(normal, variance)
         return Adjustment(markers, cameras, covariance, self.sightings, sighting_rms,
                           math.sqrt(float(np.sum(squared)) / n_residuals), noise, counts_of_kind, steps, converged,
-                          errors, self.point_kind, self.sighting_starts)
+                          errors, self.point_kind, self.sighting_starts, normal.cost, variance)
 
     def _marker_covariance(self, normal: _Normal, variance: float) -> dict[int, np.ndarray]:
         """Free marker id -> (6, 6) covariance: s^2 times the inverse of the cameras' Schur complement S."""

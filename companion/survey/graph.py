@@ -16,6 +16,8 @@ all of it.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -29,6 +31,7 @@ AGREE_ANGLE_DEG = 5.0        # ... and this close in angle tell the same story
 AMBIGUITY_PX2 = 25.0 * 0.5 ** 2   # an IPPE branch this close (sum of squares, px^2) to the best is kept
 ROBUST_CAP_PX = 4.0          # a marker's error counts at most this RMS when scoring a camera pose
 AGREEING_RMS_PX = 20.0       # loose: the first marker poses are centimetres off
+RIVAL_SHARE = 0.5            # a rival placement supported by this share of the chosen one's frames is tried too
 
 
 def marker_groups(survey_frames, marker_ids: set[int]) -> list[set[int]]:
@@ -51,17 +54,46 @@ def marker_groups(survey_frames, marker_ids: set[int]) -> list[set[int]]:
     return sorted(groups.values(), key=lambda g: (-len(g), min(g)))
 
 
+@dataclass(frozen=True)
+class Rival:
+    """A second placement of a marker that its linking frames support nearly as well as the chosen one.
+
+    T_map_marker: (4, 4) the rival pose; support, rival_support: the distinct linking frames agreeing with the
+    chosen pose and with the rival. A small marker seen from one standpoint only has two IPPE poses that fit
+    its corners equally well: every frame of that standpoint supports both, and the images alone cannot say
+    which is right (the flip turns it, and every marker placed through it, by degrees).
+    """
+
+    T_map_marker: np.ndarray
+    support: int
+    rival_support: int
+
+
 def initial_poses(survey_frames, anchors: dict[int, np.ndarray], camera: CameraModel) -> dict[int, np.ndarray]:
     """T_map_marker (4, 4) of every marker linked to an anchor, by id (the anchors as given)."""
+    return grow(survey_frames, anchors, camera)[0]
+
+
+def grow(survey_frames, anchors: dict[int, np.ndarray], camera: CameraModel,
+         placed: dict[int, np.ndarray] | None = None) -> tuple[dict[int, np.ndarray], dict[int, Rival]]:
+    """(T_map_marker (4, 4) of every marker linked to an anchor by id, the anchors as given; the rivals of the
+    markers whose placement was ambiguous, by id). ``placed``: markers whose first pose is already decided
+    (a rival tried instead), placed when their turn comes."""
     known = dict(anchors)
+    rivals: dict[int, Rival] = {}
     ippe = IppeCache(camera)
     shared = [f for f in survey_frames if len(f.sightings) >= 2]
     while True:
         candidates = _next_marker(shared, known)
         if candidates is None:
-            return known
+            return known, rivals
         marker_id, linking_frames = candidates
-        known[marker_id] = consensus_pose(marker_id, linking_frames, known, camera, ippe)
+        if placed and marker_id in placed:
+            known[marker_id] = placed[marker_id]
+            continue
+        known[marker_id], rival = _consensus_with_rival(marker_id, linking_frames, known, camera, ippe)
+        if rival is not None and rival.rival_support >= RIVAL_SHARE * rival.support:
+            rivals[marker_id] = rival
 
 
 def _next_marker(survey_frames, known: dict[int, np.ndarray]):
@@ -81,6 +113,12 @@ def _next_marker(survey_frames, known: dict[int, np.ndarray]):
 
 def consensus_pose(marker_id: int, linking_frames, known, camera: CameraModel, ippe: "IppeCache") -> np.ndarray:
     """The map pose of a new marker that most linking frames agree with, averaged over those frames."""
+    return _consensus_with_rival(marker_id, linking_frames, known, camera, ippe)[0]
+
+
+def _consensus_with_rival(marker_id: int, linking_frames, known, camera: CameraModel,
+                          ippe: "IppeCache") -> tuple[np.ndarray, Rival | None]:
+    """(the consensus pose, the best-supported pose that disagrees with it, or None)."""
     poses, frame_of = [], []
     for k, frame in enumerate(linking_frames):
         sighting = next(s for s in frame.sightings if s.marker_id == marker_id)
@@ -94,12 +132,28 @@ def consensus_pose(marker_id: int, linking_frames, known, camera: CameraModel, i
     # support: the number of distinct frames with a candidate that agrees
     support = [len(set(frame_of[agree[i]].tolist())) for i in range(len(poses_arr))]
     best = int(np.argmax(support))
+    pose = _mean_pose(poses_arr, agree[best], frame_of)
+    others = [i for i in range(len(poses_arr)) if not agree[best, i]]
+    if not others:
+        return pose, None
+    second = max(others, key=lambda i: support[i])
+    rival = Rival(_mean_pose(poses_arr, agree[second], frame_of), support[best], support[second])
+    return pose, rival
+
+
+def _mean_pose(poses: np.ndarray, members: np.ndarray, frame_of: np.ndarray) -> np.ndarray:
+    """The mean of the candidate poses ``members`` (bool (N,)), one per frame: rotation mean, median position."""
     chosen = {}
-    for i in np.flatnonzero(agree[best]):
+    for i in np.flatnonzero(members):
         chosen.setdefault(int(frame_of[i]), i)  # one candidate per frame
-    members = poses_arr[list(chosen.values())]
-    R_mean = Rotation.from_matrix(members[:, :3, :3]).mean().as_matrix()
-    return frames.make_transform(R_mean, np.median(members[:, :3, 3], axis=0))
+    picked = poses[list(chosen.values())]
+    R_mean = Rotation.from_matrix(picked[:, :3, :3]).mean().as_matrix()
+    return frames.make_transform(R_mean, np.median(picked[:, :3, 3], axis=0))
+
+
+def same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """Two marker poses (4, 4) that tell the same story (within AGREE_POSITION_M and AGREE_ANGLE_DEG)."""
+    return bool(_agreement(np.array([T_a, T_b]))[0, 1])
 
 
 def _agreement(poses: np.ndarray) -> np.ndarray:

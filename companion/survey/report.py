@@ -4,7 +4,8 @@ The plot shows the map from above: each marker as a short line along its
 face with its symbol, coloured by its position uncertainty, its horizontal
 3-sigma uncertainty ellipse (drawn enlarged: millimetres do not show on a hall),
 anchors as squares, and the camera path of the frames used, so an operator sees
-at a glance which marker needs another look.
+at a glance which marker needs another look. A weakly linked marker (its symbol
+with "?") gets a dashed circle of 3 sd at true size: its sd covers a rival place.
 """
 from __future__ import annotations
 
@@ -43,6 +44,7 @@ def report_json(result: SurveyResult) -> dict:
         "sd_angle_deg": number(s.sd_angle_deg, 4),
         "frames": s.frames,
         "reprojection_rms_px": number(s.rms_px, 4),
+        "weakly_linked": s.weakly_linked,
     } for s in result.markers]
     return {
         "frames_read": result.frames_read,
@@ -52,6 +54,7 @@ def report_json(result: SurveyResult) -> dict:
         "anchors": [{"symbol": a.symbol, "moved_by_images_m": number(a.position_m, 5),
                      "turned_by_images_deg": number(a.angle_deg, 4)} for a in result.anchors],
         "not_mapped": [{"symbol": symbol, "frames": frames} for symbol, frames in result.dropped.items()],
+        "weakly_linked": [s.marker.symbol for s in result.markers if s.weakly_linked],
         "moved": [check.as_json() for check in result.moved],
         "markers": markers,
     }
@@ -63,24 +66,29 @@ def plot(result: SurveyResult, path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Ellipse
+    from matplotlib.patches import Circle, Ellipse
 
     figure, axes = plt.subplots(figsize=(11, 7), dpi=110)
     path_m = result.camera_path_m
     if len(path_m):
         axes.plot(path_m[:, 0], path_m[:, 1], ".", color="0.6", markersize=2, label="camera (frames used)")
     surveyed = [s for s in result.markers if not s.anchor]
-    worst_sd = max((s.sd_position_m for s in surveyed), default=0.0)
+    worst_sd = max((s.sd_position_m for s in surveyed if not s.weakly_linked), default=0.0)
     scale = _enlargement(ELLIPSE_SIGMAS * worst_sd)
     for s in result.markers:
         T = s.marker.T_map_marker
         x, y = T[:2, 3]
         along = T[:2, 0] * s.marker.size_m * 2.0  # the face, drawn twice its width
-        colour = "black" if s.anchor else _colour(s.sd_position_m)
+        colour = "black" if s.anchor else "tab:red" if s.weakly_linked else _colour(s.sd_position_m)
         axes.plot([x - along[0], x + along[0]], [y - along[1], y + along[1]], color=colour, linewidth=2.5)
-        axes.annotate(s.marker.symbol, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7, color=colour)
+        label = s.marker.symbol + (" ?" if s.weakly_linked else "")
+        axes.annotate(label, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7, color=colour,
+                      fontweight="bold" if s.weakly_linked else "normal")
         if s.anchor:
             axes.plot(x, y, "s", color="black", markersize=6, fillstyle="none")
+        elif s.weakly_linked:  # its sd covers a rival place: a circle of that radius, not drawn enlarged
+            axes.add_patch(Circle((x, y), ELLIPSE_SIGMAS * s.sd_position_m, fill=False, color=colour, linestyle="--",
+                                  linewidth=1))
         elif s.covariance is not None:
             width, height, angle_deg = _ellipse(s.covariance[:2, :2], ELLIPSE_SIGMAS * scale)
             axes.add_patch(Ellipse((x, y), width, height, angle=angle_deg, fill=False, color=colour, linewidth=1))
@@ -88,6 +96,9 @@ def plot(result: SurveyResult, path) -> None:
         label = f"sd < {limit_m * 1000:.0f} mm" if math.isfinite(limit_m) else "sd larger"
         axes.plot([], [], color=colour, linewidth=2.5, label=label)
     axes.plot([], [], "s", color="black", fillstyle="none", label="anchor")
+    if any(s.weakly_linked for s in result.markers):
+        axes.plot([], [], color="tab:red", linestyle="--", linewidth=1,
+                  label=f"? weakly linked: {ELLIPSE_SIGMAS:g} sd, true size")
     axes.set_aspect("equal")
     axes.set_xlabel("map x (m)")
     axes.set_ylabel("map y (m)")

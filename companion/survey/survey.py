@@ -4,6 +4,14 @@
     (companion.survey.graph) -> bundle adjustment (companion.survey.adjust), bad sightings out,
     adjusted again -> a FacilityMap with each marker's uncertainty
 
+A marker placed through frames of one standpoint only (a small, far marker:
+its two IPPE poses fit every one of those frames) has a rival placement
+(``graph.Rival``); each plausible rival grows a map of its own, adjusted like
+the first, and the better fit is kept. When the other fits nearly as well
+(its chi-square within ``RIVAL_CHI2``, the link's frames weighed as one view),
+the markers it places elsewhere are weakly linked: their reported sd covers
+both places, and the map's note, the report and the CLI say they need another look.
+
 Anchors are markers whose poses were measured (the anchors file, or every
 marker of an existing map with ``extend``); they keep their poses and fix the
 map frame. With several anchors they are first held softly (to within their
@@ -32,6 +40,8 @@ from companion.survey.observations import POINT_KINDS, Footage, SurveyError, Sur
 GATE_PROBABILITY = 0.999   # a sighting whose errors fail this chi-square test at the fitted noise is left out
 MIN_POINTS_FOR_NOISE = 40  # a kind of point needs this many to measure its noise
 MIN_NOISE_PX = 0.005       # no kind of point is trusted beyond this (rendering and rounding)
+RIVAL_CHI2 = 25.0          # a rival placement whose adjustment fits worse by less than this is not ruled out
+MAX_RIVALS = 6             # rival placements adjusted (each costs an adjustment)
 
 
 @dataclass(frozen=True)
@@ -63,6 +73,8 @@ class SurveyedMarker:
     sd_position_m, sd_angle_deg: one standard deviation along the worst axis;
     covariance: (6, 6) [position m, small rotation rad] on map axes (None for an anchor);
     rms_px: RMS point reprojection error over its sightings.
+    weakly_linked: the images also fit another place for it nearly as well (a rival placement, see
+        ``graph.Rival``): the sd covers both places, and it needs another look.
     """
 
     marker: MapMarker
@@ -72,6 +84,7 @@ class SurveyedMarker:
     sd_angle_deg: float
     rms_px: float
     covariance: np.ndarray | None
+    weakly_linked: bool = False
 
 
 @dataclass(frozen=True)
@@ -146,18 +159,28 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
                  if c.verdict == "moved"]
         for check in moved:
             del fixed[check.marker_id]
-    initial = graph.initial_poses(shared, fixed, camera)
-    for check in moved:  # start from where the check found it
-        initial[check.marker_id] = check.T_map_marker
-    posed_frames, cameras = _posed(shared, initial, camera)
+    initial, rivals = graph.grow(shared, fixed, camera)
     free_ids = sorted(m for m in initial if m not in fixed)
     priors = _priors(free_ids, anchors, symbols)
-    adjustment, posed_frames = _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options)
+    # a placement the images cannot decide by itself (graph.Rival): each rival grows its own map, adjusted too
+    tried = _plausible_rivals(rivals, priors)
+    starts = [initial] + [graph.grow(shared, fixed, camera, placed={m: rival.T_map_marker})[0] for m, rival in tried]
+    for start in starts:
+        for check in moved:  # start from where the check found it
+            start[check.marker_id] = check.T_map_marker
+    firsts = [_first_adjustment(shared, camera, start, free_ids, priors, options) for start in starts]
+    best = min(range(len(firsts)), key=lambda k: firsts[k][0].cost)
+    adjustment, posed_frames = _adjust_again(*firsts[best], camera, free_ids, priors, options)
+    # the rival of start k > 0 is tried[k - 1]; start 0 against the winning rival differs by that rival's link
+    link_frames = [rival.support for _, rival in tried]
+    weak = _weak_links(adjustment, firsts[best][0],
+                       [(a, link_frames[(k or best) - 1], _placed_apart(starts[best], starts[k]))
+                        for k, (a, _) in enumerate(firsts) if k != best])
     agreement: list[AnchorAgreement] = []
     if len(fixed) >= 2 and not extend:
         agreement = _anchor_agreement(shared, camera, fixed, groups, counts, anchors, symbols, options,
                                       _noise(adjustment, options))
-    markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall)
+    markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall, weak)
     facility_map = replace(anchors, path="", markers={s.marker.id: s.marker for s in markers})
     if extend:  # the existing map's markers not seen this time stay as they were
         facility_map = replace(facility_map, markers={**anchors.markers, **facility_map.markers})
@@ -300,11 +323,64 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
     return agreement
 
 
-def _adjust_robustly(posed_frames, camera, initial, cameras, free_ids, priors, options: SurveyOptions):
-    """Adjust with the expected noise; measure the noise of each kind of point from the residuals; leave out the
-    sightings whose errors that noise cannot explain; adjust again, each point weighted by its kind's noise."""
-    problem = BundleAdjustment(posed_frames, camera, initial, cameras, free_ids, priors, options.sigma_px)
-    adjustment = problem.solve(options.max_iterations, options.progress, "adjusting")
+def _plausible_rivals(rivals: dict[int, graph.Rival], priors: Priors) -> list[tuple[int, graph.Rival]]:
+    """The rival placements worth an adjustment of their own (the best supported first, at most MAX_RIVALS): a
+    marker that hangs on a wall cannot be tilted off the vertical."""
+    limit = math.sin(math.radians(graph.AGREE_ANGLE_DEG))
+    plausible = [(m, r) for m, r in rivals.items()
+                 if m not in priors.on_wall or np.linalg.norm(r.T_map_marker[:2, 1]) < limit]
+    return sorted(plausible, key=lambda item: (-item[1].rival_support, item[0]))[:MAX_RIVALS]
+
+
+def _first_adjustment(shared, camera, start: dict[int, np.ndarray], free_ids, priors, options: SurveyOptions):
+    """(the adjustment from these first poses with the expected noise, the frames it used)."""
+    posed_frames, cameras = _posed(shared, start, camera)
+    problem = BundleAdjustment(posed_frames, camera, start, cameras, free_ids, priors, options.sigma_px)
+    return problem.solve(options.max_iterations, options.progress, "adjusting"), posed_frames
+
+
+def _placed_apart(start: dict[int, np.ndarray], other: dict[int, np.ndarray]) -> set[int]:
+    """The markers that two sets of first poses place apart (the rival's marker and those placed through it)."""
+    return {m for m, T in start.items() if m in other and not graph.same_pose(T, other[m])}
+
+
+def _weak_links(adjustment: Adjustment, first: Adjustment,
+                rivals: list[tuple[Adjustment, int, set[int]]]) -> dict[int, tuple[float, float]]:
+    """Free marker id -> (m, deg) how far a rival adjustment put it from where the chosen one did (both from
+    their first poses with the expected noise), for the markers that a rival which fits nearly as well puts
+    elsewhere (beyond 3 sd of the final ``adjustment``): the images cannot tell where these markers are, and
+    their reported uncertainty must cover both places.
+
+    ``rivals``: (the rival's first adjustment, the frames that link the placement, the markers it placed
+    elsewhere to begin with: only these can be weakly linked through it). Nearly as well: chi-square
+    within RIVAL_CHI2 of the chosen first adjustment's (both with the expected noise, in units of the residuals'
+    variance) per linking frame. The linking frames were taken from one standpoint (else they would not support
+    both placements): they share their systematic errors (the detector's bias at that scale and angle, the
+    lens model), so together they weigh as one view, not as many independent ones.
+    """
+    weak: dict[int, tuple[float, float]] = {}
+    for rival, link_frames, apart in rivals:
+        # chi-square difference: 2 (cost_rival - cost_chosen) / s^2, over the link's frames taken as one view
+        if 2.0 * (rival.cost - first.cost) / first.variance / max(link_frames, 1) >= RIVAL_CHI2:
+            continue
+        for m, covariance in adjustment.covariance.items():
+            T, T_rival = first.markers.get(m), rival.markers.get(m)
+            if T is None or T_rival is None or m not in apart:
+                continue
+            position_m = float(np.linalg.norm(T[:3, 3] - T_rival[:3, 3]))
+            angle_rad = frames.rotation_angle_rad(T[:3, :3], T_rival[:3, :3])
+            sd_position_m = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0))
+            sd_angle_rad = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), 0.0))
+            if position_m > 3.0 * sd_position_m or angle_rad > 3.0 * sd_angle_rad:
+                before = weak.get(m, (0.0, 0.0))
+                weak[m] = (max(before[0], position_m), max(before[1], math.degrees(angle_rad)))
+    return weak
+
+
+def _adjust_again(adjustment: Adjustment, posed_frames, camera, free_ids, priors, options: SurveyOptions):
+    """From an adjustment with the expected noise: measure the noise of each kind of point from the residuals;
+    leave out the sightings whose errors that noise cannot explain; adjust again, each point weighted by its
+    kind's noise."""
     noise = _noise(adjustment, options)
     limits = chi2.ppf(GATE_PROBABILITY, 2 * np.diff(adjustment.sighting_starts))
     bad = {sighting for sighting, value, limit in zip(adjustment.sightings, adjustment.sighting_chi2(noise), limits)
@@ -333,7 +409,9 @@ def _noise(adjustment: Adjustment, options: SurveyOptions) -> dict[str, float]:
 
 
 def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: FacilityMap, counts, sizes,
-                    on_wall: frozenset[int]) -> list[SurveyedMarker]:
+                    on_wall: frozenset[int], weak: dict[int, tuple[float, float]]) -> list[SurveyedMarker]:
+    """Each marker with its uncertainty: the adjustment's covariance, widened for a weakly linked marker to
+    cover where a rival adjustment put it."""
     rms = _marker_rms(adjustment)
     result = []
     for m, T in adjustment.markers.items():
@@ -347,10 +425,14 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
             T = _upright(T)
         sd_position_m = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0))
         sd_angle_deg = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), 0.0)))
+        if m in weak:
+            sd_position_m, sd_angle_deg = max(sd_position_m, weak[m][0]), max(sd_angle_deg, weak[m][1])
         note = f"surveyed: sd {sd_position_m * 1000:.1f} mm, {sd_angle_deg:.2f} deg, {counts.get(m, 0)} frames"
+        if m in weak:
+            note += "; weakly linked to the anchors: survey again"
         marker = MapMarker(symbol, m, sizes(m), T, note)
         result.append(SurveyedMarker(marker, False, counts.get(m, 0), sd_position_m, sd_angle_deg, rms.get(m, math.nan),
-                                     covariance))
+                                     covariance, m in weak))
     return result
 
 

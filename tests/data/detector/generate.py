@@ -161,6 +161,15 @@ def main() -> None:
     ], note="a 9 px linear smear at 30 degrees", seed=12,
        degradations=scenes.BASE_DEGRADATIONS.with_(motion_length_px=9.0, motion_angle_rad=math.radians(30)))
 
+    # the same smear over a small marker (38 px: 5 px cells, the white gap ring closes and ArUco finds no quad)
+    # beside a larger one: found on the frame deconvolved with the smear measured on the larger one
+    T1, T2 = pose(0.62, 10, 15, (-90, -10), 40), pose(1.15, -35, 20, (95, 10), 120)
+    scene("motion_blur_small", [
+        (tex(19), T1, "square", "none", None),
+        (tex(33), T2, "square", "none", None),
+    ], note="a 9 px linear smear at 60 degrees over a 38 px marker beside a 67 px one", seed=21,
+       degradations=scenes.BASE_DEGRADATIONS.with_(motion_length_px=9.0, motion_angle_rad=math.radians(60)))
+
 
 if __name__ == "__main__":
     main()
