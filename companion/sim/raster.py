@@ -36,6 +36,8 @@ from companion.markers.layout import cell_point_to_px, marker_image
 NEAR_M = 0.02  # near clipping plane: nothing closer to the camera is drawn
 MIN_MIP_SIZE_PX = 4
 MIP_BIAS = 0.0  # > 0 picks coarser levels: less aliasing, more blur
+MAX_MIP_TAPS = 2  # anisotropic filtering: samples along each axis of a pixel's texture footprint, at most
+LENS_INTERPOLATION = cv2.INTER_CUBIC  # canvas -> distorted image; bilinear would blur edges by up to 0.5 px
 MARKER_LIFT_M = 0.001  # a marker sits this far in front of its backing board
 OCCLUSION_DEPTH_M = 1e-5  # a quad this far behind an opaque surface, in its image, is hidden by it
 OCCLUSION_MARGIN_PX = 2.0  # a hidden quad stays this far inside its occluder's edges (anti-aliasing: 1 px)
@@ -68,8 +70,10 @@ class Texture:
 def make_texture(image: np.ndarray, alpha: np.ndarray | None = None) -> Texture:
     """Texture with mip levels from an (H, W) uint8 image and optional (H, W) uint8 alpha.
 
-    Levels are made with ``cv2.pyrDown`` while both sides are even; texel x_i
-    of level i is centred on texel 2^i x_i of level 0 (pyrDown's sampling).
+    Levels are 2 x 2 box averages (``cv2.INTER_AREA`` to half size) while both sides are even, so texel
+    x_i of level i is centred on level-0 texel 2^i x_i + (2^i - 1)/2. A box adds a third of the blur
+    ``cv2.pyrDown``'s Gaussian does (variance 1/3 against 1 input texel^2 per level): the renderer's
+    anisotropic taps do the anti-aliasing, and a blurred marker reads shorter.
     """
     image = np.ascontiguousarray(image)
     if image.ndim != 2 or image.dtype != np.uint8:
@@ -80,10 +84,16 @@ def make_texture(image: np.ndarray, alpha: np.ndarray | None = None) -> Texture:
     alphas = None if alpha is None else [np.ascontiguousarray(alpha)]
     while (levels[-1].shape[0] % 2 == 0 and levels[-1].shape[1] % 2 == 0
            and min(levels[-1].shape) >= 2 * MIN_MIP_SIZE_PX):
-        levels.append(cv2.pyrDown(levels[-1]))
+        levels.append(_half(levels[-1]))
         if alphas is not None:
-            alphas.append(cv2.pyrDown(alphas[-1]))
+            alphas.append(_half(alphas[-1]))
     return Texture(tuple(levels), None if alphas is None else tuple(alphas))
+
+
+def _half(image: np.ndarray) -> np.ndarray:
+    """(H/2, W/2) uint8: the mean of each 2 x 2 block of an (H, W) uint8 image with even sides."""
+    h, w = image.shape
+    return cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
 
 
 def solid_texture(rng: np.random.Generator, size_px: tuple[int, int], level: float,
@@ -184,6 +194,8 @@ class Renderer:
         self.distorted = bool(np.any(self.dist != 0.0))
         if self.distorted:
             self._undistort_map, canvas_K, canvas_size = self._distortion_map()
+            # the same map in OpenCV's fixed-point form (1/32 px, what cv2.remap uses inside): twice as fast
+            self._fixed_map = cv2.convertMaps(self._undistort_map, None, cv2.CV_16SC2)
         else:
             self._undistort_map, canvas_K, canvas_size = None, self.K.copy(), (self.width, self.height)
         # the canvas at the supersampled resolution: u_ss = s (u + 0.5) - 0.5
@@ -364,10 +376,9 @@ class Renderer:
         # texture pixel (x, y) lies at tl + (x + 0.5)/W a + (y + 0.5)/H b, so
         # H_canvas_tex = K [a/W, b/H, tl + a/(2W) + b/(2H)]
         H0 = self.canvas_K @ np.column_stack([a / tex_w, b / tex_h, tl + a / (2 * tex_w) + b / (2 * tex_h)])
-        level, blend = _mip_levels(H0, uv, len(quad.texture.levels))
-        shift_roi = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
-        # shade = texture * gain + offset, trilinear between two mip levels
-        shade = _warp_level(quad.texture.levels, level, blend, H0, shift_roi, roi_size, cv2.BORDER_REPLICATE,
+        level, blend, taps_px = _mip_levels(H0, uv, len(quad.texture.levels))
+        # shade = texture * gain + offset, trilinear between two mip levels, averaged over the taps
+        shade = _warp_level(quad.texture.levels, level, blend, taps_px, H0, (x0, y0), roi_size, cv2.BORDER_REPLICATE,
                             quad.gain, quad.offset)
 
         coverage = np.zeros(roi_size[::-1], np.uint8)
@@ -376,7 +387,7 @@ class Renderer:
         cv2.fillConvexPoly(coverage, points, 255, lineType=cv2.LINE_AA, shift=shift)
         alpha = np.multiply(coverage, np.float32(1.0 / 255.0), dtype=np.float32)
         if quad.texture.alpha_levels is not None:
-            alpha *= _warp_level(quad.texture.alpha_levels, level, blend, H0, shift_roi, roi_size,
+            alpha *= _warp_level(quad.texture.alpha_levels, level, blend, taps_px, H0, (x0, y0), roi_size,
                                  cv2.BORDER_CONSTANT, 1.0 / 255.0, 0.0)
 
         # along the ray X = z K^-1 [u, v, 1] the plane n.X = c gives
@@ -408,7 +419,7 @@ class Renderer:
             if label is not None:
                 label = np.ascontiguousarray(label[s // 2::s, s // 2::s][: h // s, : w // s])
         if self._undistort_map is not None:
-            color = cv2.remap(color, self._undistort_map, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            color = cv2.remap(color, *self._fixed_map, LENS_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
             if label is not None:
                 label = cv2.remap(label.astype(np.float32), self._undistort_map, None, cv2.INTER_NEAREST,
                                   borderMode=cv2.BORDER_CONSTANT, borderValue=-1).astype(np.int32)
@@ -417,20 +428,28 @@ class Renderer:
         return Rendering(image=color.astype(np.uint8), label=label)
 
 
-def _warp_level(levels, level: int, blend: float, H0: np.ndarray, shift_roi: np.ndarray, size, border: int,
-                gain: float, offset: float) -> np.ndarray:
-    """(h, w) float32: gain * (mip ``level`` warped into the ROI, mixed with the next level by ``blend``) + offset."""
-    def warp(k: int) -> np.ndarray:
-        s = 2.0 ** k
-        # cv2.pyrDown centres level-k texel x_k on level-0 texel x_0 = 2^k x_k
-        H = shift_roi @ H0 @ np.diag([s, s, 1.0])
-        return cv2.warpPerspective(levels[k], H, size, flags=cv2.INTER_LINEAR, borderMode=border, borderValue=0)
-
-    warped = warp(level)
-    if blend > 0.0:
-        # trilinear: gain ((1 - b) level + b (level + 1)) + offset
-        return cv2.addWeighted(warped, (1.0 - blend) * gain, warp(level + 1), blend * gain, offset, dtype=cv2.CV_32F)
-    return cv2.addWeighted(warped, gain, warped, 0.0, offset, dtype=cv2.CV_32F)
+def _warp_level(levels, level: int, blend: float, taps_px: np.ndarray, H0: np.ndarray, roi_origin, size,
+                border: int, gain: float, offset: float) -> np.ndarray:
+    """(h, w) float32: gain * (mip ``level`` mixed with the next level by ``blend``) + offset, warped into the
+    ROI whose top-left canvas pixel is ``roi_origin``, averaged over canvas offsets ``taps_px`` (T, 2)."""
+    x0, y0 = roi_origin
+    weights = [(level, 1.0 - blend)] + ([(level + 1, blend)] if blend > 0.0 else [])
+    total = None
+    for dx, dy in taps_px:
+        # output pixel p shows the texture at canvas p + (x0 + dx, y0 + dy)
+        shift = np.array([[1.0, 0.0, -x0 - dx], [0.0, 1.0, -y0 - dy], [0.0, 0.0, 1.0]])
+        for k, weight in weights:
+            s = 2.0 ** k
+            # a 2^k box average centres level-k texel x_k on level-0 texel x_0 = 2^k x_k + (2^k - 1)/2
+            H = shift @ H0 @ np.array([[s, 0.0, 0.5 * (s - 1.0)], [0.0, s, 0.5 * (s - 1.0)], [0.0, 0.0, 1.0]])
+            warped = cv2.warpPerspective(levels[k], H, size, flags=cv2.INTER_LINEAR, borderMode=border, borderValue=0)
+            # total = sum over taps and levels of gain weight / T * warped, + offset
+            scale = gain * weight / len(taps_px)
+            if total is None:
+                total = cv2.addWeighted(warped, scale, warped, 0.0, offset, dtype=cv2.CV_32F)
+            else:
+                total = cv2.addWeighted(total, 1.0, warped, scale, 0.0, dtype=cv2.CV_32F)
+    return total
 
 
 def _polygon_area(points: np.ndarray) -> float:
@@ -439,32 +458,56 @@ def _polygon_area(points: np.ndarray) -> float:
     return 0.5 * abs(float(x @ np.roll(y, -1) - np.roll(x, -1) @ y))
 
 
-def _mip_levels(H_canvas_tex: np.ndarray, uv_polygon: np.ndarray, n_levels: int) -> tuple[int, float]:
-    """Mip level and blend toward the next one for the texel size at the polygon's centre.
+def _mip_levels(H_canvas_tex: np.ndarray, uv_polygon: np.ndarray, n_levels: int) -> tuple[int, float, np.ndarray]:
+    """Mip level, blend toward the next one and anisotropic taps for the texel footprint at the polygon's centre.
 
-    Trilinear filtering: with p canvas pixels per level-0 texel, the level is
-    floor(log2(1/p) + MIP_BIAS) and the blend its fraction, so a shrunken texture is
-    neither aliased (a marker's edges would move by up to 0.2 px with the
-    sub-pixel phase) nor blurred more than needed.
+    The texture -> canvas Jacobian J = U diag(p1, p2) V^T (p1 >= p2 canvas pixels per level-0 texel) maps a
+    canvas pixel onto an ellipse of 1/p1 by 1/p2 texels. The level comes from the ellipse's short axis:
+    floor(log2(1/p1) + MIP_BIAS), the blend its fraction (trilinear), so a foreshortened marker is not blurred
+    along its long image axis by the coarser level its short one would need (that blur read as a squashed
+    marker, 0.01 px). Along the long axis the pixel is sampled by T taps spaced 1/T pixel apart along U's
+    second column (T = ceil(1/(p2 2^level)); at most MAX_MIP_TAPS, with a coarser level when more would be
+    needed), so each tap covers about one texel of the level and a shrunken texture is not aliased either (a
+    marker's edges would move by up to 0.2 px with the sub-pixel phase). Returns (level, blend, taps (T, 2)
+    canvas pixel offsets).
     """
+    no_taps = np.zeros((1, 2))
     centre = np.append(uv_polygon.mean(axis=0), 1.0)
     tex = np.linalg.solve(H_canvas_tex, centre)
     if abs(tex[2]) < 1e-12:
-        return 0, 0.0
+        return 0, 0.0, no_taps
     tex = tex / tex[2]
     probe = np.array([tex, tex + [1.0, 0.0, 0.0], tex + [0.0, 1.0, 0.0]]) @ H_canvas_tex.T
     img = probe[:, :2] / probe[:, 2:3]
-    # canvas pixels per texel: sqrt(|det J|) of the texture -> canvas map
-    jac = np.column_stack([img[1] - img[0], img[2] - img[0]])
-    px_per_texel = math.sqrt(abs(float(np.linalg.det(jac))))
-    if px_per_texel <= 0.0:
-        return 0, 0.0
-    log_scale = min(math.log2(1.0 / px_per_texel) + MIP_BIAS, n_levels - 1)
-    if log_scale <= 0.0:
-        return 0, 0.0
-    level = int(math.floor(log_scale))
-    blend = log_scale - level
-    return level, (blend if blend > 0.02 and level + 1 < n_levels else 0.0)
+    (a, c), (b, d) = img[1] - img[0], img[2] - img[0]          # J = [[a, b], [c, d]]
+    # singular values of a 2 x 2 matrix: p^2 = (|J|_F^2 +- sqrt(|J|_F^2^2 - 4 det^2)) / 2
+    frobenius2, det = a * a + b * b + c * c + d * d, a * d - b * c
+    root = math.sqrt(max(frobenius2 * frobenius2 - 4.0 * det * det, 0.0))
+    px_long, px_short = math.sqrt((frobenius2 + root) / 2.0), math.sqrt(max(frobenius2 - root, 0.0) / 2.0)
+    if not px_short > 1e-12:
+        return 0, 0.0, no_taps
+    # the image direction of the short axis: the eigenvector of J J^T = [[P, Q], [Q, R]] for p_short^2
+    P, Q, R = a * a + b * b, a * c + b * d, c * c + d * d
+    if abs(Q) > 1e-12 * frobenius2:
+        short_dir = np.array([Q, px_short ** 2 - P])
+    else:
+        short_dir = np.array([0.0, 1.0] if R < P else [1.0, 0.0])
+    short_dir /= np.linalg.norm(short_dir)
+    long_dir = np.array([-short_dir[1], short_dir[0]])
+    # the level whose texels span the short footprint 1/p1, unless MAX_MIP_TAPS taps cannot cover 1/p2 with it
+    log_scale = max(math.log2(1.0 / px_long), math.log2(1.0 / (px_short * MAX_MIP_TAPS))) + MIP_BIAS
+    log_scale = min(log_scale, n_levels - 1)
+    level = int(math.floor(max(log_scale, 0.0)))
+    blend = max(log_scale, 0.0) - level
+    blend = blend if blend > 0.02 and level + 1 < n_levels else 0.0
+    # taps along each footprint axis i: each covers 1/(T_i p_i) level-0 texels <= 2^log_scale
+    texel = 2.0 ** max(log_scale, 0.0)
+    n_long, n_short = (min(max(1, math.ceil(1.0 / (px * texel) - 1e-6)), MAX_MIP_TAPS) for px in (px_long, px_short))
+    if n_long * n_short == 1:
+        return level, blend, no_taps
+    along_long = ((np.arange(n_long) + 0.5) / n_long - 0.5)[:, None] * long_dir     # (n_long, 2)
+    along_short = ((np.arange(n_short) + 0.5) / n_short - 0.5)[:, None] * short_dir  # (n_short, 2)
+    return level, blend, (along_long[:, None, :] + along_short[None, :, :]).reshape(-1, 2)
 
 
 def clip_polygon_near(points_cam: np.ndarray, near_m: float = NEAR_M) -> np.ndarray:
