@@ -297,15 +297,22 @@ def test_circles_path_reads_a_marker_cut_by_the_image_edge(layout, detector):
     assert_circles_consistent(d, layout)
 
 
+def clean_and_strip_scene(layout):
+    """Marker 3 clean on the left, marker 40 under a strip over a quarter of it on the right:
+    (image, the strip's texture, its pose, the strip, the two markers' truths)."""
+    clean_texture, strip_texture = raster.rs_marker_texture(layout, 3), raster.rs_marker_texture(layout, 40)
+    T_strip = facing_pose(1.0, 30, 15, offset_px=(150, 0))
+    strip = occluders.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
+    image, truths = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
+                                  (strip_texture, T_strip)], occluders=[strip])
+    return image, strip_texture, T_strip, strip, truths
+
+
 def test_occluded_marker_beside_a_clean_one_is_found_by_default(layout):
     # one clean marker and one under a strip: by default the circles path also runs beside the
     # square path's finds; "when_square_empty" runs it only in frames where the square path found
     # nothing; "never" never runs it
-    clean_texture, strip_texture = raster.rs_marker_texture(layout, 3), raster.rs_marker_texture(layout, 40)
-    T_strip = facing_pose(1.0, 30, 15, offset_px=(150, 0))
-    strip = occluders.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
-    image, _ = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
-                             (strip_texture, T_strip)], occluders=[strip])
+    image, strip_texture, T_strip, strip, _ = clean_and_strip_scene(layout)
     found = {mode: {(d.id, d.path) for d in Detector(DetectorParams(circles=CircleParams(run=mode))).detect(image)}
              for mode in ("always", "when_square_empty", "never")}
     assert {(d.id, d.path) for d in Detector().detect(image)} == found["always"] == {(3, "square"), (40, "circles")}
@@ -320,11 +327,7 @@ def test_expected_places_limit_the_circles_search_once_the_square_path_found_a_m
     # the daemon tells the detector where mapped markers should be: the occluded one is found where it is
     # expected (a prediction 8 px off), not where nothing is expected; with nothing found by the square
     # path the whole frame is searched whatever is expected
-    clean_texture, strip_texture = raster.rs_marker_texture(layout, 3), raster.rs_marker_texture(layout, 40)
-    T_strip = facing_pose(1.0, 30, 15, offset_px=(150, 0))
-    strip = occluders.strip_occluder(strip_texture, SIZE_M, T_strip, 0.25, "left", np.random.default_rng(0), level=60)
-    image, truths = render_scene([(clean_texture, facing_pose(1.0, -10, 10, offset_px=(-150, 0))),
-                                  (strip_texture, T_strip)], occluders=[strip])
+    image, strip_texture, T_strip, strip, truths = clean_and_strip_scene(layout)
     clean_px, strip_px = truths[0].corners_px, truths[1].corners_px
     detector = Detector()
 
