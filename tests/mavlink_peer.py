@@ -323,7 +323,10 @@ class PeerProcess:
             if len(rows) >= count:
                 return rows
             time.sleep(0.05)
-        raise AssertionError(f"peer got {len(self.records(name, kind))} {name}, wanted {count} within {timeout_s} s")
+        got = self.records(name, kind)
+        seen = sorted({r["name"] for r in self.records(kind=kind)})
+        raise AssertionError(f"peer got {len(got)} {name}, wanted {count} within {timeout_s} s: "
+                             f"{[r['fields'] for r in got][-8:]}; {kind} kinds {seen}")
 
     def stop(self) -> None:
         if self.process.poll() is None:
