@@ -198,7 +198,7 @@ class Detector:
             x, y = expected[..., 0], expected[..., 1]
             # shoelace: twice the signed area, > 0 for TL, TR, BR, BL clockwise on the screen (y down)
             facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
-            usable = facing & (_mean_side_px(expected) >= self.params.circles.min_side_px)
+            usable = facing & (homography.mean_side_px(expected) >= self.params.circles.min_side_px)
         expected = expected[usable]
         if len(expected) == 0:
             return np.zeros((0, 4), np.int64)
@@ -241,8 +241,7 @@ class Detector:
         markers' grids skipped)."""
         params = self.params.smear
         corners_px = np.stack([d.corners_px for d in found])  # (M, 4, 2)
-        sides = corners_px - corners_px[:, [3, 0, 1, 2]]
-        sides_px = np.sqrt((sides * sides).sum(axis=2)).mean(axis=1)
+        sides_px = homography.mean_side_px(corners_px)
         pick = self.smear.pick(sides_px)
         marker = found[pick]
         H = homography.from_quad(self.layout.inner_corners_cells, marker.corners_px)
@@ -438,12 +437,7 @@ def circles_corner_sigma_px(rms_cells: float, cell_px: float) -> float | None:
 
 def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:
     """Mean side of the inner square in the image over its cells."""
-    return float(np.mean(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)) / inner_cells)
-
-
-def _mean_side_px(quads: np.ndarray) -> np.ndarray:
-    """(M,) mean side of M quads (M, 4, 2)."""
-    return np.linalg.norm(quads - np.roll(quads, 1, axis=1), axis=2).mean(axis=1)
+    return float(homography.mean_side_px(corners_px)) / inner_cells
 
 
 def _unique(detections: list[Detection], offset_fraction: float) -> list[Detection]:

@@ -210,7 +210,7 @@ class EdgeRefiner:
         with np.errstate(divide="ignore", invalid="ignore"):
             refined = meet[..., :2] / meet[..., 2:3]
         moved = np.linalg.norm(refined - corners_px, axis=2)
-        cell_px = np.linalg.norm(corners_px - np.roll(corners_px, -1, axis=1), axis=2).mean(axis=1) / self.inner_cells
+        cell_px = homography.mean_side_px(corners_px) / self.inner_cells
         # a corner moved further than the profiles reach is a bad fit, not a better corner
         limit_px = np.maximum(p.max_corner_move_half_widths * half_width_cells * cell_px, p.min_corner_move_limit_px)
         ok &= np.isfinite(moved) & (moved < limit_px[:, None])

@@ -24,6 +24,12 @@ import numpy as np
 MIN_DETERMINANT = 1e-12  # below it a 4-point system is degenerate (three corners on a line)
 
 
+def mean_side_px(quads: np.ndarray) -> np.ndarray:
+    """Mean side length of quads (..., 4, 2) in pixels, shape (...): (M,) for M quads, 0-d for one."""
+    quads = np.asarray(quads, dtype=np.float64)
+    return np.linalg.norm(quads - np.roll(quads, 1, axis=-2), axis=-1).mean(axis=-1)
+
+
 def from_quads(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray:
     """Batched 4-point homographies grid -> image.
 

@@ -189,7 +189,7 @@ class SmearEstimator:
         """
         H = homography.from_quad(self.layout.inner_corners_cells, corners_px)
         outline = homography.project(H, self._outline_cells)
-        side_px = np.mean(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1))
+        side_px = float(homography.mean_side_px(corners_px))
         scale = min(1.0, self.params.marker_side_px / side_px)
         reach = int(math.ceil(self.params.max_length_px / 2)) + 2
         if not np.isfinite(outline).all():
