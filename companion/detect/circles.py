@@ -574,19 +574,21 @@ class CircleCandidate:
     circle_ids: (K,) layout circle indices (corner 3c + slot, with the anchor
         triple called corner 0: the true rotation is left to the decoder).
     circles_px: (K, 2) matched blob centres; blob_index: (K,) their blob indices.
+    H: (3, 3) the grid -> image map ``_fit`` made of them while assembling (a homography from
+        ``min_circles_for_homography`` circles on, else affine).
     corners: sorted layout corners with at least two matched circles.
     """
 
     circle_ids: np.ndarray
     circles_px: np.ndarray
     blob_index: np.ndarray
+    H: np.ndarray
 
     @property
     def corners(self) -> np.ndarray:
         """Sorted layout corners with at least two of their circles matched (a lone circle may be the
         part of one that shows past an occluder's edge: its corner is taken as hidden)."""
-        corners, counts = np.unique(self.circle_ids // 3, return_counts=True)
-        return corners[counts >= 2]
+        return np.flatnonzero(np.bincount(self.circle_ids // 3, minlength=4) >= 2)
 
 
 def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
@@ -623,40 +625,41 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
     taken = np.zeros(len(blobs), bool)
     blob_r = np.sqrt(blobs.areas_px / np.pi)
     centres = blobs.centres_px
+    triple_index, triple_px = triples.index, triples.points_px
+    triple_large_r = blob_r[triple_index[:, 0]]
     candidates, seen = [], set()
     in_any = np.zeros(len(blobs), bool)
     for t in range(len(triples)):
-        if taken[triples.index[t]].any() or in_any[triples.index[t]].all():
+        if taken[triple_index[t]].any() or in_any[triple_index[t]].all():
             continue  # part of a settled candidate, or would only rebuild an earlier one
-        ids, index = [0, 1, 2], list(triples.index[t])
+        ids, index = [0, 1, 2], triple_index[t].tolist()
         in_candidate = np.zeros(len(blobs), bool)
         in_candidate[index] = True
         H = _fit(grid[ids], centres[index], p)
 
         def tries_at(corner: int) -> list[list[int]]:
             """Ways to match ``corner``'s circles through the current map (blob indices, -1: none), best first."""
-            circles = np.arange(3 * corner, 3 * corner + 3)
+            circles = slice(3 * corner, 3 * corner + 3)
             predicted, cell_px = homography.project_with_cell_px(H, grid[circles])
             if not np.isfinite(cell_px):
                 return []
-            free = ~(taken | in_candidate)
+            free_triples = (~(taken | in_candidate))[triple_index].all(axis=1)
             # 1. a whole triple
             window = p.first_triple_window_cells if len(ids) == 3 else p.triple_window_cells
-            error = np.linalg.norm(triples.points_px - predicted[None], axis=2).mean(axis=1) / cell_px
-            r_ratio = blob_r[triples.index[:, 0]] / (radius_cells[circles[0]] * cell_px)
+            error = np.linalg.norm(triple_px - predicted[None], axis=2).mean(axis=1) / cell_px
+            r_ratio = triple_large_r / (radius_cells[3 * corner] * cell_px)
             fits = ((error < window) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
-                    & free[triples.index].all(axis=1))
-            tries = [triples.index[k].tolist() for k in np.flatnonzero(fits)[np.argsort(error[fits])][:2]]
-            if tries:
-                return tries
+                    & free_triples)
+            if fits.any():
+                return [triple_index[k].tolist() for k in np.flatnonzero(fits)[np.argsort(error[fits])][:2]]
             # 2. else circle by circle: the large one (with its whole triple if it has one), then the small
             # ones shifted by the large one's offset
             window = p.first_large_window_cells if len(ids) == 3 else p.large_window_cells
             tries = []
             for found in _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
                                        window, p):
-                own = np.flatnonzero((triples.index[:, 0] == found[0]) & free[triples.index].all(axis=1))
-                tries += [triples.index[k].tolist() for k in own[:1]] + [found]
+                own = np.flatnonzero((triple_index[:, 0] == found[0]) & free_triples)
+                tries += [triple_index[k].tolist() for k in own[:1]] + [found]
             return tries
 
         def quality(tries: list[list[int]]) -> int:
@@ -667,22 +670,21 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
         first_tries = {corner: tries_at(corner) for corner in (1, 3)}
         first = max((1, 3), key=lambda corner: quality(first_tries[corner]))
         for corner in (first, 4 - first, 2):
-            circles = np.arange(3 * corner, 3 * corner + 3)
-            for found in first_tries[corner] if corner == first else tries_at(corner):
-                added = [c for c, b in zip(circles, found) if b >= 0]
+            # until a corner joins, the map and the free blobs are those first_tries was made with
+            for found in first_tries[corner] if corner in first_tries and len(ids) == 3 else tries_at(corner):
+                added = [3 * corner + slot for slot, b in enumerate(found) if b >= 0]
                 blobs_added = [b for b in found if b >= 0]
                 H_new = _fit(grid[ids + added], centres[index + blobs_added], p)
                 # below min_circles_for_homography points the fit is affine and always "fits"; from there
                 # the whole set must fit, and so must the added circles themselves (one stray blob among
                 # seven good circles moves the RMS little)
                 checkable = len(ids) + len(added) >= p.min_circles_for_homography
-                if not checkable or max(homography.fit_error_cells(H_new, grid[ids + added], centres[index + blobs_added]),
-                                        homography.fit_error_cells(H_new, grid[added], centres[blobs_added])
-                                        ) <= p.max_fit_error_cells:
+                if not checkable or max(homography.fit_errors_cells(H_new, grid[ids + added], centres[index + blobs_added],
+                                                                    len(added))) <= p.max_fit_error_cells:
                     ids, index, H = ids + added, index + blobs_added, H_new
                     in_candidate[blobs_added] = True
                     break
-        candidate = CircleCandidate(np.array(ids), centres[index].copy(), np.array(index))
+        candidate = CircleCandidate(np.array(ids), centres[index], np.array(index), H)
         corners = len(candidate.corners)
         if len(ids) >= p.min_circles and corners >= p.min_corners and frozenset(index) not in seen:
             seen.add(frozenset(index))

@@ -342,7 +342,9 @@ class Detector:
         for candidate in candidates:
             circles = self.layout.circles[candidate.circle_ids]
             grid_points = circles[:, :2]
-            H = homography.fit(grid_points, candidate.circles_px)
+            # the grouping fitted this homography to these very circles already (an affine map below)
+            H = (candidate.H if len(grid_points) >= params.min_circles_for_homography
+                 else homography.fit(grid_points, candidate.circles_px))
             if np.isfinite(H[2, 2]):
                 centres = refine_centres(gray, H, circles)
                 if np.isfinite(centres).all():
