@@ -20,6 +20,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 from companion.detect import homography, sampling
@@ -27,6 +29,7 @@ from companion.markers.layout import MarkerLayout
 from companion.params import require
 
 EDGES = 4
+SQRT2 = math.sqrt(2.0)
 
 
 @dataclass(frozen=True)
@@ -126,6 +129,7 @@ class EdgeRefiner:
         self._axis = np.repeat([1, 0, 1, 0], k)  # the coordinate that is constant on the edge: 1 = v, 0 = u
         self._value = np.repeat([lo, hi, hi, lo], k).astype(float)
         self._width_profiles = (np.arange(len(self._points)).reshape(EDGES, -1)[:, 1::2]).ravel()  # one per cell
+        self._profile_cache: dict[tuple, tuple] = {}
 
     # ------------------------------------------------------------ edge points
 
@@ -136,34 +140,42 @@ class EdgeRefiner:
         half_width_cells: how far across each edge to look (both ways);
         samples: per profile; stride: use every stride-th profile along each edge.
         """
-        keep = (np.arange(len(self._points)).reshape(EDGES, -1)[:, ::stride]).ravel()
-        points, normals, edge = self._points[keep], self._normals[keep], self._edge[keep]
+        keep, points, normals, edge, offsets, grid = self._profiles(half_width_cells, samples, stride)
         m, e = len(H), len(points)
-        offsets = np.linspace(-half_width_cells, half_width_cells, samples)  # inside (black) -> outside (white)
-        grid = (points[:, None, :] + offsets[None, :, None] * normals[:, None, :]).reshape(-1, 2)
         values, inside = sampling.sample_image(gray, homography.project(H, grid))
-        values = values.reshape(m, e, samples)
-        inside = inside.reshape(m, e, samples).all(axis=2)
+        values = values.reshape(m * e, samples)
+        inside = inside.reshape(m * e, samples).all(axis=1)
         end = max(samples // 6, 1)
-        black = values[..., :end].mean(axis=2)
-        white = values[..., -end:].mean(axis=2)
+        black = values[:, :end].sum(axis=1) / end
+        white = values[:, -end:].sum(axis=1) / end
         mid = (black + white) / 2
-        with np.errstate(invalid="ignore"):
-            above = values >= mid[..., None]
-            crossings = np.count_nonzero(above[..., 1:] != above[..., :-1], axis=2)
-            good = (inside & (white - black >= self.min_contrast_gray) & (crossings == 1)
-                    & above[..., -1] & ~above[..., 0])
-        k = np.clip(np.argmax(above, axis=2), 1, samples - 1)  # first sample at or above the mid level
-        before = np.take_along_axis(values, (k - 1)[..., None], axis=2)[..., 0]
-        after = np.take_along_axis(values, k[..., None], axis=2)[..., 0]
         with np.errstate(invalid="ignore", divide="ignore"):
+            above = values >= mid[:, None]
+            crossings = np.count_nonzero(above[:, 1:] != above[:, :-1], axis=1)
+            good = (inside & (white - black >= self.min_contrast_gray) & (crossings == 1)
+                    & above[:, -1] & ~above[:, 0])
+            k = np.clip(np.argmax(above, axis=1), 1, samples - 1)  # first sample at or above the mid level
+            rows = np.arange(m * e)
+            before, after = values[rows, k - 1], values[rows, k]
             # linear interpolation of the crossing between samples k - 1 and k
             frac = np.clip((mid - before) / (after - before), 0.0, 1.0)
         offset = offsets[k - 1] + frac * (offsets[1] - offsets[0])
-        on_edge = points[None] + offset[..., None] * normals[None]  # (M, E, 2) grid
+        on_edge = points[None] + (offset.reshape(m, e)[..., None] * normals[None])  # (M, E, 2) grid
         px = homography.project(H, on_edge)
-        px[~good] = np.nan
+        px[~good.reshape(m, e)] = np.nan
         return EdgePoints(px, edge, keep)
+
+    def _profiles(self, half_width_cells: float, samples: int, stride: int) -> tuple:
+        """The profiles' layout (fixed per refiner and arguments, cached): kept profile indices (E,), their
+        grid points and outward normals (E, 2), edges (E,), offsets across (S,) and sample points (E * S, 2)."""
+        key = (half_width_cells, samples, stride)
+        if key not in self._profile_cache:
+            keep = (np.arange(len(self._points)).reshape(EDGES, -1)[:, ::stride]).ravel()
+            points, normals = self._points[keep], self._normals[keep]
+            offsets = np.linspace(-half_width_cells, half_width_cells, samples)  # inside (black) -> outside (white)
+            grid = (points[:, None, :] + offsets[None, :, None] * normals[:, None, :]).reshape(-1, 2)
+            self._profile_cache[key] = (keep, points, normals, self._edge[keep], offsets, grid)
+        return self._profile_cache[key]
 
     def step_widths_px(self, gray: np.ndarray, H: np.ndarray, cell_px: float, max_half_width_px: float = 8.0,
                        samples: int = 17) -> np.ndarray:
@@ -244,14 +256,16 @@ class EdgeRefiner:
         G = _solve(anchors_grid, anchors_px, on_edge_px, axis, value)
         if G is None:
             return fit
-        keep = _line_residuals(G, on_edge_px, axis, value) < self.params.outlier_cells
-        if 4 <= keep.sum() < len(keep):
+        residuals = _line_residuals(G, on_edge_px, axis, value)
+        keep = residuals < self.params.outlier_cells
+        kept = int(np.count_nonzero(keep))
+        if 4 <= kept < len(keep):
             refit = _solve(anchors_grid, anchors_px, on_edge_px[keep], axis[keep], value[keep])
-            G = G if refit is None else refit
-        used = keep if keep.sum() >= 4 else np.ones(len(keep), bool)
-        errors = np.r_[_line_residuals(G, on_edge_px[used], axis[used], value[used]),
-                       _grid_distances(G, anchors_px, anchors_grid)]
-        return EdgeFit(np.linalg.inv(G), int(used.sum()), float(np.sqrt(np.mean(errors ** 2))))
+            if refit is not None:
+                G, residuals = refit, _line_residuals(refit, on_edge_px, axis, value)
+        used = keep if kept >= 4 else np.ones(len(keep), bool)
+        errors = np.concatenate([residuals[used], _grid_distances(G, anchors_px, anchors_grid)])
+        return EdgeFit(np.linalg.inv(G), int(np.count_nonzero(used)), float(np.sqrt(np.mean(errors ** 2))))
 
 
 def _fit_lines(points: EdgePoints, min_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -277,39 +291,43 @@ def _fit_lines(points: EdgePoints, min_points: int) -> tuple[np.ndarray, np.ndar
 
 def _solve(anchors_grid, anchors_px, on_edge_px, axis, value) -> np.ndarray | None:
     """G (3, 3) image -> grid from anchor correspondences and points on grid lines u = c or v = c."""
-    all_px = np.concatenate([anchors_px, on_edge_px])
-    centre = all_px.mean(axis=0)
-    scale = np.sqrt(2) / max(np.mean(np.linalg.norm(all_px - centre, axis=1)), 1e-9)
-    T = np.array([[scale, 0, -scale * centre[0]], [0, scale, -scale * centre[1]], [0, 0, 1.0]])
-    grid_all = np.concatenate([anchors_grid, np.column_stack([value, value])])
-    g_centre = grid_all.mean(axis=0)
-    g_scale = 1.0 / max(np.abs(grid_all - g_centre).max(), 1e-9)
-    S = np.array([[g_scale, 0, -g_scale * g_centre[0]], [0, g_scale, -g_scale * g_centre[1]], [0, 0, 1.0]])
-
-    def homogeneous(p):
-        return np.column_stack([p, np.ones(len(p))]) @ T.T
-
-    # anchor (x, y) <-> (u, v):  g1 . p - u g3 . p = 0  and  g2 . p - v g3 . p = 0
-    a = homogeneous(anchors_px)
-    ag = (np.column_stack([anchors_grid, np.ones(len(anchors_grid))]) @ S.T)[:, :2]
-    z = np.zeros_like(a)
-    rows = [np.hstack([a, z, -ag[:, :1] * a]), np.hstack([z, a, -ag[:, 1:2] * a])]
-    # edge point on u = c:  g1 . p - c g3 . p = 0;  on v = c:  g2 . p - c g3 . p = 0
-    e = homogeneous(on_edge_px)
-    ze = np.zeros_like(e)
-    line = np.where(axis == 0, (value - g_centre[0]) * g_scale, (value - g_centre[1]) * g_scale)[:, None]
-    is_u = (axis == 0)[:, None]
-    rows.append(np.where(is_u, np.hstack([e, ze, -line * e]), np.hstack([ze, e, -line * e])))
-    A = np.concatenate(rows)
-    if len(A) < 8:
+    k, e = len(anchors_px), len(on_edge_px)
+    if 2 * k + e < 8:
         return None
+    # normalised image points (homogeneous): centred, mean distance sqrt(2); grid: centred, max |coordinate| 1
+    all_px = np.concatenate([anchors_px, on_edge_px])
+    centre = all_px.sum(axis=0) / len(all_px)
+    offsets = all_px - centre
+    scale = SQRT2 / max(float(np.sqrt((offsets * offsets).sum(axis=1)).sum()) / len(all_px), 1e-9)
+    points = np.ones((k + e, 3))
+    points[:, :2] = offsets * scale
+    grid_all = np.concatenate([anchors_grid, np.column_stack([value, value])])
+    g_centre = grid_all.sum(axis=0) / len(grid_all)
+    g_scale = 1.0 / max(float(np.abs(grid_all - g_centre).max()), 1e-9)
+    ag = (anchors_grid - g_centre) * g_scale
+    line = (value - g_centre[axis]) * g_scale
+    a, p = points[:k], points[k:]
+    A = np.zeros((2 * k + e, 9))
+    # anchor (x, y) <-> (u, v):  g1 . p - u g3 . p = 0  and  g2 . p - v g3 . p = 0
+    A[:k, 0:3] = a
+    A[:k, 6:9] = -ag[:, :1] * a
+    A[k:2 * k, 3:6] = a
+    A[k:2 * k, 6:9] = -ag[:, 1:2] * a
+    # edge point on u = c:  g1 . p - c g3 . p = 0;  on v = c:  g2 . p - c g3 . p = 0
+    on_u = axis == 0
+    A[2 * k + np.flatnonzero(on_u), 0:3] = p[on_u]
+    A[2 * k + np.flatnonzero(~on_u), 3:6] = p[~on_u]
+    A[2 * k:, 6:9] = -line[:, None] * p
     # the unit g minimising |A g|: the eigenvector of A^T A (9 x 9) with the smallest eigenvalue
     _, vectors = np.linalg.eigh(A.T @ A)
-    G = np.linalg.inv(S) @ vectors[:, 0].reshape(3, 3) @ T
-    if not np.all(np.isfinite(G)) or abs(G[2, 2]) < 1e-12:
+    # G = S^-1 G_normalised T, S and T the grid's and the image's normalisations
+    S_inv = np.array([[1.0 / g_scale, 0.0, g_centre[0]], [0.0, 1.0 / g_scale, g_centre[1]], [0.0, 0.0, 1.0]])
+    T = np.array([[scale, 0.0, -scale * centre[0]], [0.0, scale, -scale * centre[1]], [0.0, 0.0, 1.0]])
+    G = S_inv @ vectors[:, 0].reshape(3, 3) @ T
+    if not np.isfinite(G).all() or abs(G[2, 2]) < 1e-12:
         return None
     G = G / G[2, 2]
-    return G if abs(np.linalg.det(G)) > 1e-15 else None
+    return G if abs(homography.det3(G)) > 1e-15 else None
 
 
 def _line_residuals(G, on_edge_px, axis, value) -> np.ndarray:

@@ -118,9 +118,15 @@ def fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
     T_grid = np.array([[gs, 0.0, -gs * g_centre[0]], [0.0, gs, -gs * g_centre[1]], [0.0, 0.0, 1.0]])
     T_image_inv = np.array([[ps, 0.0, p_centre[0]], [0.0, ps, p_centre[1]], [0.0, 0.0, 1.0]])
     H = T_image_inv @ Hn @ T_grid
-    if not np.all(np.isfinite(H)) or abs(H[2, 2]) < MIN_DETERMINANT or abs(np.linalg.det(H)) < MIN_DETERMINANT:
+    if not np.isfinite(H).all() or abs(H[2, 2]) < MIN_DETERMINANT or abs(det3(H)) < MIN_DETERMINANT:
         return np.full((3, 3), np.nan)
     return H / H[2, 2]
+
+
+def det3(H: np.ndarray) -> float:
+    """Determinant of one (3, 3) matrix (cofactors along the first row; np.linalg.det's LU costs more)."""
+    (a, b, c), (d, e, f), (g, h, i) = H.tolist()
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
 def fit_affine(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
