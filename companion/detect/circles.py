@@ -475,10 +475,10 @@ def refine_centres(gray: np.ndarray, H: np.ndarray, circles_cells: np.ndarray) -
     points = homography.project(H, window_cells.reshape(-1, 2)).reshape(window_cells.shape)
     values, inside = sampling.sample_image(gray, points)  # (K, S), NaN outside the frame
     darkness = sampling.nan_median_rows(values)[:, None] - values
-    with np.errstate(invalid="ignore"):
-        weight = np.nan_to_num(np.clip(darkness - 0.2 * np.nanmax(darkness, axis=1, keepdims=True), 0, None))
+    # fmax skips NaN: the largest finite darkness of each row, and a weight of 0 where the sample is NaN
+    weight = np.fmax(darkness - 0.2 * np.fmax.reduce(darkness, axis=1, keepdims=True), 0.0)
     total = weight.sum(axis=1)
-    centres = (weight[..., None] * np.nan_to_num(points)).sum(axis=1) / np.maximum(total, 1e-9)[:, None]
+    centres = (weight[..., None] * np.where(inside[..., None], points, 0.0)).sum(axis=1) / np.maximum(total, 1e-9)[:, None]
     return np.where((total > 0)[:, None], centres, np.nan)
 
 

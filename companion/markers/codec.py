@@ -120,6 +120,7 @@ class GridDecoder:
         # that np.rot90(grid, rotation) turns upright
         self._words = np.concatenate([np.rot90(layout.all_cells, -k, axes=(1, 2))[:, self._mask]
                                       for k in range(4)]).astype(np.float32)
+        self._words_t = np.ascontiguousarray(self._words.T)
         self._n_markers = n_markers
 
     @cached_property
@@ -157,8 +158,8 @@ class GridDecoder:
         obs = grids[:, self._mask]
         known = (obs != UNKNOWN).astype(np.float32)
         black = (obs == 1).astype(np.float32)
-        # Hamming distance over known cells: sum(o) + sum(known * w) - 2 o . w
-        d = black.sum(1)[:, None] + known @ self._words.T - 2 * black @ self._words.T
+        # Hamming distance over known cells: sum(o) + sum(known * w) - 2 o . w (one product: exact in float32)
+        d = (known - 2 * black) @ self._words_t + black.sum(1)[:, None]
         order = np.argsort(d, axis=1, kind="stable")[:, :2]
         rows = np.arange(len(d))
         return Ranking(order[:, 0], order[:, 1], d[rows, order[:, 0]].round().astype(int),
