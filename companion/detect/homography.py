@@ -17,6 +17,7 @@ than numpy on small arrays.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -91,16 +92,18 @@ def fit(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
     """
     g = np.asarray(grid_points, dtype=np.float64)
     p = np.asarray(image_points, dtype=np.float64)
-    if len(g) < 4:
+    k = len(g)
+    if k < 4:
         return np.full((3, 3), np.nan)
-    g_centre, p_centre = g.mean(axis=0), p.mean(axis=0)
+    # (sums over k rather than np.mean: the same numbers, without its per-call cost)
+    g_centre, p_centre = g.sum(axis=0) / k, p.sum(axis=0) / k
     g, p = g - g_centre, p - p_centre
-    g_spread, p_spread = np.sqrt((g * g).sum(axis=1)).mean(), np.sqrt((p * p).sum(axis=1)).mean()
+    g_spread = float(np.sqrt((g * g).sum(axis=1)).sum()) / k
+    p_spread = float(np.sqrt((p * p).sum(axis=1)).sum()) / k
     if not (g_spread > 0 and p_spread > 0):
         return np.full((3, 3), np.nan)
     g *= math.sqrt(2.0) / g_spread
     p *= math.sqrt(2.0) / p_spread
-    k = len(g)
     # x = (h0 u + h1 v + h2) / (h6 u + h7 v + h8): h0 u + h1 v + h2 - x (h6 u + h7 v + h8) = 0, y likewise
     A = np.zeros((2 * k, 9))
     A[:k, 0:2] = g
@@ -131,10 +134,22 @@ def det3(H: np.ndarray) -> float:
 
 def fit_affine(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
     """(3, 3) least-squares affine map grid -> image from K >= 3 point pairs (K, 2), as a homography."""
-    design = np.column_stack([grid_points, np.ones(len(grid_points))])
-    # normal equations of [x y] = [u v 1] A (3 x 2); tiny, so solve directly
-    A = np.linalg.solve(design.T @ design, design.T @ image_points)
-    return np.vstack([A.T, [0.0, 0.0, 1.0]])
+    g = np.ascontiguousarray(grid_points, dtype=np.float64)
+    H = np.zeros((3, 3))
+    H[:2] = (_affine_solver(g.tobytes(), len(g)) @ image_points).T
+    H[2, 2] = 1.0
+    return H
+
+
+@lru_cache(maxsize=256)
+def _affine_solver(grid_bytes: bytes, k: int) -> np.ndarray:
+    """(3, K): the least-squares affine map of K grid points (given as bytes of (K, 2) float64) is this
+    times the image points. Normal equations of [x y] = [u v 1] A (3 x 2): A = (D^T D)^-1 D^T [x y], D = [u v 1];
+    cached: the grouping fits the same few sets of layout circles again and again."""
+    design = np.column_stack([np.frombuffer(grid_bytes).reshape(k, 2), np.ones(k)])
+    solver = np.linalg.solve(design.T @ design, design.T)
+    solver.flags.writeable = False
+    return solver
 
 
 def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
