@@ -28,6 +28,7 @@ corners, so at least six circles, which fix the grid homography.
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -627,6 +628,8 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
     centres = blobs.centres_px
     triple_index, triple_px = triples.index, triples.points_px
     triple_large_r = blob_r[triple_index[:, 0]]
+    # (4, 5, 2) per corner: its three circles, then one cell along u and along v from its large circle
+    corner_points = np.concatenate([grid.reshape(4, 3, 2), grid[0::3, None] + homography.UNIT_STEPS], axis=1)
     candidates, seen = [], set()
     in_any = np.zeros(len(blobs), bool)
     for t in range(len(triples)):
@@ -639,14 +642,16 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
 
         def tries_at(corner: int) -> list[list[int]]:
             """Ways to match ``corner``'s circles through the current map (blob indices, -1: none), best first."""
-            circles = slice(3 * corner, 3 * corner + 3)
-            predicted, cell_px = homography.project_with_cell_px(H, grid[circles])
-            if not np.isfinite(cell_px):
+            points = homography.project(H, corner_points[corner])
+            cell_px = homography.cell_px_at(points[0], points[3], points[4]) if np.isfinite(points).all() else math.nan
+            if not math.isfinite(cell_px):
                 return []
+            predicted = points[:3]
             free_triples = (~(taken | in_candidate))[triple_index].all(axis=1)
-            # 1. a whole triple
+            # 1. a whole triple: the mean distance of its circles from the predictions, in cells
             window = p.first_triple_window_cells if len(ids) == 3 else p.triple_window_cells
-            error = np.linalg.norm(triple_px - predicted[None], axis=2).mean(axis=1) / cell_px
+            offsets = triple_px - predicted
+            error = np.sqrt((offsets * offsets).sum(axis=2)).sum(axis=1) / 3 / cell_px
             r_ratio = triple_large_r / (radius_cells[3 * corner] * cell_px)
             fits = ((error < window) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
                     & free_triples)
@@ -656,8 +661,8 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
             # ones shifted by the large one's offset
             window = p.first_large_window_cells if len(ids) == 3 else p.large_window_cells
             tries = []
-            for found in _match_corner(centres, blob_r, predicted, cell_px, radius_cells[circles], taken, index,
-                                       window, p):
+            for found in _match_corner(centres, blob_r, predicted, cell_px, radius_cells[3 * corner:3 * corner + 3],
+                                       taken, index, window, p):
                 own = np.flatnonzero((triple_index[:, 0] == found[0]) & free_triples)
                 tries += [triple_index[k].tolist() for k in own[:1]] + [found]
             return tries
@@ -708,9 +713,12 @@ def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used,
     p = params
     free = ~taken
     free[used] = False
-    d = np.linalg.norm(centres - predicted[0], axis=1)
+    offsets = centres - predicted[0]
+    d = np.sqrt((offsets * offsets).sum(axis=1))
     r_ratio = blob_r / (radii_cells[0] * cell_px)
     ok = free & (d < window_cells * cell_px) & (r_ratio > p.min_radius_ratio) & (r_ratio < p.max_radius_ratio)
+    if not ok.any():
+        return []
     matches = []
     for large in np.flatnonzero(ok)[np.argsort(d[ok], kind="stable")][:2].tolist():
         left = free.copy()
@@ -718,7 +726,8 @@ def _match_corner(centres, blob_r, predicted, cell_px, radii_cells, taken, used,
         shift = centres[large] - predicted[0]
         found = [large]
         for k in (1, 2):
-            d_small = np.linalg.norm(centres - (predicted[k] + shift), axis=1)
+            offsets = centres - (predicted[k] + shift)
+            d_small = np.sqrt((offsets * offsets).sum(axis=1))
             r_ratio = blob_r / (radii_cells[k] * cell_px)
             ok_small = (left & (d_small < p.small_window_cells * cell_px) & (r_ratio > p.min_radius_ratio)
                         & (r_ratio < p.max_radius_ratio))

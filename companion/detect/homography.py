@@ -194,11 +194,12 @@ def project_with_cell_px(H: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, flo
     points = project(H, np.concatenate([uv, uv[0] + UNIT_STEPS]))
     if not np.isfinite(points).all():
         return points[:-2], np.nan
-    return points[:-2], _cell_px(points[0], points[-2], points[-1])
+    return points[:-2], cell_px_at(points[0], points[-2], points[-1])
 
 
-def _cell_px(origin, step_u, step_v) -> float:
-    """sqrt(|a x b|) of a = step_u - origin, b = step_v - origin (image points (2,)); NaN if zero."""
+def cell_px_at(origin, step_u, step_v) -> float:
+    """The size of one cell in pixels where grid point g maps to origin and g + (1, 0), g + (0, 1) to
+    step_u, step_v (image points (2,)): sqrt(|a x b|), a = step_u - origin, b = step_v - origin; NaN if zero."""
     (x0, y0), (x1, y1), (x2, y2) = origin.tolist(), step_u.tolist(), step_v.tolist()
     cell_px = math.sqrt(abs((x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)))
     return cell_px if cell_px > 0 else math.nan
@@ -221,6 +222,6 @@ def fit_errors_cells(H: np.ndarray, grid_points: np.ndarray, points_px: np.ndarr
     if not np.isfinite(points).all():
         return math.inf, math.inf
     squared = np.sum((points[:k] - points_px) ** 2, axis=1)
-    errors = [math.sqrt(float(np.mean(squared[first:]))) / _cell_px(points[first], points[steps], points[steps + 1])
+    errors = [math.sqrt(float(np.mean(squared[first:]))) / cell_px_at(points[first], points[steps], points[steps + 1])
               for first, steps in ((0, k), (k - tail, k + 2))]
     return tuple(error if math.isfinite(error) else math.inf for error in errors)
