@@ -265,7 +265,7 @@ class EdgeRefiner:
                 G, residuals = refit, _line_residuals(refit, on_edge_px, axis, value)
         used = keep if kept >= 4 else np.ones(len(keep), bool)
         errors = np.concatenate([residuals[used], _grid_distances(G, anchors_px, anchors_grid)])
-        return EdgeFit(np.linalg.inv(G), int(np.count_nonzero(used)), float(np.sqrt(np.mean(errors ** 2))))
+        return EdgeFit(homography.inv3(G), int(np.count_nonzero(used)), math.sqrt(float(np.mean(errors * errors))))
 
 
 def _fit_lines(points: EdgePoints, min_points: int) -> tuple[np.ndarray, np.ndarray]:

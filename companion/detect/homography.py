@@ -132,6 +132,15 @@ def det3(H: np.ndarray) -> float:
     return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
 
 
+def inv3(H: np.ndarray) -> np.ndarray:
+    """Inverse of one invertible (3, 3) matrix: its adjugate over its determinant (np.linalg.inv costs more)."""
+    (a, b, c), (d, e, f), (g, h, i) = H.tolist()
+    co_a, co_b, co_c = e * i - f * h, f * g - d * i, d * h - e * g
+    return np.array([[co_a, c * h - b * i, b * f - c * e],
+                     [co_b, a * i - c * g, c * d - a * f],
+                     [co_c, b * g - a * h, a * e - b * d]]) / (a * co_a + b * co_b + c * co_c)
+
+
 def fit_affine(grid_points: np.ndarray, image_points: np.ndarray) -> np.ndarray:
     """(3, 3) least-squares affine map grid -> image from K >= 3 point pairs (K, 2), as a homography."""
     g = np.ascontiguousarray(grid_points, dtype=np.float64)

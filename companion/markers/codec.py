@@ -345,15 +345,25 @@ class GridDecoder:
         A data symbol is touched if any of its cells is bad; a parity symbol if
         both of its copies are (one intact copy is enough).
         """
+        touched = bad.ravel()[self._symbol_cells].any(axis=-1)  # (2, n + 2p): row code, column code
+        n, p = self.layout.data_size, self.layout.parity
+        counts = (np.count_nonzero(touched[:, :n], axis=1)
+                  + np.count_nonzero(touched[:, n:n + p] & touched[:, n + p:], axis=1))
+        return int(counts.min())
+
+    @cached_property
+    def _symbol_cells(self) -> np.ndarray:
+        """(2, n + 2p, n) flat grid indices of the cells of each symbol: the row code's (data rows, then each
+        parity symbol's near copy, then its far copy), then the column code's, the same along columns."""
         lay = self.layout
-        span = lay.data_span
-        counts = []
-        for b in (bad, bad.T):  # row code, then column code (columns as rows)
-            data = int(np.count_nonzero(b[span, span].any(axis=1)))
-            parity = sum(bool(b[lay.parity_band(k, True), span].any() and b[lay.parity_band(k, False), span].any())
-                         for k in range(lay.parity))
-            counts.append(data + parity)
-        return min(counts)
+        n_cells, span = lay.n_cells, lay.data_span
+        rows = ([np.arange(n_cells)[span][i] for i in range(lay.data_size)]
+                + [lay.parity_band(k, True) for k in range(lay.parity)]
+                + [lay.parity_band(k, False) for k in range(lay.parity)])
+        along = np.arange(n_cells)[span]
+        by_rows = np.array([row * n_cells + along for row in rows])
+        by_columns = np.array([along * n_cells + column for column in rows])
+        return np.stack([by_rows, by_columns])
 
 
 def merge_copies(a: np.ndarray, b: np.ndarray) -> np.ndarray:
