@@ -183,7 +183,8 @@ def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
         # OpenCV per homography (5-10x faster than the batched numpy below for one); its points at the
         # horizon come out at exactly (0, 0): NaN here, as numpy's would be inf or NaN
         out = np.stack([project(h, uv if uv.ndim == 2 else uv[m]) for m, h in enumerate(H)])
-        out[(out == 0.0).all(axis=-1)] = np.nan
+        if not out.all():  # some coordinate is exactly 0 (rare): find the points at (0, 0)
+            out[(out[..., 0] == 0.0) & (out[..., 1] == 0.0)] = np.nan
         return out
     with np.errstate(divide="ignore", invalid="ignore"):
         if uv.ndim == 3:

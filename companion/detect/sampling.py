@@ -56,13 +56,15 @@ def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarr
     points outside the image (or not finite) read as NaN and inside = False.
     """
     shape = xy.shape[:-1]
+    if xy.size == 0:
+        return np.zeros(shape, np.float32), np.zeros(shape, bool)
     flat = xy.reshape(-1, 2).astype(np.float32)
     h, w = gray.shape
-    x, y = flat[:, 0], flat[:, 1]
-    with np.errstate(invalid="ignore"):
-        inside = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1)  # False for NaN
+    # 0 <= x <= w - 1 and 0 <= y <= h - 1 (False for NaN; OpenCV's range test costs half numpy's four)
+    inside = cv2.inRange(flat.reshape(-1, 1, 2), (0.0, 0.0), (w - 1.0, h - 1.0)).ravel() > 0
+    outside = ~inside
     # points outside (NaN and inf among them) read NaN below: any finite position off the image will do
-    np.copyto(flat, -10.0, where=~inside[:, None])
+    np.copyto(flat, -10.0, where=outside[:, None])
     # remap wants maps under 32767 columns: lay the points out in rows of REMAP_ROW
     count = len(flat)
     cols = max(min(count, REMAP_ROW), 1)
@@ -71,7 +73,7 @@ def sample_image(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarr
         flat = np.concatenate([flat, np.full((rows * cols - count, 2), -10.0, np.float32)])
     values = cv2.remap(gray, flat.reshape(rows, cols, 2), None, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0).reshape(-1)[:count].astype(np.float32)
-    values[~inside] = np.nan
+    values[outside] = np.nan
     return values.reshape(shape), inside.reshape(shape)
 
 
@@ -96,15 +98,17 @@ def _cell_sample_points(n_cells: int, offsets: tuple[float, ...]) -> np.ndarray:
 
 
 def cell_sample_points(n_cells: int, offsets: np.ndarray = SUB_CELL_OFFSETS) -> np.ndarray:
-    """(N * N * S, 2) grid (u, v) of the sub-samples, cell-major (row, column, sample); read-only."""
+    """(S * N * N, 2) grid (u, v) of the sub-samples, sample-major (sample, row, column), so that a cell's
+    statistics reduce over whole rows of N * N values (reductions over a short last axis cost several
+    times more); read-only."""
     return _cell_sample_points(n_cells, tuple(float(o) for o in offsets))
 
 
 def cell_sample_points_uncached(n_cells: int, offsets: np.ndarray) -> np.ndarray:
     rows, cols = np.mgrid[0:n_cells, 0:n_cells]
     dv, du = np.meshgrid(offsets, offsets, indexing="ij")
-    u = cols[..., None] + 0.5 + du.ravel()
-    v = rows[..., None] + 0.5 + dv.ravel()
+    u = cols[None] + 0.5 + du.reshape(-1, 1, 1)
+    v = rows[None] + 0.5 + dv.reshape(-1, 1, 1)
     return np.stack([u, v], axis=-1).reshape(-1, 2)
 
 
@@ -114,9 +118,9 @@ def sample_cells(gray: np.ndarray, H: np.ndarray, n_cells: int,
     m = len(H)
     s = len(offsets) ** 2
     values, inside = sample_image(gray, homography.project(H, cell_sample_points(n_cells, offsets)))
-    values = values.reshape(m, n_cells, n_cells, s)
-    inside_cells = inside.reshape(m, n_cells, n_cells, s).all(axis=-1)
-    return CellSamples(values.mean(axis=-1), inside_cells)
+    values = values.reshape(m, s, n_cells, n_cells)
+    inside_cells = inside.reshape(m, s, n_cells, n_cells).all(axis=1)
+    return CellSamples(values.mean(axis=1), inside_cells)
 
 
 @dataclass(frozen=True)
