@@ -348,8 +348,8 @@ class Detector:
             if np.isfinite(H[2, 2]):
                 centres = refine_centres(gray, H, circles)
                 if np.isfinite(centres).all():
-                    candidate = replace(candidate, circles_px=centres)
                     H = homography.fit(grid_points, centres)
+                    candidate = CircleCandidate(candidate.circle_ids, centres, candidate.blob_index, H)
             if homography.fit_error_cells(H, grid_points, candidate.circles_px) <= params.max_fit_error_cells:
                 fitted.append((candidate, H, (grid_points, candidate.circles_px)))
         if fitted:  # a first look at one sample per cell: a wrong pairing of corners reads as no marker

@@ -213,22 +213,26 @@ class CellProbe:
         self._is_border, self._is_gap = border[self._probed], gap[self._probed]
         self._is_codeword = codeword[self._probed]
         self._points = np.argwhere(self._probed)[:, ::-1] + 0.5  # (u, v) cell centres
+        # (P, 3): which probed cells are border, gap-ring and codeword cells (class counts as one product)
+        self._classes = np.column_stack([self._is_border, self._is_gap, self._is_codeword]).astype(np.float64)
 
     def read(self, gray: np.ndarray, H: np.ndarray, hidden: np.ndarray | None = None) -> "ProbeReading":
         """M candidates: H (M, 3, 3) grid -> image; hidden: optional (M, N, N) bool cells to leave out."""
         values, _ = sample_image(gray, homography.project(H, self._points))
         if hidden is not None:
             values[hidden[:, self._probed]] = np.nan
-        border, gap, codeword = values[:, self._is_border], values[:, self._is_gap], values[:, self._is_codeword]
-        black, white = nan_median_rows(border), nan_median_rows(gap)
-        with np.errstate(invalid="ignore"):
-            mid = (black + white)[:, None] / 2
-            dark = values < mid
+        black, white = nan_median_rows(values[:, self._is_border]), nan_median_rows(values[:, self._is_gap])
+        mid = (black + white)[:, None] / 2
+        readable = np.isfinite(values)
+        dark = values < mid  # False where unreadable
         grid = np.full((len(H),) + self._probed.shape, UNKNOWN, np.int8)
-        grid[:, self._probed] = np.where(np.isfinite(values), dark, UNKNOWN)
-        return ProbeReading(white - black, _fraction(dark[:, self._is_border], border),
-                            _fraction(~dark[:, self._is_gap] & np.isfinite(gap), gap),
-                            _fraction(dark[:, self._is_codeword], codeword), grid)
+        grid[:, self._probed] = np.where(readable, dark, UNKNOWN)
+        # per class (border, gap ring, codeword): readable cells and dark ones among them
+        readable_counts = readable.astype(np.float64) @ self._classes
+        dark_counts = dark.astype(np.float64) @ self._classes
+        shares = np.stack([dark_counts[:, 0], readable_counts[:, 1] - dark_counts[:, 1], dark_counts[:, 2]], axis=1)
+        shares /= np.maximum(readable_counts, 1)
+        return ProbeReading(white - black, shares[:, 0], shares[:, 1], shares[:, 2], grid)
 
 
 @dataclass(frozen=True)
@@ -241,12 +245,6 @@ class ProbeReading:
     gap_white: np.ndarray
     dark_codeword: np.ndarray
     grid: np.ndarray
-
-
-def _fraction(condition: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(M,) share of the readable (finite) values meeting the condition, per row."""
-    readable = np.isfinite(values)
-    return (condition & readable).sum(axis=1) / np.maximum(readable.sum(axis=1), 1)
 
 
 def erase_near_bad_fixed_cells(grids: np.ndarray, border: np.ndarray, gap: np.ndarray,
