@@ -182,7 +182,8 @@ def project(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
     if len(H) <= FEW_HOMOGRAPHIES and uv.shape[-2] > 0:
         # OpenCV per homography (5-10x faster than the batched numpy below for one); its points at the
         # horizon come out at exactly (0, 0): NaN here, as numpy's would be inf or NaN
-        out = np.stack([project(h, uv if uv.ndim == 2 else uv[m]) for m, h in enumerate(H)])
+        out = (project(H[0], uv if uv.ndim == 2 else uv[0])[None] if len(H) == 1
+               else np.stack([project(h, uv if uv.ndim == 2 else uv[m]) for m, h in enumerate(H)]))
         if not out.all():  # some coordinate is exactly 0 (rare): find the points at (0, 0)
             out[(out[..., 0] == 0.0) & (out[..., 1] == 0.0)] = np.nan
         return out
