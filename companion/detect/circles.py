@@ -534,14 +534,14 @@ def corner_triples(blobs: Blobs, layout: MarkerLayout, params: CircleParams) -> 
     # all (j1, j2) pairs sharing a large i (pairs are grouped by i already)
     starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
     sizes = np.diff(np.r_[starts, len(i)])
-    triples = []
-    for start, size in zip(starts[sizes >= 2], sizes[sizes >= 2]):
-        js = j[start:start + size]
-        pairs = _pairs(int(size))
-        triples.append(np.column_stack([np.full(len(pairs), i[start]), js[pairs[:, 0]], js[pairs[:, 1]]]))
-    if not triples:
+    starts, sizes = starts[sizes >= 2], sizes[sizes >= 2]
+    if len(starts) == 0:
         return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
-    t = np.concatenate(triples)
+    # each group's (a, b) pairs, offset to the group's start in i and j
+    pairs = [_pairs(size) for size in sizes.tolist()]
+    first = np.repeat(starts, [len(pair) for pair in pairs])
+    pairs = np.concatenate(pairs) + first[:, None]
+    t = np.column_stack([i[first], j[pairs[:, 0]], j[pairs[:, 1]]])
     e1, e2 = c[t[:, 1]] - c[t[:, 0]], c[t[:, 2]] - c[t[:, 0]]
     cross = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     n1, n2 = np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1)
