@@ -7,12 +7,16 @@ integers):  (x, y) = (H (u, v, 1)^T)[:2] / (H (u, v, 1)^T)[2].  Stages hold
 them batched, (M, 3, 3) for M candidates; a homography that could not be
 built is all NaN and projects to NaN.
 
-Written for speed (they run on every candidate of every frame): the batched
-4-point solve is one ``np.linalg.solve`` over all quads, a shared set of
-points goes through M homographies in one ``np.tensordot``; one homography
-(a few points, or the refiner's thousands of template points every step) is
-OpenCV's ``perspectiveTransform`` / ``getPerspectiveTransform``, 5-15x faster
-than numpy on small arrays.
+Written for speed (they run on every candidate of every frame, mostly on
+arrays of a few dozen values, where numpy's cost per call, not the
+arithmetic, is the time): the batched 4-point solve is one
+``np.linalg.solve`` over all quads, a shared set of points goes through
+many homographies in one ``np.tensordot``; one homography (a few points,
+or the refiner's thousands of template points every step), and each of a
+batch of up to ``FEW_HOMOGRAPHIES``, is OpenCV's ``perspectiveTransform``
+/ ``getPerspectiveTransform``, 5-15x faster than numpy on small arrays;
+3 x 3 determinants and inverses are written out, and an affine fit is one
+product with a solver cached per set of grid points.
 """
 from __future__ import annotations
 
