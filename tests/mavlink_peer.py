@@ -313,7 +313,9 @@ class PeerProcess:
     def records(self, name: str | None = None, kind: str = "received") -> list[dict]:
         if not self.out.exists():
             return []
-        rows = [json.loads(line) for line in self.out.read_text().splitlines() if line.strip()]
+        text = self.out.read_text()
+        # the peer may be writing its last line right now: only whole lines (ending in a newline) are read
+        rows = [json.loads(line) for line in text[:text.rfind("\n") + 1].splitlines() if line.strip()]
         return [r for r in rows if r["kind"] == kind and (name is None or r["name"] == name)]
 
     def wait_for(self, name: str, count: int = 1, timeout_s: float = 10.0, kind: str = "received") -> list[dict]:
