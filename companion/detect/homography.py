@@ -26,6 +26,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+PREVIOUS_CORNER = [3, 0, 1, 2]  # of each corner of a quad (np.roll by one, without its cost)
 FEW_HOMOGRAPHIES = 4  # up to this many, batched projections go one homography at a time through OpenCV
 MIN_DETERMINANT = 1e-12  # below it a 4-point system is degenerate (three corners on a line)
 
@@ -33,7 +34,8 @@ MIN_DETERMINANT = 1e-12  # below it a 4-point system is degenerate (three corner
 def mean_side_px(quads: np.ndarray) -> np.ndarray:
     """Mean side length of quads (..., 4, 2) in pixels, shape (...): (M,) for M quads, 0-d for one."""
     quads = np.asarray(quads, dtype=np.float64)
-    return np.linalg.norm(quads - np.roll(quads, 1, axis=-2), axis=-1).mean(axis=-1)
+    sides = quads - quads[..., PREVIOUS_CORNER, :]
+    return np.sqrt((sides * sides).sum(axis=-1)).mean(axis=-1)
 
 
 def from_quads(grid_corners: np.ndarray, image_corners: np.ndarray) -> np.ndarray:
