@@ -545,8 +545,8 @@ def corner_triples(blobs: Blobs, layout: MarkerLayout, params: CircleParams) -> 
     if len(i) < 2:
         return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
     # all (j1, j2) pairs sharing a large i (pairs are grouped by i already)
-    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
-    sizes = np.diff(np.r_[starts, len(i)])
+    starts = np.flatnonzero(np.concatenate([[True], i[1:] != i[:-1]]))
+    sizes = np.diff(np.append(starts, len(i)))
     starts, sizes = starts[sizes >= 2], sizes[sizes >= 2]
     if len(starts) == 0:
         return Triples(np.zeros((0, 3), int), np.zeros((0, 3, 2)))
