@@ -146,17 +146,8 @@ def main() -> None:
         send(connection, "HOME_POSITION", vehicle["home"])
         return True
 
-    record("event", "listening", {})
-    deadline = time.monotonic() + args.duration
-    connection = None
-    while connection is None and not stop.is_set() and time.monotonic() < deadline:
-        try:
-            connection = runtime.await_connection(200)
-        except RuntimeError:
-            connection = None
-    if connection is None:
-        return
-    record("event", "connected", {})
+    connection = streamer = None
+    connected = threading.Event()
 
     def on_set_origin(fields: dict) -> None:
         with state_lock:
@@ -201,8 +192,23 @@ def main() -> None:
                                              "param_type": MAV_PARAM_TYPE_REAL32, "param_count": len(parameters),
                                              "param_index": list(parameters).index(fields["param_id"])})
 
-    streamer = AttitudeStreamer(args, messages, connection, record)
-    connection.add_message_callback(on_message)
+    def on_connection(partner) -> None:
+        # called by libmav's receive thread before it hands over the partner's first message: a callback
+        # added once await_connection has returned misses what arrives meanwhile (the link's first texts)
+        nonlocal connection, streamer
+        if connection is not None:
+            return
+        connection, streamer = partner, AttitudeStreamer(args, messages, partner, record)
+        partner.add_message_callback(on_message)
+        connected.set()
+
+    runtime.on_connection(on_connection)
+    record("event", "listening", {})
+    deadline = time.monotonic() + args.duration
+    while not connected.wait(0.2):
+        if stop.is_set() or time.monotonic() >= deadline:
+            return
+    record("event", "connected", {})
     connection.send(heartbeat)  # at once, not at the runtime's next 1 Hz beat
     next_timesync = next_ekf_report = time.monotonic()
     while not stop.is_set() and time.monotonic() < deadline:
