@@ -651,6 +651,7 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
         ids, index = [0, 1, 2], triple_index[t].tolist()
         in_candidate = np.zeros(len(blobs), bool)
         in_candidate[index] = True
+        free_triples = (~(taken | in_candidate))[triple_index].all(axis=1)  # again whenever a corner joins
         H = _fit(grid[ids], centres[index], p)
 
         def tries_at(corner: int) -> list[list[int]]:
@@ -660,7 +661,6 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
             if not math.isfinite(cell_px):
                 return []
             predicted = points[:3]
-            free_triples = (~(taken | in_candidate))[triple_index].all(axis=1)
             # 1. a whole triple: the mean distance of its circles from the predictions, in cells
             window = p.first_triple_window_cells if len(ids) == 3 else p.triple_window_cells
             offsets = triple_px - predicted
@@ -701,6 +701,7 @@ def assemble_candidates(blobs: Blobs, triples: Triples, layout: MarkerLayout,
                                                                     len(added))) <= p.max_fit_error_cells:
                     ids, index, H = ids + added, index + blobs_added, H_new
                     in_candidate[blobs_added] = True
+                    free_triples = (~(taken | in_candidate))[triple_index].all(axis=1)
                     break
         candidate = CircleCandidate(np.array(ids), centres[index], np.array(index), H)
         corners = len(candidate.corners)

@@ -154,11 +154,11 @@ class EdgeRefiner:
             crossings = np.count_nonzero(above[:, 1:] != above[:, :-1], axis=1)
             good = (inside & (white - black >= self.min_contrast_gray) & (crossings == 1)
                     & above[:, -1] & ~above[:, 0])
-            k = np.clip(np.argmax(above, axis=1), 1, samples - 1)  # first sample at or above the mid level
+            k = np.maximum(np.argmax(above, axis=1), 1)  # first sample at or above the mid level (from the 2nd)
             rows = np.arange(m * e)
             before, after = values[rows, k - 1], values[rows, k]
             # linear interpolation of the crossing between samples k - 1 and k
-            frac = np.clip((mid - before) / (after - before), 0.0, 1.0)
+            frac = np.minimum(np.maximum((mid - before) / (after - before), 0.0), 1.0)
         offset = offsets[k - 1] + frac * (offsets[1] - offsets[0])
         on_edge = points[None] + (offset.reshape(m, e)[..., None] * normals[None])  # (M, E, 2) grid
         px = homography.project(H, on_edge)
