@@ -240,11 +240,11 @@ class EdgeRefiner:
         p = self.params
         fits = [EdgeFit(h, 0, np.nan) for h in H]
         for _ in range(p.circles_iterations):
-            points = self.edge_points(gray, np.stack([f.H for f in fits]), p.circles_half_width_cells,
-                                      p.circles_samples, p.circles_stride)
-            axis, value = self._axis[points.profile], self._value[points.profile]
-            fits = [self._refit(fit, points.px[i], axis[points.valid[i]], value[points.valid[i]],
-                                points.valid[i], *anchors[i]) for i, fit in enumerate(fits)]
+            points = self.edge_points(gray, H, p.circles_half_width_cells, p.circles_samples, p.circles_stride)
+            axis, value, valid = self._axis[points.profile], self._value[points.profile], points.valid
+            fits = [self._refit(fit, points.px[i], axis[valid[i]], value[valid[i]], valid[i], *anchors[i])
+                    for i, fit in enumerate(fits)]
+            H = np.stack([fit.H for fit in fits])
         return fits
 
     def _refit(self, fit: EdgeFit, px: np.ndarray, axis: np.ndarray, value: np.ndarray, valid: np.ndarray,

@@ -174,7 +174,7 @@ def classify_cells(cells: CellSamples, levels: GridLevels, ambiguity_fraction: f
     mid = ((levels.black + levels.white) / 2)[:, None, None]
     margin = (ambiguity_fraction * levels.contrast)[:, None, None]
     with np.errstate(invalid="ignore"):
-        grid = np.where(cells.mean < mid, 1, 0).astype(np.int8)
+        grid = (cells.mean < mid).astype(np.int8)
         unsure = ~cells.inside | ~np.isfinite(cells.mean) | (np.abs(cells.mean - mid) < margin)
     grid[unsure] = UNKNOWN
     return grid
@@ -188,8 +188,8 @@ def nan_median_rows(values: np.ndarray) -> np.ndarray:
     """
     ordered = np.sort(values, axis=1)
     count = np.isfinite(ordered).sum(axis=1)
-    lo = np.maximum((count - 1) // 2, 0)
-    hi = np.maximum(count // 2, 0)
+    lo = np.maximum(count - 1, 0) // 2
+    hi = count // 2
     rows = np.arange(len(values))
     median = (ordered[rows, lo] + ordered[rows, hi]) / 2
     median[count == 0] = np.nan

@@ -322,21 +322,28 @@ class GridDecoder:
 
     def _result(self, grid: np.ndarray, marker_id: int, rotation: int) -> DecodeResult:
         """The DecodeResult of a grid read as marker ``marker_id`` at ``rotation`` (the only place one is built)."""
-        upright = np.rot90(grid, rotation)
-        expected = self.layout.all_cells[marker_id].astype(np.int8)
-        mask = self._mask
+        upright_index, cells, mask = self._result_tables
+        upright = np.ravel(grid)[upright_index[rotation]]  # np.rot90(grid, rotation), flattened
         known = upright != UNKNOWN
-        wrong = known & (upright != expected)
-        agree = known & (upright == expected)
+        agree = known & (upright == cells[marker_id])
         return DecodeResult(
             id=marker_id,
             symbol=self.layout.dictionary.symbol_of(marker_id),
             rotation=rotation,
-            corrected=self.symbols_touched(~agree),
+            corrected=self.symbols_touched(~agree.reshape(grid.shape)),
             erased_cells=int(np.count_nonzero(mask & ~known)),
-            mismatched_cells=int(np.count_nonzero(mask & wrong)),
+            mismatched_cells=int(np.count_nonzero(mask & known & ~agree)),
             quality=float(np.count_nonzero(mask & agree) / np.count_nonzero(mask)),
         )
+
+    @cached_property
+    def _result_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(4, N * N) flat index of np.rot90(grid, k) in the grid, (markers, N * N) int8 cells of each marker,
+        (N * N,) the codeword mask, all flattened."""
+        n = self.layout.n_cells
+        index = np.arange(n * n).reshape(n, n)
+        return (np.stack([np.rot90(index, k).ravel() for k in range(4)]),
+                self.layout.all_cells.reshape(len(self.layout.all_cells), -1).astype(np.int8), self._mask.ravel())
 
     def symbols_touched(self, bad: np.ndarray) -> int:
         """RS symbols that needed correction or erasure recovery, the fewer of the two codes.
