@@ -262,7 +262,7 @@ class SpeedFrames:
     """Per frame of one kind and thread count: (ours, ArUco, ours with the circles path gated) wall ms and
     CPU ms (the gated one only on clean frames), and the markers found of those shown."""
 
-    wall: list = field(default_factory=list)
+    wall: list = field(default_factory=list)  # per frame: ours, ArUco[, gated (clean)][, the other blob hand-off (2 threads)]
     cpu: list = field(default_factory=list)
     markers: int = 0
     hits: int = 0
@@ -272,6 +272,9 @@ def run_speed(args, textures: Textures, detectors) -> dict:
     """{(kind, threads): SpeedFrames} on 640x480 one-marker frames, kind "clean" or "occluded"."""
     ours = detectors["ours"][2]
     gated = Detector(DetectorParams(parity=2, circles=CircleParams(run="when_square_empty")))
+    # the other choice of circles.search_beside_aruco, timed with two threads (with one both are the same)
+    other_way = Detector(DetectorParams(parity=2, circles=CircleParams(
+        search_beside_aruco=not ours.params.circles.search_beside_aruco)))
     results = {}
     threads_before = cv2.getNumThreads()
     for kind in ("clean", "occluded"):
@@ -290,6 +293,8 @@ def run_speed(args, textures: Textures, detectors) -> dict:
                          lambda im: aruco_found(detectors["aruco"], im)]
             if kind == "clean":
                 functions.append(gated.detect)
+            if threads > 1:
+                functions.append(other_way.detect)
             for scene in frames:
                 (found, *_), wall, cpu = timed_together(functions, scene.image, args.repeats)
                 speed.wall.append(wall)
@@ -468,6 +473,12 @@ def format_report(results: list[ConditionResult], free_rows, speed: dict, large,
                 lines.append(f"  {threads} thread{'s' if threads > 1 else ' '} {kind:8s}: ours {median(wall[:, 0]):5.2f} ms, "
                              f"ArUco {median(wall[:, 1]):5.2f} ms: {ratio:.2f}x wall (target <= {target}x) "
                              f"{'yes' if ratio <= target else 'NO'}, {cpu_ratio:.2f}x CPU; found {frames.hits}/{frames.markers}")
+        beside = DetectorParams().circles.search_beside_aruco
+        for kind in ("clean", "occluded"):
+            wall, cpu = np.array(speed[kind, 2].wall), np.array(speed[kind, 2].cpu)
+            lines.append(f"  2 threads {kind:8s} with circles.search_beside_aruco {str(not beside).lower()} (not the "
+                         f"default): {median(wall[:, -1]):5.2f} ms, {median(wall[:, -1]) / median(wall[:, 1]):.2f}x wall, "
+                         f"{median(cpu[:, -1]) / median(cpu[:, 1]):.2f}x CPU")
         for threads in (2, 1):
             wall, cpu = np.array(speed["clean", threads].wall), np.array(speed["clean", threads].cpu)
             cost = median(wall[:, 0]) / median(wall[:, 2]) - 1.0

@@ -308,7 +308,17 @@ def clean_and_strip_scene(layout):
     return image, strip_texture, T_strip, strip, truths
 
 
-def test_occluded_marker_beside_a_clean_one_is_found_by_default(layout):
+@pytest.fixture(params=[1, 2], ids=["one_thread", "two_threads"])
+def opencv_threads(request):
+    """OpenCV on one thread (the blob search runs after the square path, at half resolution once it found a
+    marker) or two (it runs at full resolution on a second thread beside ArUco)."""
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(request.param)
+    yield request.param
+    cv2.setNumThreads(before)
+
+
+def test_occluded_marker_beside_a_clean_one_is_found_by_default(layout, opencv_threads):
     # one clean marker and one under a strip: by default the circles path also runs beside the
     # square path's finds; "when_square_empty" runs it only in frames where the square path found
     # nothing; "never" never runs it
@@ -413,7 +423,9 @@ def test_params_from_a_mapping_name_the_dotted_key():
                              ({"square": {"min_side_pix": 3}}, "square.min_side_pix: unknown key"),
                              ({"edges": {"square_samples": 2.5}}, "edges.square_samples: must be an integer"),
                              ({"decoder": {"algebraic": "yes"}}, "decoder.algebraic: must be true or false"),
-                             ({"sampling": {"min_contrast_gray": -1}}, "sampling.min_contrast_gray: must be > 0")]:
+                             ({"sampling": {"min_contrast_gray": -1}}, "sampling.min_contrast_gray: must be > 0"),
+                             ({"circles": {"min_side_beside_found_px": 10}},
+                              "circles.min_side_beside_found_px: must be >= min_level_side_px (20.0) > 0")]:
         with pytest.raises(ParamsError) as error:
             DetectorParams.from_mapping(mapping)
         assert str(error.value).startswith(message), error.value

@@ -69,6 +69,15 @@ class CircleParams:
         which it keeps ``min_level_side_px`` (20 and 20: full resolution; 40
         would search at half resolution, a quarter of the pixels, where the
         small circles of 40-50 px markers start to merge with the large ones).
+    min_side_beside_found_px: the same, in a frame-wide search of a frame
+        where the square path has found a marker (no expected places given):
+        40 searches for the other, occluded markers at half resolution, half
+        the cost (a 28 px oblique marker beside a clean one was still found
+        there); the daemon, which passes expected places, searches its
+        windows at ``min_side_px``.
+    search_beside_aruco: with OpenCV on two threads or more, start the
+        frame-wide search (at ``min_side_px``) on a second thread while ArUco
+        runs, before it is known whether the square path finds a marker.
     threshold_block_px, threshold_offset_gray, threshold_ratio: a pixel is
         dark when below both mean - offset and mean x ratio over the window.
     pre_blur: 3 x 3 box blur before thresholding (fewer noise specks, but
@@ -134,6 +143,8 @@ class CircleParams:
     run: str = "always"
     expected_margin_fraction: float = 0.5
     min_side_px: float = 20.0
+    min_side_beside_found_px: float = 40.0
+    search_beside_aruco: bool = True
     min_level_side_px: float = 20.0
     threshold_block_px: int = 31
     threshold_offset_gray: float = 7.0
@@ -183,8 +194,9 @@ class CircleParams:
         require(self.min_corners in (2, 3, 4), "min_corners", "2, 3 or 4", self.min_corners)
         require(4 <= self.min_circles_for_homography <= 12, "min_circles_for_homography", "in [4, 12]",
                 self.min_circles_for_homography)
-        require(self.min_side_px >= self.min_level_side_px > 0, "min_side_px",
-                f">= min_level_side_px ({self.min_level_side_px}) > 0", self.min_side_px)
+        for key in ("min_side_px", "min_side_beside_found_px"):
+            require(getattr(self, key) >= self.min_level_side_px > 0, key,
+                    f">= min_level_side_px ({self.min_level_side_px}) > 0", getattr(self, key))
         for key in ("expected_margin_fraction", "threshold_offset_gray", "min_area_px", "ring_margin_px", "min_ring_contrast_gray"):
             require(getattr(self, key) >= 0, key, ">= 0", getattr(self, key))
         for key in ("threshold_ratio", "max_speck_fraction", "max_area_fraction", "min_fill",
@@ -232,15 +244,16 @@ class _BlobTable:
         return _BlobTable(self.centres[keep], self.areas[keep], self.moments[keep])
 
 
-def blob_level(params: CircleParams) -> int:
+def blob_level(params: CircleParams, min_side_px: float | None = None) -> int:
     """The pyramid level (0: full resolution, k: 2^k smaller) blobs are looked for at: the coarsest at which
-    the smallest marker of ``min_side_px`` keeps ``min_level_side_px``."""
-    return max(int(np.floor(np.log2(params.min_side_px / params.min_level_side_px))), 0)
+    the smallest marker looked for (``min_side_px``, default ``params.min_side_px``) keeps ``min_level_side_px``."""
+    min_side_px = params.min_side_px if min_side_px is None else min_side_px
+    return max(int(np.floor(np.log2(min_side_px / params.min_level_side_px))), 0)
 
 
-def find_frame_blobs(gray: np.ndarray, params: CircleParams) -> Blobs:
+def find_frame_blobs(gray: np.ndarray, params: CircleParams, min_side_px: float | None = None) -> Blobs:
     """The blobs of an (H, W) uint8 frame, looked for at the pyramid level ``blob_level`` (in frame pixels)."""
-    scale = 2 ** blob_level(params)
+    scale = 2 ** blob_level(params, min_side_px)
     return find_blobs(reduce(gray, scale), params, scale)
 
 

@@ -165,7 +165,8 @@ class Detector:
                 windows = self._windows_of_missing(expected_px, detections, gray.shape)
                 blobs = find_window_blobs(gray, windows, self.params.circles) if len(windows) else None
             else:
-                blobs = find_frame_blobs(gray, self.params.circles)
+                min_side_px = self.params.circles.min_side_beside_found_px if detections else None
+                blobs = find_frame_blobs(gray, self.params.circles, min_side_px)
             if blobs is not None:
                 detections += self._circles_path(gray, blobs, detections, clock)
         self.last_stage_ms = clock.stages_ms
@@ -181,7 +182,7 @@ class Detector:
         """The circles path's blob search started on a second thread, to run while ArUco runs on this one,
         when OpenCV may use more than one thread (``cv2.setNumThreads``); None otherwise. It needs nothing
         from the square path (blobs inside the markers it finds are dropped after)."""
-        if cv2.getNumThreads() < 2:
+        if cv2.getNumThreads() < 2 or not self.params.circles.search_beside_aruco:
             return None
         if self._blob_worker is None:
             self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
