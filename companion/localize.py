@@ -9,8 +9,9 @@ lens. When the folder has a ``groundtruth.csv`` the error against it is
 printed too, so the pose stage can be checked on its own. When it has an
 ``attitude.csv`` (the flight controller's roll and pitch), each frame's pose
 uses the attitude at its capture time, as the daemon does (``--no-attitude``
-leaves it out). The map's own error (``PoseParams.map_sd_m``, ``map_sd_deg``)
-is what the sequence says of its map (``companion simulate`` writes 0 for
+leaves it out). The map's own error is each marker's ``sd`` where the map
+states one (a surveyed map does), else (``PoseParams.map_sd_m``, ``map_sd_deg``)
+what the sequence says of its map (``companion simulate`` writes 0 for
 the copy it rendered from: exact), else the default of a surveyed site;
 with ``--map`` the sequence's word is not about that map. Exit status: 0, or
 1 when the replay failed or skipped unreadable frames (the frames read are

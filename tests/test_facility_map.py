@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from companion.geometry import frames
-from companion.geometry.facility_map import MapError, load_map
+from companion.geometry.facility_map import MapError, load_map, write_map as write_facility_map
 
 REPO = Path(__file__).resolve().parents[1]
 WAREHOUSE = REPO / "maps" / "warehouse.yaml"
@@ -101,6 +101,27 @@ def test_default_size(tmp_path):
     assert facility.marker_by_symbol("A").size_m == 0.17
 
 
+def test_marker_sd_reads_and_round_trips_through_the_writer(tmp_path):
+    """A marker's ``sd`` (both keys optional) reads as given, a marker without one reads as None, and the map
+    writer writes it back so that the map reads the same again."""
+    markers = (one(sd={"position_m": 0.004, "angle_deg": 0.05})
+               + [{"symbol": "B", "size_m": 0.15, "position_m": [2, 2, 1], "facing": "+y", "sd": {"angle_deg": 0.3}},
+                  {"symbol": "C", "size_m": 0.15, "position_m": [3, 2, 1], "facing": "+y"}])
+    facility = load_map(write_map(tmp_path, markers))
+    a, b, c = (facility.marker_by_symbol(s) for s in "ABC")
+    assert (a.sd_position_m, a.sd_angle_deg) == (0.004, 0.05)
+    assert (b.sd_position_m, b.sd_angle_deg) == (None, 0.3)
+    assert (c.sd_position_m, c.sd_angle_deg) == (None, None)
+    write_facility_map(facility, tmp_path / "again.yaml")
+    written = {m["symbol"]: m for m in yaml.safe_load((tmp_path / "again.yaml").read_text())["markers"]}
+    assert written["A"]["sd"] == {"position_m": 0.004, "angle_deg": 0.05}
+    assert written["B"]["sd"] == {"angle_deg": 0.3} and "sd" not in written["C"]
+    again = load_map(tmp_path / "again.yaml")
+    for symbol in "ABC":
+        first, second = facility.marker_by_symbol(symbol), again.marker_by_symbol(symbol)
+        assert (second.sd_position_m, second.sd_angle_deg) == (first.sd_position_m, first.sd_angle_deg)
+
+
 # --------------------------------------------------------------- validation
 
 @pytest.mark.parametrize(
@@ -124,6 +145,11 @@ def test_default_size(tmp_path):
         (dict(colour="red"), "colour", "unknown key"),
         (dict(id=99), "id", "integer 0-49"),
         (dict(id=5), "id", "not the id"),
+        (dict(sd={"position_m": -0.004}), "sd.position_m", "must be positive, got -0.004"),
+        (dict(sd={"angle_deg": 0}), "sd.angle_deg", "must be positive, got 0"),
+        (dict(sd={"angle_deg": "small"}), "sd.angle_deg", "finite number"),
+        (dict(sd={"position_mm": 4}), "sd.position_mm", "unknown key"),
+        (dict(sd=0.004), "sd", "must be a mapping (position_m, angle_deg)"),
     ],
 )
 def test_marker_errors_name_file_marker_and_key(tmp_path, marker, key, words):

@@ -714,3 +714,31 @@ def test_an_unusable_corner_covariance_falls_back_to_the_sigma(bad):
     plain = solver.solve(detections, t_ns=0)
     odd = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve([replace(d, corner_cov_px2=bad) for d in detections], t_ns=0)
     np.testing.assert_allclose(odd.covariance_ned, plain.covariance_ned, rtol=1e-9, atol=1e-15)
+
+
+def test_a_marker_with_a_large_sd_in_the_map_is_weighed_less(tmp_path):
+    """Two markers in view, the second 4 cm from where the map says: with the map stating a large sd for it
+    (and a small one for the first) the pose follows the first, to the truth within 2 mm; with the same map
+    but no sd (both weighed by PoseParams' 2 cm), it is pulled several mm toward the moved one. The map is a
+    real file (write_map, load_map) as the daemon and ``companion localize`` read it."""
+    from companion.geometry.facility_map import write_map
+
+    detections = sorted(detections_for(AISLE_VIEW), key=lambda d: -np.ptp(d.corners_px[:, 0]))[:2]
+    detections = [replace(d, corner_sigma_px=0.02) for d in detections]
+    good, moved = (FACILITY.markers[d.id] for d in detections)
+    T_moved = moved.T_map_marker @ frames.make_transform(np.eye(3), [0.04, 0.0, 0.0])
+    params = PoseParams(map_sd_m=0.02, map_sd_deg=0.5)
+
+    def solve(sd_good, sd_moved):
+        markers = {good.id: replace(good, sd_position_m=sd_good[0], sd_angle_deg=sd_good[1]),
+                   moved.id: replace(moved, T_map_marker=T_moved, sd_position_m=sd_moved[0], sd_angle_deg=sd_moved[1])}
+        path = tmp_path / "site.yaml"
+        write_map(replace(FACILITY, markers=markers), path)
+        solution = PoseSolver(load_map(path), CAMERA, params).solve_detailed(detections, t_ns=0)
+        assert solution.status == "ok" and sorted(solution.marker_ids) == sorted([good.id, moved.id])
+        return position_error_m(solution.measurement, AISLE_VIEW)
+
+    stated = solve((0.0005, 0.01), (0.05, 2.0))
+    unstated = solve((None, None), (None, None))
+    assert stated < 0.002, stated
+    assert unstated > 0.005 and unstated > 4 * stated, (stated, unstated)

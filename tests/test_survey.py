@@ -143,6 +143,16 @@ def test_survey_maps_the_wall_from_one_anchor_close_to_the_rendered_truth(tmp_pa
         entry = by_symbol[symbol]
         assert 0 < entry["sd_position_m"] < 0.01 and 0 < entry["sd_angle_deg"] < 0.5 and entry["frames"] >= 3
         assert f"{entry['frames']} frames" in surveyed.marker_by_symbol(symbol).note
+    # every marker's sd in the map for the pose stage: the surveyed ones' as the report states it (and covering
+    # the rendered error), the anchor's as the anchors file states it (survey.anchor_sd_m/deg: the defaults)
+    written = {str(m["symbol"]): m for m in yaml.safe_load(out.read_text())["markers"]}
+    assert written["O"]["sd"] == {"position_m": 0.01, "angle_deg": 1.0}
+    for symbol in set(NORTH_WALL) - {"O"}:
+        marker, entry = surveyed.marker_by_symbol(symbol), by_symbol[symbol]
+        assert marker.sd_position_m == pytest.approx(entry["sd_position_m"], abs=1e-5)   # the report: 10 um
+        assert marker.sd_angle_deg == pytest.approx(entry["sd_angle_deg"], abs=1e-4)
+        error_m, error_deg = pose_errors(marker.T_map_marker, truth.marker_by_symbol(symbol).T_map_marker)
+        assert error_m <= 3 * marker.sd_position_m and error_deg <= 3 * marker.sd_angle_deg, (symbol, error_m, error_deg)
     # markers seen together from all along the wall: none weakly linked
     assert numbers["weakly_linked"] == [] and "weakly linked" not in result.stderr
     image = cv2.imread(str(report / "survey.png"))
@@ -400,3 +410,48 @@ def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog)
                 reported_at = index
     assert watch.reported == [n.id] and reported_at == params.min_rejected - 1
     assert sum("marker N disagrees with the map" in r.getMessage() for r in caplog.records) == 1
+
+
+# ------------------------------------------------------------------ the systematic floor
+
+def test_the_systematic_floor_does_not_shrink_with_the_number_of_frames():
+    """Exact corners of O (anchor) and N seen together from 8 places along aisle 2: the noise part of N's
+    covariance is nil (no residuals), what is left is the detector's systematic error; the same 8 views twice
+    (16 frames) halve a noise covariance but leave this one as it was, since each corner's offset is the same
+    in every frame; and it grows with SYSTEMATIC_POINT_PX squared."""
+    from companion.survey import adjust
+    from companion.survey.adjust import BundleAdjustment
+    from companion.survey.observations import Sighting, SurveyFrame
+
+    truth = load_map(MAP)
+    model = CameraModel.from_config(CAMERA, "test camera")
+    o, n = truth.marker_by_symbol("O"), truth.marker_by_symbol("N")
+    views = []
+    for x in np.linspace(8.0, 11.0, 8):
+        target = (o.T_map_marker[:3, 3] + n.T_map_marker[:3, 3]) / 2
+        heading = math.atan2(target[1] - 8.0, target[0] - x)
+        R_map_camera = np.column_stack([[math.sin(heading), -math.cos(heading), 0.0], [0.0, 0.0, -1.0],
+                                        [math.cos(heading), math.sin(heading), 0.0]])   # x right, y down, z ahead
+        views.append(frames.invert_transform(frames.make_transform(R_map_camera, [x, 8.0, 1.4])))
+
+    def frame(k, T_camera_map):
+        sightings = tuple(Sighting(m.id, m.corners_marker(), model.project_from(T_camera_map, m.corners_map()))
+                          for m in (o, n))
+        return SurveyFrame(0, k, k, sightings)
+
+    def covariance(views_used):
+        survey_frames = [frame(k, T) for k, T in enumerate(views_used)]
+        problem = BundleAdjustment(survey_frames, model, {o.id: o.T_map_marker, n.id: n.T_map_marker},
+                                   np.array(views_used), [n.id], noise_px=0.05)
+        return problem.solve(5).covariance[n.id]
+
+    once, twice = covariance(views), covariance(views + views)
+    sd_m = math.sqrt(np.linalg.eigvalsh(once[:3, :3])[-1])
+    assert 1e-4 < sd_m < 0.01, sd_m
+    np.testing.assert_allclose(twice, once, rtol=0.02, atol=1e-12)
+    original = adjust.SYSTEMATIC_POINT_PX
+    try:
+        adjust.SYSTEMATIC_POINT_PX = 2 * original
+        np.testing.assert_allclose(covariance(views), 4 * once, rtol=0.02, atol=1e-12)
+    finally:
+        adjust.SYSTEMATIC_POINT_PX = original

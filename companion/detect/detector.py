@@ -165,7 +165,10 @@ class Detector:
                 windows = self._windows_of_missing(expected_px, detections, gray.shape)
                 blobs = find_window_blobs(gray, windows, self.params.circles) if len(windows) else None
             else:
-                min_side_px = self.params.circles.min_side_beside_found_px if detections else None
+                # the same search whether or not the thread got to it: only where none was handed over does
+                # the square path's outcome choose the resolution
+                beside_found = bool(detections) and blobs_pending is None
+                min_side_px = self.params.circles.min_side_beside_found_px if beside_found else None
                 blobs = find_frame_blobs(gray, self.params.circles, min_side_px)
             if blobs is not None:
                 detections += self._circles_path(gray, blobs, detections, clock)

@@ -23,7 +23,10 @@ TOP_KEYS = {"name", "frame", "dictionary", "parity", "default_size_m", "markers"
 SURVEY_KEYS = {"on_vertical_wall", "sizes_m", "anchor_sd_m", "anchor_sd_deg", "wall_sd_deg"}
 FRAME_KEYS = {"origin", "x_bearing_deg", "geodetic_origin"}
 GEODETIC_KEYS = {"latitude_deg", "longitude_deg", "altitude_m"}
-MARKER_KEYS = {"symbol", "id", "size_m", "position_m", "facing", "rotation_deg", "rpy_deg", "quaternion_wxyz", "note"}
+MARKER_KEYS = {"symbol", "id", "size_m", "position_m", "facing", "rotation_deg", "rpy_deg", "quaternion_wxyz", "note",
+               "sd"}
+SD_KEYS = ("position_m", "angle_deg")  # a marker's ``sd`` section
+SD_DIGITS = 4           # significant digits of a written sd
 ROTATION_KEYS = ("facing", "rpy_deg", "quaternion_wxyz")
 FACING_WORDS = {"+x": 0.0, "+y": 90.0, "-x": 180.0, "-y": -90.0, "up": "up", "down": "down"}
 PARITIES = (2, 4)
@@ -70,6 +73,9 @@ class MapMarker:
     size_m: side of the printed inner black square, metres.
     T_map_marker: (4, 4) marker frame -> map frame.
     note: free text from the map (shelf, aisle, ...).
+    sd_position_m, sd_angle_deg: how well the pose is known, if the map says (its ``sd``): one standard
+        deviation of the position along each axis and of the orientation about each axis; None: the pose
+        stage's ``PoseParams.map_sd_m`` / ``map_sd_deg`` apply.
     """
 
     symbol: str
@@ -77,6 +83,8 @@ class MapMarker:
     size_m: float
     T_map_marker: np.ndarray
     note: str = ""
+    sd_position_m: float | None = None
+    sd_angle_deg: float | None = None
 
     def corners_marker(self) -> np.ndarray:
         """(4, 3) inner-square corners TL, TR, BR, BL in the marker frame, metres."""
@@ -274,13 +282,28 @@ def _marker(entry, top: Where, index: int, dictionary, default_size_m) -> MapMar
     size_m = where.positive(entry, "size_m", REQUIRED if default_size_m is None else default_size_m)
     position_m = where.numbers(entry, "position_m", (3,))
     R_map_marker = _orientation(entry, where)
+    sd_position_m, sd_angle_deg = _sd(entry.get("sd"), where)
     return MapMarker(
         symbol=symbol,
         id=marker_id,
         size_m=size_m,
         T_map_marker=frames.make_transform(R_map_marker, position_m),
         note=str(entry.get("note", "")),
+        sd_position_m=sd_position_m,
+        sd_angle_deg=sd_angle_deg,
     )
+
+
+def _sd(section, where: Where) -> tuple[float | None, float | None]:
+    """(position m, angle deg) of a marker's optional ``sd: {position_m, angle_deg}``, each optional and > 0;
+    errors name the key as ``sd.position_m``."""
+    if section is None:
+        return None, None
+    if not isinstance(section, dict):
+        raise where.error(f"must be a mapping ({', '.join(SD_KEYS)}), got {section!r}", "sd")
+    flat = {f"sd.{key}": value for key, value in section.items()}
+    where.reject_unknown(flat, {f"sd.{key}" for key in SD_KEYS})
+    return where.positive(flat, "sd.position_m", None), where.positive(flat, "sd.angle_deg", None)
 
 
 def _identity(entry: dict, where: Where, dictionary) -> tuple[str, int]:
@@ -386,6 +409,10 @@ def map_to_dict(facility_map: FacilityMap) -> dict:
         entry.update(_orientation_entry(marker.T_map_marker[:3, :3]))
         if marker.note:
             entry["note"] = marker.note
+        sd = {key: float(f"{value:.{SD_DIGITS}g}") for key, value in
+              (("position_m", marker.sd_position_m), ("angle_deg", marker.sd_angle_deg)) if value is not None}
+        if sd:
+            entry["sd"] = sd
         document["markers"].append(entry)
     survey = _survey_entry(facility_map.survey)
     if survey:

@@ -11,8 +11,8 @@ the reason in ``status``). The steps:
    ``PoseParams.corner_sigma_px``, with ``model_sigma_px`` added in
    quadrature; the four corners' joint (8, 8) covariance where the detection
    states one (``Detection.corner_cov_px2``: the square path's corners come
-   from one alignment, their errors correlated); the map's own error (``map_sd_m``, ``map_sd_deg``) moves all
-   of a marker's points together, so a marker's errors are weighed by the
+   from one alignment, their errors correlated); the map's own error (the marker's ``sd`` in the map, else
+   ``map_sd_m``, ``map_sd_deg``) moves all of a marker's points together, so a marker's errors are weighed by the
    inverse of their joint covariance. Every squared error below is in those
    units (chi-square).
 2. Attitude: the flight controller's roll and pitch at the capture time
@@ -90,7 +90,9 @@ class PoseParams:
         position (each axis) and orientation (about each axis): the map's own
         error, which moves all of a marker's points together (0.005 m and
         0.2 degrees: a survey, as ``companion survey`` measures it; 0.02 m and
-        2 degrees: a tape measure; 0: an exact map, as in a simulation).
+        2 degrees: a tape measure; 0: an exact map, as in a simulation), for
+        the markers whose map entry states no ``sd`` of its own
+        (``MapMarker.sd_position_m``, ``sd_angle_deg``: those are used as given).
     gate_probability: probability that corner noise alone passes the
         chi-square tests (0.999: one honest marker in a thousand fails; 1.0
         turns them off).
@@ -183,7 +185,9 @@ class _Points:
     points; marker_ids: (M,) their map ids; sigma_px: (M,) each
     observation's point noise (the detection's and the model's); centres:
     (M, 3) the markers' centres in the map; corner_cov_px2: per observation,
-    its corners' (8, 8) covariance with the model's noise added, or None.
+    its corners' (8, 8) covariance with the model's noise added, or None;
+    map_var: (M, 6) the variances of each marker's mapped pose, [position m^2 (3),
+    orientation rad^2 (3)] (``PoseSolver._map_variances``).
     """
 
     map: np.ndarray
@@ -195,9 +199,11 @@ class _Points:
     sigma_px: np.ndarray
     centres: np.ndarray
     corner_cov_px2: tuple[np.ndarray | None, ...] = ()
+    map_var: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
 
     @classmethod
-    def of(cls, observations: list[MarkerObservation], params: PoseParams) -> _Points:
+    def of(cls, observations: list[MarkerObservation], params: PoseParams,
+           map_var: dict[int, np.ndarray]) -> _Points:
         counts = np.array([len(o.points_map) for o in observations])
         # sigma^2 = sigma_detection^2 + sigma_model^2
         sigma_px = np.sqrt(np.array([o.sigma_px for o in observations]) ** 2 + params.model_sigma_px ** 2)
@@ -208,7 +214,8 @@ class _Points:
         return cls(np.vstack([o.points_map for o in observations]), np.vstack([o.points_px for o in observations]),
                    np.repeat(np.arange(len(observations)), counts), np.cumsum(counts) - counts, counts,
                    np.array([o.marker.id for o in observations]), sigma_px,
-                   np.array([o.marker.T_map_marker[:3, 3] for o in observations]), corner_cov_px2)
+                   np.array([o.marker.T_map_marker[:3, 3] for o in observations]), corner_cov_px2,
+                   np.array([map_var[o.marker.id] for o in observations]))
 
     def of_markers(self, members: np.ndarray) -> _Points:
         """The points of the observations ``members`` (indices, ascending)."""
@@ -218,7 +225,7 @@ class _Points:
         counts = self.counts[members]
         return _Points(self.map[keep], self.px[keep], np.repeat(np.arange(len(members)), counts),
                        np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members],
-                       self.centres[members], tuple(self.corner_cov_px2[m] for m in members))
+                       self.centres[members], tuple(self.corner_cov_px2[m] for m in members), self.map_var[members])
 
     @property
     def correlated(self) -> bool:
@@ -240,7 +247,8 @@ class _Weights:
     ``Sigma = N + G S G^T``: the points' own noise N (sigma^2 I, or with the
     corners' joint covariance from the detector's alignment in its first
     8 x 8 block), and the map's error of the marker's pose,
-    S = diag(map_sd_m^2 (3), map_sd_rad^2 (3)), seen through
+    S = diag(sd_m^2 (3), sd_rad^2 (3)) (the marker's own sd in the map, else
+    map_sd_m and map_sd_deg), seen through
     G = d(pixels)/d(the marker's pose in the map), which moves all its
     points together. ``inverse_roots`` is None without map error and
     without joint corner covariances (then ``Sigma^-1/2 = I / sigma``).
@@ -378,6 +386,7 @@ class PoseSolver:
         self._last: tuple[int, np.ndarray] | None = None  # (t_ns, T_map_body)
         self._T_camera_body = camera.T_camera_body
         self._R_ned_map = facility_map.T_ned_map[:3, :3]
+        self._map_var = self._map_variances()
 
     def solve(self, detections: list[Detection], t_ns: int, prior_T_map_body: np.ndarray | None = None,
               attitude: AttitudeSample | None = None) -> PoseMeasurement | None:
@@ -396,7 +405,7 @@ class PoseSolver:
         observations, unmapped = self.observations(detections)
         if not observations:
             return PoseSolution(None, "no mapped markers", unmapped_ids=unmapped)
-        points = _Points.of(observations, self.params)
+        points = _Points.of(observations, self.params, self._map_var)
         prior = self._prior(t_ns, prior_T_map_body)
         gravity = None if attitude is None else self._gravity(attitude)
         fits, choice = self._solve(points, len(observations), prior, gravity)
@@ -482,6 +491,16 @@ class PoseSolver:
             sigma_px = self.params.corner_sigma_px
         return MarkerObservation(marker, detection, points_map, points_px, float(sigma_px),
                                  _corner_cov_px2(detection.corner_cov_px2))
+
+    def _map_variances(self) -> dict[int, np.ndarray]:
+        """Marker id -> (6,) variances of its mapped pose, [m^2 (3), rad^2 (3)]: the map's ``sd`` of the
+        marker where it states one, else ``map_sd_m`` / ``map_sd_deg`` (built once per map)."""
+        variances = {}
+        for marker in self.facility_map.markers.values():
+            sd_m = self.params.map_sd_m if marker.sd_position_m is None else marker.sd_position_m
+            sd_deg = self.params.map_sd_deg if marker.sd_angle_deg is None else marker.sd_angle_deg
+            variances[marker.id] = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
+        return variances
 
     def _points_of(self, marker: MapMarker) -> tuple[np.ndarray, np.ndarray]:
         """((4, 3) inner corners, (12, 3) corner-circle centres) of a marker in the map frame, computed once."""
@@ -671,7 +690,7 @@ class PoseSolver:
 
     def _weights(self, T_camera_map: np.ndarray, points: _Points) -> _Weights:
         """The points' weights at a camera pose (see ``_Weights``)."""
-        map_error = not (self.params.map_sd_m == 0 and self.params.map_sd_deg == 0)
+        map_error = bool(points.map_var.any())
         if not map_error and not points.correlated:
             return _Weights(points, None)
         if map_error:
@@ -682,7 +701,6 @@ class PoseSolver:
             # row a of D gives a . (dtheta x r) = dtheta . (r x a)
             r = points.map - np.repeat(points.centres, points.counts, axis=0)
             G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
-            S = np.array([self.params.map_sd_m ** 2] * 3 + [math.radians(self.params.map_sd_deg) ** 2] * 3)
         roots: list[np.ndarray | None] = [None] * len(points.counts)
         for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
             markers = np.flatnonzero(points.counts == count)
@@ -690,6 +708,8 @@ class PoseSolver:
             sigma, floor = noise, 0.0
             if map_error:
                 g = np.stack([G[points.starts[m]:points.starts[m] + count].reshape(2 * count, 6) for m in markers])
+                # S = diag(each marker's variances of its mapped pose): (n, 1, 6) against g's (n, 2 count, 6)
+                S = points.map_var[markers, None, :]
                 sigma = noise + (g * S) @ g.transpose(0, 2, 1)
                 # the smallest variance of the points' own noise: no direction of Sigma is surer than that
                 floor = np.linalg.eigvalsh(noise)[:, :1] if points.correlated else points.sigma_px[markers, None] ** 2

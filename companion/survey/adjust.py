@@ -26,7 +26,11 @@ An inexact iterative step (LSMR) stalls along the weak directions of a
 survey, the slow bending of a long chain of markers, while the residuals
 already look converged; an exact step does not. Each free marker's
 covariance is ``s^2 S^-1`` at the solution, ``S`` the same reduced system
-(the cameras marginalised out), ``s^2`` the residuals' variance in standard deviations.
+(the cameras marginalised out), ``s^2`` the residuals' variance in standard deviations,
+plus the detector's systematic error's (``SYSTEMATIC_POINT_PX``: each point of
+each marker off by a constant in every frame; it does not shrink with the
+number of frames): ``SYSTEMATIC_POINT_PX^2 X X^T``, X = S^-1 times the
+reduced gradient of each such offset.
 """
 from __future__ import annotations
 
@@ -46,6 +50,14 @@ HUBER_SIGMAS = 3.0        # a point's error beyond this many standard deviations
 MIN_DEPTH_M = 1e-3        # a point behind the camera is projected as if just in front (a large error)
 RELATIVE_DECREASE = 1e-10  # converged when a step lowers the cost by less than this fraction
 MAX_DAMPING = 1e10
+# The detector's systematic error: each point of a marker (corner, circle centre) is read off by a constant of
+# about this much (one standard deviation, px, along each of the marker's image axes), the same in every frame
+# the marker is seen in, so it does not average out over frames as the noise does. Measured on bench_survey's
+# walks against the renderer's true corners (markers.csv): per marker and corner, the mean detected - true over
+# all its frames is 0.020 px RMS on the quick walk, 0.014 px on the full 640x480 walk (noise explains 0.002-0.003
+# px of it); the larger is taken since part of it has one sign on every marker (0.007 px: blurred markers read
+# short, docs/survey.md), which adds up along a chain where independent offsets would partly cancel.
+SYSTEMATIC_POINT_PX = 0.02
 
 
 @dataclass(frozen=True)
@@ -128,6 +140,20 @@ class _Normal:
     g_marker: np.ndarray
 
 
+@dataclass
+class _Jacobians:
+    """Every point's whitened residual r (P, 2) and its derivatives by the camera's and the marker's corrections,
+    J_camera and J_marker (P, 2, 6); point_cost: the points' Huber cost; scale: (P,) each point's whitening,
+    sqrt(Huber weight) / noise; pixels_per_m: (P, 2, 3) d(pixels)/dX_camera, unweighted."""
+
+    r: np.ndarray
+    point_cost: float
+    scale: np.ndarray
+    pixels_per_m: np.ndarray
+    J_camera: np.ndarray
+    J_marker: np.ndarray
+
+
 class BundleAdjustment:
     """One adjustment problem: frames (each with its sightings), initial poses, which markers are free.
 
@@ -152,9 +178,11 @@ class BundleAdjustment:
     def _index_points(self) -> None:
         """Flat (P, ...) arrays over every point (frame by frame, sighting by sighting), and the sightings."""
         frame_of, slot_of, kind_of, points, pixels, self.sightings, starts = [], [], [], [], [], [], [0]
+        sides = []
         for k, frame in enumerate(self.frames):
             for s in frame.sightings:
                 n = len(s.points_px)
+                sides.append(np.full(n, np.ptp(s.points_marker_m[:4, 0])))
                 frame_of.append(np.full(n, k))
                 slot_of.append(np.full(n, self.slot[s.marker_id]))
                 kind_of.append(s.point_kinds())
@@ -167,10 +195,17 @@ class BundleAdjustment:
         self.point_kind = np.concatenate(kind_of)
         self.points_marker = np.vstack(points)
         self.points_px = np.vstack(pixels)
+        self.point_side_m = np.concatenate(sides)
         self.sighting_starts = np.array(starts)
         self.point_noise_px = np.array([self.noise_px[POINT_KINDS[k]] for k in self.point_kind])
         self.sighting_frame = np.array([k for k, _ in self.sightings])
         self.sighting_free = np.array([self.free_slot.get(m, -1) for _, m in self.sightings])
+        self.point_sighting = np.repeat(np.arange(len(self.sightings)), np.diff(self.sighting_starts))
+        # each distinct point of each marker (a corner, a circle centre), by the marker and where it is on it
+        where = np.round(self.points_marker[:, :2] / self.point_side_m[:, None] * 1000).astype(int)
+        _, self.point_key = np.unique(np.column_stack([self.point_slot, where]), axis=0, return_inverse=True)
+        self.point_key = self.point_key.reshape(-1)
+        self.point_keys = int(self.point_key.max()) + 1 if len(self.point_key) else 0
         # pairs of sightings of free markers in one frame (both orders, and each with itself): the Schur complement's terms
         pairs = [(a, b) for k in range(len(self.frames))
                  for a in self._free_sightings_of(k) for b in self._free_sightings_of(k)]
@@ -179,10 +214,11 @@ class BundleAdjustment:
         self.wall_ids = [m for m in self.free_ids if m in self.priors.on_wall]
         self.anchor_ids = [m for m in self.free_ids if m in self.priors.soft_anchors]
 
+    def _sightings_of(self, k: int) -> range:
+        return range(np.searchsorted(self.sighting_frame, k), np.searchsorted(self.sighting_frame, k, side="right"))
+
     def _free_sightings_of(self, k: int) -> list[int]:
-        first = np.searchsorted(self.sighting_frame, k)
-        last = np.searchsorted(self.sighting_frame, k, side="right")
-        return [s for s in range(first, last) if self.sighting_free[s] >= 0]
+        return [s for s in self._sightings_of(k) if self.sighting_free[s] >= 0]
 
     @property
     def n_params(self) -> int:
@@ -241,20 +277,26 @@ class BundleAdjustment:
         _, point_cost = self._robust(self.point_errors_px(poses))
         return point_cost + 0.5 * sum(float(r @ r) for _, r, _ in self._prior_residuals(poses))
 
-    def _normal(self, poses: _Poses) -> _Normal:
-        """The normal equations at ``poses``, points weighted by their noise and the Huber loss."""
+    def _jacobians(self, poses: _Poses) -> _Jacobians:
+        """Every point's residual and its derivatives at ``poses``, weighted by its noise and the Huber loss."""
         X_camera, rotated_map, rotated_marker = self._camera_points(poses)
         errors = self.camera.project(X_camera) - self.points_px
         weights, point_cost = self._robust(errors)
         # each point's residual and Jacobian scaled by sqrt(weight) / noise
         scale = np.sqrt(weights) / self.point_noise_px
-        r = errors * scale[:, None]
-        P = self.camera.projection_jacobian(X_camera) * scale[:, None, None]     # (P, 2, 3) d(residual)/dX_camera
+        pixels_per_m = self.camera.projection_jacobian(X_camera)                 # (P, 2, 3) d(pixels)/dX_camera
+        P = pixels_per_m * scale[:, None, None]                                   # (P, 2, 3) d(residual)/dX_camera
         # camera: dX_camera = -[R X_map]x dtheta + dt
         J_camera = np.concatenate([-P @ _skews(rotated_map), P], axis=2)
         # marker: dX_camera = R_camera (dp - [R_marker X]x dtheta)
         P_map = P @ poses.R_camera[self.point_frame]
         J_marker = np.concatenate([P_map, -P_map @ _skews(rotated_marker)], axis=2)
+        return _Jacobians(errors * scale[:, None], point_cost, scale, pixels_per_m, J_camera, J_marker)
+
+    def _normal(self, poses: _Poses) -> _Normal:
+        """The normal equations at ``poses``, points weighted by their noise and the Huber loss."""
+        jacobians = self._jacobians(poses)
+        r, point_cost, J_camera, J_marker = jacobians.r, jacobians.point_cost, jacobians.J_camera, jacobians.J_marker
         A = np.add.reduceat(np.einsum("pki,pkj->pij", J_camera, J_camera), self.frame_starts[:-1])
         g_camera = np.add.reduceat(np.einsum("pki,pk->pi", J_camera, r), self.frame_starts[:-1])
         starts = self.sighting_starts[:-1]
@@ -361,18 +403,64 @@ class BundleAdjustment:
         noise = {kind: math.sqrt(float(np.mean(squared[self.point_kind == k])) / 2 * n_residuals / dof)
                  for k, kind in enumerate(POINT_KINDS) if np.any(self.point_kind == k)}
         counts_of_kind = {kind: int(np.sum(self.point_kind == k)) for k, kind in enumerate(POINT_KINDS)}
-        covariance = self._marker_covariance(normal, variance)
+        covariance = self._marker_covariance(poses, normal, variance)
         return Adjustment(markers, cameras, covariance, self.sightings, sighting_rms,
                           math.sqrt(float(np.sum(squared)) / n_residuals), noise, counts_of_kind, steps, converged,
                           errors, self.point_kind, self.sighting_starts, normal.cost, variance)
 
-    def _marker_covariance(self, normal: _Normal, variance: float) -> dict[int, np.ndarray]:
-        """Free marker id -> (6, 6) covariance: s^2 times the inverse of the cameras' Schur complement S."""
+    def _marker_covariance(self, poses: _Poses, normal: _Normal, variance: float) -> dict[int, np.ndarray]:
+        """Free marker id -> (6, 6) covariance: the noise's, s^2 S^-1 (S the cameras' Schur complement), plus
+        the detector's systematic error's, which the frames do not average out.
+
+        One point of one marker read off by 1 px along the image direction of the marker's x (or y) axis in
+        every frame it is seen in moves the free markers by X = S^-1 g (up to sign), g the reduced gradient of
+        that error (``_systematic_gradients``); every point's offsets independent, SYSTEMATIC_POINT_PX each:
+        Cov = SYSTEMATIC_POINT_PX^2 X X^T. It does not shrink with the number of frames, and it reaches the
+        markers placed through the biased one.
+        """
         if not self.free_ids:
             return {}
         _, S, _ = self._reduced(normal, 0.0)
-        covariance = variance * np.linalg.pinv(S)
-        return {m: covariance[6 * k:6 * k + 6, 6 * k:6 * k + 6] for m, k in self.free_slot.items()}
+        S_inverse = np.linalg.pinv(S)
+        X = (S_inverse @ self._systematic_gradients(poses, normal)).reshape(len(self.free_ids), 6, -1)
+        systematic = SYSTEMATIC_POINT_PX ** 2 * np.einsum("kic,kjc->kij", X, X)
+        return {m: variance * S_inverse[6 * k:6 * k + 6, 6 * k:6 * k + 6] + systematic[k]
+                for m, k in self.free_slot.items()}
+
+    def _systematic_gradients(self, poses: _Poses, normal: _Normal) -> np.ndarray:
+        """(6 Mf, 2 N) the free markers' reduced gradient, g_marker - B^T A^-1 g_camera, of one of the N
+        points of the markers (a corner or circle of one marker, ``point_key``) read 1 px off along the image
+        direction of its marker's x axis (column 2 n) or y axis (2 n + 1) in every frame it is seen in."""
+        jacobians = self._jacobians(poses)
+        A_inverse = np.linalg.inv(normal.A)
+        # R_camera_marker at each point
+        R = np.einsum("pij,pjk->pik", poses.R_camera[self.point_frame], poses.R_marker[self.point_slot])
+        free_point = self.sighting_free[self.point_sighting]
+        own = np.flatnonzero(free_point >= 0)
+        # (free sighting a, point p) seen in one frame: an error at p moves that camera, hence a's marker
+        a, p = self._coupled_points()
+        gradient = np.zeros((len(self.free_ids), 2 * self.point_keys, 6))
+        for axis in (0, 1):
+            direction = np.einsum("pij,pj->pi", jacobians.pixels_per_m, R[:, :, axis])
+            # the point moved 1 px along it, whitened like its residual
+            moved = direction / np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
+            moved *= jacobians.scale[:, None]
+            g_camera = np.einsum("pki,pk->pi", jacobians.J_camera, moved)   # (P, 6)
+            g_marker = np.einsum("pki,pk->pi", jacobians.J_marker, moved)
+            column = 2 * self.point_key + axis
+            np.add.at(gradient, (free_point[own], column[own]), g_marker[own])
+            Ainv_g = np.einsum("pij,pj->pi", A_inverse[self.point_frame[p]], g_camera[p])
+            np.add.at(gradient, (self.sighting_free[a], column[p]), -np.einsum("pji,pj->pi", normal.B[a], Ainv_g))
+        return gradient.transpose(0, 2, 1).reshape(6 * len(self.free_ids), -1)
+
+    def _coupled_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """((Q,) free sightings, (Q,) points): every point with every free sighting of its frame."""
+        pairs = np.array([(a, b) for k in range(len(self.frames)) for a in self._free_sightings_of(k)
+                          for b in self._sightings_of(k)], dtype=int).reshape(-1, 2)
+        counts = np.diff(self.sighting_starts)[pairs[:, 1]]
+        # the points of sighting b: its first point + 0, 1, ..., count - 1
+        offsets = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        return np.repeat(pairs[:, 0], counts), np.repeat(self.sighting_starts[pairs[:, 1]], counts) + offsets
 
 
 def _skews(v: np.ndarray) -> np.ndarray:

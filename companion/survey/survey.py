@@ -70,7 +70,9 @@ class SurveyedMarker:
     """One marker of the result.
 
     anchor: held at its given pose (no uncertainty then); frames: frames it was decoded in;
-    sd_position_m, sd_angle_deg: one standard deviation along the worst axis;
+    sd_position_m, sd_angle_deg: one standard deviation along the worst axis (0 for an anchor: its map entry
+        carries its stated sd), the noise's and the detector's systematic error's (``adjust.SYSTEMATIC_POINT_PX``);
+        written into the map as the marker's ``sd`` for the pose stage;
     covariance: (6, 6) [position m, small rotation rad] on map axes (None for an anchor);
     rms_px: RMS point reprojection error over its sightings.
     weakly_linked: the images also fit another place for it nearly as well (a rival placement, see
@@ -417,7 +419,7 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
     for m, T in adjustment.markers.items():
         symbol = sizes.symbols[m]
         if m in fixed:
-            marker = anchors.markers[m]
+            marker = _with_stated_sd(anchors.markers[m], anchors)
             result.append(SurveyedMarker(marker, True, counts.get(m, 0), 0.0, 0.0, rms.get(m, math.nan), None))
             continue
         covariance = adjustment.covariance[m]
@@ -430,10 +432,18 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
         note = f"surveyed: sd {sd_position_m * 1000:.1f} mm, {sd_angle_deg:.2f} deg, {counts.get(m, 0)} frames"
         if m in weak:
             note += "; weakly linked to the anchors: survey again"
-        marker = MapMarker(symbol, m, sizes(m), T, note)
+        marker = MapMarker(symbol, m, sizes(m), T, note, sd_position_m, sd_angle_deg)
         result.append(SurveyedMarker(marker, False, counts.get(m, 0), sd_position_m, sd_angle_deg, rms.get(m, math.nan),
                                      covariance, m in weak))
     return result
+
+
+def _with_stated_sd(anchor: MapMarker, anchors: FacilityMap) -> MapMarker:
+    """An anchor as the map gives it, with how well it was measured: its own ``sd``, else the stated
+    ``survey.anchor_sd_m`` / ``anchor_sd_deg``."""
+    hints = anchors.survey
+    return replace(anchor, sd_position_m=anchor.sd_position_m or hints.anchor_sd_m,
+                   sd_angle_deg=anchor.sd_angle_deg or hints.anchor_sd_deg)
 
 
 def _marker_rms(adjustment: Adjustment) -> dict[int, float]:
