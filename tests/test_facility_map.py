@@ -106,18 +106,22 @@ def test_marker_sd_reads_and_round_trips_through_the_writer(tmp_path):
     writer writes it back so that the map reads the same again."""
     markers = (one(sd={"position_m": 0.004, "angle_deg": 0.05})
                + [{"symbol": "B", "size_m": 0.15, "position_m": [2, 2, 1], "facing": "+y", "sd": {"angle_deg": 0.3}},
-                  {"symbol": "C", "size_m": 0.15, "position_m": [3, 2, 1], "facing": "+y"}])
+                  {"symbol": "C", "size_m": 0.15, "position_m": [3, 2, 1], "facing": "+y"},
+                  {"symbol": "D", "size_m": 0.15, "position_m": [4, 2, 1], "facing": "+y",
+                   "sd": {"position_m": 0, "angle_deg": 0}}])  # exact: the one anchor of a survey
     facility = load_map(write_map(tmp_path, markers))
-    a, b, c = (facility.marker_by_symbol(s) for s in "ABC")
+    a, b, c, d = (facility.marker_by_symbol(s) for s in "ABCD")
     assert (a.sd_position_m, a.sd_angle_deg) == (0.004, 0.05)
+    assert (d.sd_position_m, d.sd_angle_deg) == (0.0, 0.0)
     assert (b.sd_position_m, b.sd_angle_deg) == (None, 0.3)
     assert (c.sd_position_m, c.sd_angle_deg) == (None, None)
     write_facility_map(facility, tmp_path / "again.yaml")
     written = {m["symbol"]: m for m in yaml.safe_load((tmp_path / "again.yaml").read_text())["markers"]}
     assert written["A"]["sd"] == {"position_m": 0.004, "angle_deg": 0.05}
     assert written["B"]["sd"] == {"angle_deg": 0.3} and "sd" not in written["C"]
+    assert written["D"]["sd"] == {"position_m": 0.0, "angle_deg": 0.0}
     again = load_map(tmp_path / "again.yaml")
-    for symbol in "ABC":
+    for symbol in "ABCD":
         first, second = facility.marker_by_symbol(symbol), again.marker_by_symbol(symbol)
         assert (second.sd_position_m, second.sd_angle_deg) == (first.sd_position_m, first.sd_angle_deg)
 
@@ -145,8 +149,8 @@ def test_marker_sd_reads_and_round_trips_through_the_writer(tmp_path):
         (dict(colour="red"), "colour", "unknown key"),
         (dict(id=99), "id", "integer 0-49"),
         (dict(id=5), "id", "not the id"),
-        (dict(sd={"position_m": -0.004}), "sd.position_m", "must be positive, got -0.004"),
-        (dict(sd={"angle_deg": 0}), "sd.angle_deg", "must be positive, got 0"),
+        (dict(sd={"position_m": -0.004}), "sd.position_m", "must be >= 0, got -0.004"),
+        (dict(sd={"angle_deg": -1}), "sd.angle_deg", "must be >= 0, got -1"),
         (dict(sd={"angle_deg": "small"}), "sd.angle_deg", "finite number"),
         (dict(sd={"position_mm": 4}), "sd.position_mm", "unknown key"),
         (dict(sd=0.004), "sd", "must be a mapping (position_m, angle_deg)"),

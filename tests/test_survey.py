@@ -144,9 +144,9 @@ def test_survey_maps_the_wall_from_one_anchor_close_to_the_rendered_truth(tmp_pa
         assert 0 < entry["sd_position_m"] < 0.01 and 0 < entry["sd_angle_deg"] < 0.5 and entry["frames"] >= 3
         assert f"{entry['frames']} frames" in surveyed.marker_by_symbol(symbol).note
     # every marker's sd in the map for the pose stage: the surveyed ones' as the report states it (and covering
-    # the rendered error), the anchor's as the anchors file states it (survey.anchor_sd_m/deg: the defaults)
+    # the rendered error), the lone anchor's 0: it is the map frame
     written = {str(m["symbol"]): m for m in yaml.safe_load(out.read_text())["markers"]}
-    assert written["O"]["sd"] == {"position_m": 0.01, "angle_deg": 1.0}
+    assert written["O"]["sd"] == {"position_m": 0.0, "angle_deg": 0.0}
     for symbol in set(NORTH_WALL) - {"O"}:
         marker, entry = surveyed.marker_by_symbol(symbol), by_symbol[symbol]
         assert marker.sd_position_m == pytest.approx(entry["sd_position_m"], abs=1e-5)   # the report: 10 um
@@ -188,6 +188,9 @@ def test_several_anchors_that_disagree_stop_the_survey_naming_the_bad_one(tmp_pa
     good = run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"),
                "--anchors", str(tmp_path / "a.yaml"), "--out", str(out))
     assert good.returncode == 0 and "anchor DOWN: the images move it by" in good.stderr
+    # several anchors: each was measured to the stated sd (survey.anchor_sd_m/deg: the defaults)
+    written = {str(m["symbol"]): m for m in yaml.safe_load(out.read_text())["markers"]}
+    assert all(written[s]["sd"] == {"position_m": 0.01, "angle_deg": 1.0} for s in ("O", "UP", "DOWN"))
 
 
 def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):

@@ -295,15 +295,16 @@ def _marker(entry, top: Where, index: int, dictionary, default_size_m) -> MapMar
 
 
 def _sd(section, where: Where) -> tuple[float | None, float | None]:
-    """(position m, angle deg) of a marker's optional ``sd: {position_m, angle_deg}``, each optional and > 0;
-    errors name the key as ``sd.position_m``."""
+    """(position m, angle deg) of a marker's optional ``sd: {position_m, angle_deg}``, each optional and >= 0
+    (0: exact, as the one anchor of a survey, which defines the map frame); errors name the key as
+    ``sd.position_m``."""
     if section is None:
         return None, None
     if not isinstance(section, dict):
         raise where.error(f"must be a mapping ({', '.join(SD_KEYS)}), got {section!r}", "sd")
     flat = {f"sd.{key}": value for key, value in section.items()}
     where.reject_unknown(flat, {f"sd.{key}" for key in SD_KEYS})
-    return where.positive(flat, "sd.position_m", None), where.positive(flat, "sd.angle_deg", None)
+    return where.number(flat, "sd.position_m", None, minimum=0.0), where.number(flat, "sd.angle_deg", None, minimum=0.0)
 
 
 def _identity(entry: dict, where: Where, dictionary) -> tuple[str, int]:

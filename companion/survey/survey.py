@@ -419,7 +419,9 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
     for m, T in adjustment.markers.items():
         symbol = sizes.symbols[m]
         if m in fixed:
-            marker = _with_stated_sd(anchors.markers[m], anchors)
+            # a lone anchor is the map frame (exact by definition); several were each measured to their sd
+            marker = _with_stated_sd(anchors.markers[m], anchors) if len(fixed) > 1 else \
+                replace(anchors.markers[m], sd_position_m=0.0, sd_angle_deg=0.0)
             result.append(SurveyedMarker(marker, True, counts.get(m, 0), 0.0, 0.0, rms.get(m, math.nan), None))
             continue
         covariance = adjustment.covariance[m]
@@ -442,8 +444,8 @@ def _with_stated_sd(anchor: MapMarker, anchors: FacilityMap) -> MapMarker:
     """An anchor as the map gives it, with how well it was measured: its own ``sd``, else the stated
     ``survey.anchor_sd_m`` / ``anchor_sd_deg``."""
     hints = anchors.survey
-    return replace(anchor, sd_position_m=anchor.sd_position_m or hints.anchor_sd_m,
-                   sd_angle_deg=anchor.sd_angle_deg or hints.anchor_sd_deg)
+    return replace(anchor, sd_position_m=hints.anchor_sd_m if anchor.sd_position_m is None else anchor.sd_position_m,
+                   sd_angle_deg=hints.anchor_sd_deg if anchor.sd_angle_deg is None else anchor.sd_angle_deg)
 
 
 def _marker_rms(adjustment: Adjustment) -> dict[int, float]:
