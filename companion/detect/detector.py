@@ -159,10 +159,13 @@ class Detector:
             detections += self._smeared_markers(gray, detections)
             clock.lap("smear")
         if run == "always" or (run == "when_square_empty" and not detections):
+            # (M, 3, 3) grid -> frame of the markers found so far: the circles path looks only outside them
+            found_H = homography.from_quads(self.layout.inner_corners_cells,
+                                            np.stack([d.corners_px for d in detections])) if detections else None
             if blobs_pending is not None and not blobs_pending.cancel():
                 blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
             elif expected_px is not None and detections:
-                windows = self._windows_of_missing(expected_px, detections, gray.shape)
+                windows = self._windows_of_missing(expected_px, found_H, gray.shape)
                 blobs = find_window_blobs(gray, windows, self.params.circles) if len(windows) else None
             else:
                 # the same search whether or not the thread got to it: only where none was handed over does
@@ -171,7 +174,7 @@ class Detector:
                 min_side_px = self.params.circles.min_side_beside_found_px if beside_found else None
                 blobs = find_frame_blobs(gray, self.params.circles, min_side_px)
             if blobs is not None:
-                detections += self._circles_path(gray, blobs, detections, clock)
+                detections += self._circles_path(gray, blobs, found_H, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
 
@@ -191,11 +194,11 @@ class Detector:
             self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
         return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
 
-    def _windows_of_missing(self, expected_px: np.ndarray, found: list[Detection],
+    def _windows_of_missing(self, expected_px: np.ndarray, found_H: np.ndarray,
                             gray_shape: tuple[int, int]) -> np.ndarray:
         """(B, 4) int windows (x0, y0, x1, y1) inside the frame around the expected markers (K, 4, 2) that
         face the camera (clockwise in the image), have a mean side of ``circles.min_side_px`` or more, and
-        whose centres no found marker's whole grid covers: each one's square grown about its centre to
+        whose centres no found marker's whole grid (``found_H`` (M, 3, 3)) covers: each one's square grown about its centre to
         the whole grid, its bounding box grown by ``circles.expected_margin_fraction`` of its larger side."""
         expected = np.asarray(expected_px, dtype=np.float64).reshape(-1, 4, 2)
         with np.errstate(invalid="ignore"):
@@ -206,8 +209,6 @@ class Detector:
         expected = expected[usable]
         if len(expected) == 0:
             return np.zeros((0, 4), np.int64)
-        inner = self.layout.inner_corners_cells
-        found_H = homography.from_quads(inner, np.stack([d.corners_px for d in found]))
         expected = expected[~sampling.inside_grids(expected.mean(axis=1), found_H, self.layout.n_cells)]
         if len(expected) == 0:
             return np.zeros((0, 4), np.int64)
@@ -320,14 +321,13 @@ class Detector:
 
     # ------------------------------------------------------------------ circles path
 
-    def _circles_path(self, gray: np.ndarray, blobs: Blobs, found: list[Detection],
+    def _circles_path(self, gray: np.ndarray, blobs: Blobs, found_H: np.ndarray | None,
                       clock: "_StageClock") -> list[Detection]:
         """Markers found by their corner circles among the frame's blobs, where no marker found already
-        explains them (blobs inside a found marker's whole grid are left out)."""
+        explains them (blobs inside the whole grid of a found marker, ``found_H`` (M, 3, 3) or None, are left out)."""
         params = self.params.circles
-        if found and len(blobs):
-            H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
-            blobs = blobs.subset(~sampling.inside_grids(blobs.centres_px, H, self.layout.n_cells))
+        if found_H is not None and len(blobs):
+            blobs = blobs.subset(~sampling.inside_grids(blobs.centres_px, found_H, self.layout.n_cells))
         clock.lap("circles_blobs")
         candidates = assemble_candidates(blobs, corner_triples(blobs, self.layout, params), self.layout, params)
         clock.lap("circles_group")

@@ -28,7 +28,6 @@ from companion.params import require
 
 
 ARUCO_DETECTORS_KEPT = 4
-NEXT_CORNER = [1, 2, 3, 0]
 
 
 @dataclass(frozen=True)
@@ -131,7 +130,7 @@ class SquareFinder:
         accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
         others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if self.params.decode_rejected and len(others):
-            others = others[(_mean_side(others) >= self.params.min_side_px) & ~self._within(others, accepted)]
+            others = others[(homography.mean_side_px(others) >= self.params.min_side_px) & ~self._within(others, accepted)]
             others = others[self.marker_like(gray, others)] if len(others) else others
         else:
             others = others[:0]
@@ -173,8 +172,3 @@ class SquareFinder:
             ok[ok] = self._screen(r.grid[ok])
         return ok
 
-
-def _mean_side(quads: np.ndarray) -> np.ndarray:
-    """(M,) mean side of M quads (M, 4, 2)."""
-    sides = quads[:, NEXT_CORNER] - quads
-    return np.sqrt((sides * sides).sum(axis=2)).mean(axis=1)

@@ -419,9 +419,7 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
     for m, T in adjustment.markers.items():
         symbol = sizes.symbols[m]
         if m in fixed:
-            # a lone anchor is the map frame (exact by definition); several were each measured to their sd
-            marker = _with_stated_sd(anchors.markers[m], anchors) if len(fixed) > 1 else \
-                replace(anchors.markers[m], sd_position_m=0.0, sd_angle_deg=0.0)
+            marker = _anchor_with_sd(anchors.markers[m], anchors, lone=len(fixed) == 1)
             result.append(SurveyedMarker(marker, True, counts.get(m, 0), 0.0, 0.0, rms.get(m, math.nan), None))
             continue
         covariance = adjustment.covariance[m]
@@ -440,9 +438,12 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
     return result
 
 
-def _with_stated_sd(anchor: MapMarker, anchors: FacilityMap) -> MapMarker:
-    """An anchor as the map gives it, with how well it was measured: its own ``sd``, else the stated
+def _anchor_with_sd(anchor: MapMarker, anchors: FacilityMap, lone: bool) -> MapMarker:
+    """An anchor as the map gives it, with how well it is known: a lone anchor is the map frame (exact by
+    definition: sd 0); each of several was measured to its own ``sd``, else the stated
     ``survey.anchor_sd_m`` / ``anchor_sd_deg``."""
+    if lone:
+        return replace(anchor, sd_position_m=0.0, sd_angle_deg=0.0)
     hints = anchors.survey
     return replace(anchor, sd_position_m=hints.anchor_sd_m if anchor.sd_position_m is None else anchor.sd_position_m,
                    sd_angle_deg=hints.anchor_sd_deg if anchor.sd_angle_deg is None else anchor.sd_angle_deg)
