@@ -344,7 +344,9 @@ class Peer:
             for port in self.ports.values():
                 for message_id, due in port["streams"].items():
                     if now >= due[1]:
-                        due[1] = max(due[1] + due[0], now - due[0])
+                        # ArduPilot's GCS_MAVLINK::update_send: on its regular clock, but a stream more than an
+                        # interval behind skips the missed sends and starts its clock again from now
+                        due[1] = now + due[0] if now - due[1] > due[0] else due[1] + due[0]
                         message = self.stream_message(message_id)
                         if message is not None:
                             self.send(port, message)

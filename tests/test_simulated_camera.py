@@ -81,6 +81,11 @@ def test_history_interpolates_and_extrapolates():
     assert history.at(121_000_000, max_extrapolation_ns=20_000_000) is None
     assert history.at(-1, max_extrapolation_ns=20_000_000) is None
     assert not history.add(SimState(100_000_000, np.zeros(3), np.eye(3), np.zeros(3)))  # not newer
+    history.restamp_newest(80_000_000)
+    assert history.newest_t_ns == 80_000_000
+    np.testing.assert_allclose(history.at(40_000_000, max_extrapolation_ns=0).position_ned_m, [0.05, 0.1, 0.0])
+    history.restamp_newest(0)  # not after the sample before it: kept as it was
+    assert history.newest_t_ns == 80_000_000
 
 
 def test_send_clock_puts_delayed_and_bunched_arrivals_back_on_the_send_grid():
@@ -107,6 +112,56 @@ def test_send_clock_follows_a_sender_slower_than_real_time():
     period = 10_200_000  # a simulator 2 % behind real time
     stamps = [clock.stamp(k * period + 2_000_000) for k in range(400)]
     np.testing.assert_allclose(np.array(stamps[200:]) - np.arange(200, 400) * period, 2_000_000, atol=1000)
+
+
+def ardupilot_send_times(stalls_at: tuple[int, ...], stall_ms: float, rng) -> np.ndarray:
+    """Send times of a 100 Hz stream by ArduPilot's rule (GCS_MAVLINK::update_send): due on a 10 ms
+    clock, checked every 2.5 ms loop; more than an interval behind, it skips and restarts its clock.
+    The sender stops for ``stall_ms`` after each send numbered in ``stalls_at``."""
+    period, tick = 10_000_000, 2_500_000
+    sent, last_ns, now_ns, resume_ns = [], 0, 0, 0
+    while len(sent) < 600:
+        now_ns += tick
+        loop_ns = now_ns + int(rng.uniform(0, 300_000))
+        if loop_ns < resume_ns or loop_ns - last_ns < period:
+            continue
+        sent.append(loop_ns)
+        last_ns += period
+        if loop_ns - last_ns > period:
+            last_ns = loop_ns
+        if len(sent) in stalls_at:
+            resume_ns = loop_ns + int(stall_ms * 1e6)
+    return np.array(sent, dtype=np.int64)
+
+
+@pytest.mark.parametrize("delays_ms, bound_ms", [((0.2, 3.0), 3.5), ((1.0, 15.0), 7.5)])
+def test_send_clock_follows_a_sender_that_falls_behind_and_restarts_its_clock(delays_ms, bound_ms):
+    """Three 60 ms stalls of an ArduPilot-like sender, received 0.2-3 or 1-15 ms later: the clock restarts
+    its grid once for each stall; every stamp is within 3.5 or 7.5 ms of its send time (half the spread of the
+    delays: the promptest arrival of a young window) except the first few samples
+    after a stall (the first is stamped on the old grid until the second shows the restart, the next ones
+    at their arrival until the new grid has min_arrivals samples)."""
+    rng = np.random.default_rng(11)
+    sent = ardupilot_send_times((150, 300, 450), 60.0, rng)
+    # TCP hands them over in order: a sample never arrives before the one sent ahead of it
+    received = np.maximum.accumulate(sent + (rng.uniform(*delays_ms, len(sent)) * 1e6).astype(np.int64))
+    clock = SendClock()
+    stamps, restamped = [], {}
+    for i, r in enumerate(received):
+        stamps.append(clock.stamp(int(r)))
+        if clock.restamped_ns is not None:
+            restamped[i - 1] = clock.restamped_ns
+    stamps = np.array(stamps)
+    firsts = np.nonzero(np.diff(sent) > 50_000_000)[0] + 1
+    assert clock.restarts == 3
+    # the first sample after each stall, stamped on the old grid, is corrected to its arrival
+    assert restamped == {int(i): int(received[i]) for i in firsts}
+    after_stall = np.zeros(len(sent), dtype=bool)
+    for first in firsts:
+        after_stall[first:first + clock.min_arrivals] = True
+    errors_ms = np.abs(stamps - sent) / 1e6
+    assert np.all(errors_ms[20:][~after_stall[20:]] < bound_ms), errors_ms[20:][~after_stall[20:]].max()
+    assert np.all(stamps <= received)
 
 
 def simulated_config(tmp_path, **source):

@@ -27,9 +27,12 @@ The closed loop in a simulator (docs/sitl.md)::
   stamps them on a regular grid (the interval fitted to the last 200
   arrivals) through the promptest arrival among them, as the attitude's
   clock does with ``time_boot_ms`` (``companion.mavlink.attitude``): the
-  error is that arrival's delay. (A sample lost in between would shift the
-  grid by one interval until it leaves the window: TCP and loopback lose
-  none.)
+  error is that arrival's delay. A simulator that falls behind (a stall of
+  its process) skips the sends it missed and starts its clock again, as
+  ArduPilot does: ``SendClock`` sees two arrivals in a row late on the old
+  grid and starts a new one from them (on the old grid every later sample
+  would be stamped a stall's length early for the window's 2 s, and the
+  camera, finding no sample near its render time, would stall).
   SITL must run in real time (speedup 1).
 * **Render.** Every ``1 / fps`` the thread renders the state at ``now -
   render_delay`` (interpolated between the two samples around it: positions
@@ -117,6 +120,13 @@ class SimStateHistory:
             self._states.append(state)
             return True
 
+    def restamp_newest(self, t_ns: int) -> None:
+        """The newest sample's time corrected to ``t_ns`` (kept only if still after the one before it)."""
+        with self._lock:
+            if self._states and (len(self._states) < 2 or t_ns > self._states[-2].t_ns):
+                newest = self._states.pop()
+                self._states.append(SimState(t_ns, newest.position_ned_m, newest.R_ned_body, newest.velocity_ned_m_s))
+
     def clear(self) -> None:
         with self._lock:
             self._states.clear()
@@ -161,27 +171,67 @@ class SendClock:
     simulator slower than real time), the delay line the promptest arrival
     (offset = min(arrival_i - i * interval)); the newest is stamped on it,
     never later than it arrived.
+
+    A sender that falls behind by more than an interval skips the missed
+    slots and starts its grid again from then (ArduPilot's
+    ``GCS_MAVLINK::update_send``): every later arrival is then late on the
+    old grid. Two arrivals in a row (not a burst: at least half an interval
+    apart) later than the grid by the window's usual spread (90th percentile
+    of the arrivals' lateness) plus half an interval are that restart, and
+    the window begins again from them, keeping the interval; the first of
+    the two, stamped on the old grid, is then known to have been sent when
+    it arrived (``restamped_ns``: its holder corrects it).
     """
 
-    def __init__(self, window: int = 200, min_arrivals: int = 8):
+    def __init__(self, window: int = 200, min_arrivals: int = 8, fit_after: int = 50):
         self._arrivals_ns: collections.deque[int] = collections.deque(maxlen=window)
         self.min_arrivals = min_arrivals
+        self.fit_after = fit_after
+        self.restarts = 0
+        self._interval_ns = 0.0
+        self._keep_interval = False     # after a restart: the interval fitted before it, until fit_after arrivals
+        self._previous_late = False
+        self.restamped_ns: int | None = None   # set by stamp(): the previous sample's corrected stamp
 
     def stamp(self, receive_ns: int) -> int:
         arrivals = self._arrivals_ns
+        self.restamped_ns = None
+        if len(arrivals) + 1 >= self.min_arrivals:
+            self._notice_restart(receive_ns)
         arrivals.append(receive_ns)
-        n = len(arrivals)
-        if n < self.min_arrivals:
+        if len(arrivals) < self.min_arrivals:
             return receive_ns
-        t = np.asarray(arrivals, dtype=np.float64) - arrivals[0]
-        i = np.arange(n, dtype=np.float64)
-        # least squares: interval = cov(i, t) / var(i)
-        interval_ns = float(np.dot(i - i.mean(), t - t.mean()) / np.dot(i - i.mean(), i - i.mean()))
-        offset_ns = float(np.min(t - i * interval_ns))
-        return min(receive_ns, arrivals[0] + int(offset_ns + (n - 1) * interval_ns))
+        lateness_ns = self._lateness_ns()
+        return min(receive_ns, arrivals[0] + int(lateness_ns.min() + (len(arrivals) - 1) * self._interval_ns))
 
-    def reset(self) -> None:
-        self._arrivals_ns.clear()
+    def _lateness_ns(self) -> np.ndarray:
+        """(n,) each arrival's time after its slot on the grid from the oldest (fits the interval)."""
+        t = np.asarray(self._arrivals_ns, dtype=np.float64) - self._arrivals_ns[0]
+        i = np.arange(len(t), dtype=np.float64)
+        self._keep_interval = self._keep_interval and len(t) < self.fit_after
+        if not self._keep_interval:
+            # least squares: interval = cov(i, t) / var(i)
+            self._interval_ns = float(np.dot(i - i.mean(), t - t.mean()) / np.dot(i - i.mean(), i - i.mean()))
+        return t - i * self._interval_ns
+
+    def _notice_restart(self, receive_ns: int) -> None:
+        """Begin the window again from the previous arrival when it and ``receive_ns`` are a restarted grid."""
+        arrivals = self._arrivals_ns
+        lateness_ns = self._lateness_ns()
+        promptest_ns = lateness_ns.min()
+        spread_ns = np.percentile(lateness_ns, 90) - promptest_ns
+        late_ns = (receive_ns - arrivals[0]) - len(arrivals) * self._interval_ns - promptest_ns
+        late = late_ns > spread_ns + self._interval_ns / 2
+        burst = receive_ns - arrivals[-1] < self._interval_ns / 2
+        if late and self._previous_late and not burst:
+            previous_ns = arrivals[-1]
+            arrivals.clear()
+            arrivals.append(previous_ns)
+            self.restarts += 1
+            self.restamped_ns = previous_ns
+            self._keep_interval = True
+            late = False
+        self._previous_late = late
 
 
 class SimStateStream:
@@ -204,6 +254,8 @@ class SimStateStream:
 
     def on_message(self, message, receive_ns: int) -> None:
         state = sim_state_from_message(message, self.clock.stamp(receive_ns), self.origin)
+        if self.clock.restamped_ns is not None:
+            self.history.restamp_newest(self.clock.restamped_ns)
         if state is None:
             self.unusable += 1
             if self.unusable == 1:
