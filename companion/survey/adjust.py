@@ -26,7 +26,9 @@ An inexact iterative step (LSMR) stalls along the weak directions of a
 survey, the slow bending of a long chain of markers, while the residuals
 already look converged; an exact step does not. Each free marker's
 covariance is ``s^2 S^-1`` at the solution, ``S`` the same reduced system
-(the cameras marginalised out), ``s^2`` the residuals' variance in standard deviations,
+(the cameras marginalised out), ``s^2`` the residuals' variance in standard deviations
+(priors, which hold as stated whatever the images' residuals, count unscaled: ``S^-1 (s^2 S_images +
+P) S^-1``, ``P`` their information),
 plus the detector's systematic error's (``SYSTEMATIC_POINT_PX``: each point of
 each marker off by a constant in every frame; it does not shrink with the
 number of frames): ``SYSTEMATIC_POINT_PX^2 X X^T``, X = S^-1 times the
@@ -65,7 +67,8 @@ class Priors:
     """What is known besides the images.
 
     on_wall: marker ids whose y axis is vertical, to within ``wall_sd_rad``.
-    soft_anchors: marker id -> stated T_map_marker (4, 4), held to within ``anchor_sd_m`` and ``anchor_sd_rad``.
+    soft_anchors: marker id -> stated T_map_marker (4, 4), held to within ``anchor_sd_m`` and ``anchor_sd_rad``,
+    or the marker's own (m, rad) in ``anchor_sd``.
     """
 
     on_wall: frozenset[int] = frozenset()
@@ -73,6 +76,11 @@ class Priors:
     soft_anchors: dict[int, np.ndarray] = field(default_factory=dict)
     anchor_sd_m: float = 0.01
     anchor_sd_rad: float = math.radians(1.0)
+    anchor_sd: dict[int, tuple[float, float]] = field(default_factory=dict)
+
+    def sd_of_anchor(self, marker_id: int) -> tuple[float, float]:
+        """(position m, angle rad) a soft anchor is held to."""
+        return self.anchor_sd.get(marker_id, (self.anchor_sd_m, self.anchor_sd_rad))
 
 
 @dataclass(frozen=True)
@@ -263,12 +271,12 @@ class BundleAdjustment:
             terms.append((self.free_slot[m], y_axis[:2] / self.priors.wall_sd_rad, J))
         for m in self.anchor_ids:
             T_stated = self.priors.soft_anchors[m]
+            sd_m, sd_rad = self.priors.sd_of_anchor(m)
             k = self.slot[m]
-            r = np.concatenate([(poses.p_marker[k] - T_stated[:3, 3]) / self.priors.anchor_sd_m,
-                                frames.rotvec_from_rotation(poses.R_marker[k] @ T_stated[:3, :3].T)
-                                / self.priors.anchor_sd_rad])
+            r = np.concatenate([(poses.p_marker[k] - T_stated[:3, 3]) / sd_m,
+                                frames.rotvec_from_rotation(poses.R_marker[k] @ T_stated[:3, :3].T) / sd_rad])
             # small differences: d(rotvec(exp(dtheta) R R_s^T))/d(dtheta) ~ identity
-            J = np.diag([1 / self.priors.anchor_sd_m] * 3 + [1 / self.priors.anchor_sd_rad] * 3)
+            J = np.diag([1 / sd_m] * 3 + [1 / sd_rad] * 3)
             terms.append((self.free_slot[m], r, J))
         return terms
 
@@ -422,10 +430,15 @@ class BundleAdjustment:
             return {}
         _, S, _ = self._reduced(normal, 0.0)
         S_inverse = np.linalg.pinv(S)
+        # S = S_images + P, P the priors' information: the images' noise is s^2 times what their weights
+        # say, a prior's is as stated, so Cov = S^-1 (s^2 (S - P) + P) S^-1 (s^2 S^-1 without priors)
+        P = np.zeros_like(S)
+        for k, _, J in self._prior_residuals(poses):
+            P[6 * k:6 * k + 6, 6 * k:6 * k + 6] += J.T @ J
+        noise = S_inverse @ (variance * (S - P) + P) @ S_inverse
         X = (S_inverse @ self._systematic_gradients(poses, normal)).reshape(len(self.free_ids), 6, -1)
         systematic = SYSTEMATIC_POINT_PX ** 2 * np.einsum("kic,kjc->kij", X, X)
-        return {m: variance * S_inverse[6 * k:6 * k + 6, 6 * k:6 * k + 6] + systematic[k]
-                for m, k in self.free_slot.items()}
+        return {m: noise[6 * k:6 * k + 6, 6 * k:6 * k + 6] + systematic[k] for m, k in self.free_slot.items()}
 
     def _systematic_gradients(self, poses: _Poses, normal: _Normal) -> np.ndarray:
         """(6 Mf, 2 N) the free markers' reduced gradient, g_marker - B^T A^-1 g_camera, of one of the N
