@@ -274,6 +274,33 @@ def test_map_check_flags_a_marker_moved_or_turned(tmp_path, north_walk, dx_m, tu
     assert all(lines[s]["verdict"] == "ok" for s in NORTH_WALL if s != "N")
 
 
+def with_sd(map_path: Path, sd_by_symbol: dict[str, dict]) -> Path:
+    document = yaml.safe_load(map_path.read_text())
+    for marker in document["markers"]:
+        if str(marker["symbol"]) in sd_by_symbol:
+            marker["sd"] = sd_by_symbol[str(marker["symbol"])]
+    map_path.write_text(yaml.safe_dump(document))
+    return map_path
+
+
+def test_map_check_holds_each_marker_to_the_uncertainty_its_map_entry_states(tmp_path, north_walk):
+    """N moved by 6 cm: moved where the map says nothing or states 1 mm for every marker; ok where N's own
+    entry says it is known to 5 cm (within 3 sd), or where its references' entries say they are known
+    only to 20 cm and 10 degrees (the estimate from them is that uncertain; the images still place them
+    well against each other, so their common error is what counts)."""
+    others = {s: {"position_m": 0.2, "angle_deg": 10.0} for s in NORTH_WALL if s != "N"}
+    cases = {"precise": {s: {"position_m": 0.001, "angle_deg": 0.05} for s in NORTH_WALL},
+             "N loose": {"N": {"position_m": 0.05, "angle_deg": 0.5}},
+             "references loose": others}
+    verdicts = {}
+    for name, sd in cases.items():
+        map_path = with_sd(moved_map(tmp_path, "N", dx_m=0.06), sd)
+        code, lines, stderr = check(north_walk, map_path)
+        verdicts[name] = (code, lines["N"]["verdict"])
+        assert all(lines[s]["verdict"] == "ok" for s in NORTH_WALL if s != "N"), (name, lines)
+    assert verdicts == {"precise": (1, "moved"), "N loose": (0, "ok"), "references loose": (0, "ok")}
+
+
 def test_survey_extends_an_existing_map_and_resurveys_a_moved_marker(tmp_path, north_walk):
     document = yaml.safe_load(moved_map(tmp_path, "DOWN", dx_m=0.07).read_text())
     document["markers"] = [m for m in document["markers"] if m["symbol"] != "HOME"]   # not yet mapped

@@ -2,12 +2,15 @@
 
 For every mapped marker seen in a walk-through, its pose is estimated from
 the others alone: a bundle adjustment over the frames that show it together
-with other mapped markers, those held at their map poses, the cameras and
-this one marker free. The estimate's covariance (cameras marginalised out)
-gives the uncertainty of the comparison; the marker has ``moved`` when its
-position or orientation differs from the map by more than ``sigmas``
-standard deviations along the difference, and by more than a floor that
-stands for the map's own error (``min_position_m``, ``min_angle_deg``).
+with other mapped markers, the cameras and this one marker free, the others
+held at their map poses: exactly where their entry states no ``sd`` (or
+0), within it where it does (a surveyed map), so that their error reaches
+the estimate. The estimate's covariance (cameras marginalised out) plus
+the marker's own stated ``sd`` gives the uncertainty of the comparison; the
+marker has ``moved`` when its position or orientation differs from the map
+by more than ``sigmas`` standard deviations along the difference, and by
+more than a floor that stands for the error of a map that states none
+(``min_position_m``, ``min_angle_deg``).
 A moved marker is no reference for the others: the check runs again without
 the worst of them for the markers that shared a frame with it, and so on
 until no new marker is moved.
@@ -28,10 +31,13 @@ from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
 from companion.markers.layout import MarkerLayout
 from companion.survey import graph
-from companion.survey.adjust import BundleAdjustment
+from companion.survey.adjust import BundleAdjustment, Priors
 from companion.survey.observations import SurveyError, SurveyFrame, collect, keyframes
 
 VERDICTS = ("ok", "moved", "unseen")
+# a reference held to an sd of 0 in one of its two parts (the map states only the other): held this closely
+MIN_SD_M = 1e-5
+MIN_SD_RAD = math.radians(1e-3)
 
 
 @dataclass(frozen=True)
@@ -135,12 +141,19 @@ def _check_one(marker_id: int, shown, mapped, excluded: set[int], camera: Camera
     known = {**references, marker_id: start}
     cameras = np.array([graph.camera_pose_candidates(f, known, camera, ippe)[0] for f in usable])
     used_ids = {m for f in usable for m in f.marker_ids}
-    problem = BundleAdjustment(usable, camera, {m: known[m] for m in used_ids}, cameras, [marker_id],
-                               noise_px=params.sigma_px)
+    # references whose map entry states an uncertainty move within it: their error reaches the estimate
+    map_sd = {m: _map_sd(facility_map, m) for m in used_ids}
+    soft = {m: sd for m, sd in map_sd.items() if m != marker_id and max(sd) > 0}
+    priors = Priors(soft_anchors={m: known[m] for m in soft},
+                    anchor_sd={m: (max(sd_m, MIN_SD_M), max(sd_rad, MIN_SD_RAD)) for m, (sd_m, sd_rad) in soft.items()})
+    problem = BundleAdjustment(usable, camera, {m: known[m] for m in used_ids}, cameras, [marker_id, *soft],
+                               priors=priors, noise_px=params.sigma_px)
     adjustment = problem.solve(max_iterations=30)
     T_estimate = adjustment.markers[marker_id]
     T_map = mapped[marker_id]
-    covariance = adjustment.covariance[marker_id]
+    # the comparison's uncertainty: the estimate's and the map entry's own (independent)
+    sd_m, sd_rad = map_sd[marker_id]
+    covariance = adjustment.covariance[marker_id] + np.diag([sd_m ** 2] * 3 + [sd_rad ** 2] * 3)
     position_error = T_estimate[:3, 3] - T_map[:3, 3]
     angle_error = frames.rotvec_from_rotation(T_estimate[:3, :3] @ T_map[:3, :3].T)
     position_limit = max(params.sigmas * _sd_along(covariance[:3, :3], position_error), params.min_position_m)
@@ -150,6 +163,12 @@ def _check_one(marker_id: int, shown, mapped, excluded: set[int], camera: Camera
     verdict = "moved" if position_m > position_limit or angle_deg > angle_limit else "ok"
     return MarkerCheck(symbol, marker_id, frames_seen.get(marker_id, 0), position_m, angle_deg, verdict, T_estimate,
                        position_limit, angle_limit)
+
+
+def _map_sd(facility_map: FacilityMap, marker_id: int) -> tuple[float, float]:
+    """(position m, angle rad) the map entry states for its pose (``sd``); 0 where it says nothing."""
+    marker = facility_map.markers[marker_id]
+    return marker.sd_position_m or 0.0, math.radians(marker.sd_angle_deg or 0.0)
 
 
 def _sd_along(covariance: np.ndarray, direction: np.ndarray) -> float:
