@@ -16,6 +16,9 @@ the pipeline is the baseline, the render's cost is stated as its ratio),
 capture -> send latency, our estimate against the stand-in's truth at each
 capture time, and the longest gap between vision messages (wall clock, and
 in frames). The machine is shared: the load average is printed with them.
+Two more flights of the test hall's 2 m square stop the stand-in's process
+for 60 or 150 ms every 1.5 s, a simulator falling behind on a loaded
+machine (SendClock must follow its restarted send clock).
 Then the render alone (no flight): the simulated camera's render and
 degradations of config/sitl-camera.yaml's warehouse at poses around its 2 m
 square, median CPU time (time.process_time: the machine is loaded) and wall
@@ -42,12 +45,15 @@ from companion.capture.simulated import SimulatedCamera  # noqa: E402
 from companion.daemon.config import load_config  # noqa: E402
 
 TARGET_FPS = 20.0
+STALL_EVERY_S = 1.5    # the stalled-simulator flights: the stand-in stopped this often
 
 
-def fly(name: str, side_m: float, config_path: Path | None) -> dict:
+def fly(name: str, side_m: float, config_path: Path | None, stall_ms: float = 0.0) -> dict:
     with tempfile.TemporaryDirectory() as folder:
         loop = ClosedLoop(Path(folder), side_m, config_path=config_path)
         try:
+            if stall_ms:
+                loop.stall_simulator(STALL_EVERY_S, stall_ms / 1000)
             mission = loop.fly()
             if mission.returncode != 0:
                 raise SystemExit(f"{name}: the mission failed: {mission.stderr.strip() or mission.stdout[-400:]}")
@@ -102,7 +108,9 @@ def main() -> None:
     args = parser.parse_args()
     flights = ([("test hall, 2 m square", 2.0, None)] if args.quick else
                [("test hall, 4 m square", 4.0, None),
-                ("warehouse (sitl-camera), 2 m", 2.0, common.REPO / "config" / "sitl-camera.yaml")])
+                ("warehouse (sitl-camera), 2 m", 2.0, common.REPO / "config" / "sitl-camera.yaml"),
+                ("hall 2 m, sim stalls 60 ms", 2.0, None, 60.0),
+                ("hall 2 m, sim stalls 150 ms", 2.0, None, 150.0)])
     table([fly(*flight) for flight in flights])
     render_only(common.REPO / "config" / "sitl-camera.yaml")
 

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -97,6 +99,8 @@ class ClosedLoop:
         self.daemon_thread = threading.Thread(target=self.daemon.run, name="daemon-under-test", daemon=True)
         self.daemon_thread.start()
         self.side_m = side_m
+        self._stalls: threading.Thread | None = None
+        self._stalls_stop = threading.Event()
 
     def _wait_listening(self) -> None:
         deadline = time.monotonic() + 10
@@ -113,7 +117,21 @@ class ClosedLoop:
              "--timeout-s", "40"],
             capture_output=True, text=True, timeout=150, env=ENV)
 
+    def stall_simulator(self, every_s: float, stall_s: float) -> None:
+        """From now on, stop the stand-in's process (SIGSTOP) for ``stall_s`` every ``every_s``: a
+        simulator that falls behind, as a SITL on a loaded machine does (until ``stop``)."""
+        def stall() -> None:
+            while not self._stalls_stop.wait(every_s):
+                os.kill(self.peer.pid, signal.SIGSTOP)
+                self._stalls_stop.wait(stall_s)
+                os.kill(self.peer.pid, signal.SIGCONT)
+        self._stalls = threading.Thread(target=stall, name="simulator-stalls", daemon=True)
+        self._stalls.start()
+
     def stop(self) -> None:
+        self._stalls_stop.set()
+        if self._stalls is not None:
+            self._stalls.join(timeout=5)
         self.daemon.stop_event.set()
         self.daemon_thread.join(timeout=10)
         self.peer.terminate()
