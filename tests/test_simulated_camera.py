@@ -164,6 +164,20 @@ def test_send_clock_follows_a_sender_that_falls_behind_and_restarts_its_clock(de
     assert np.all(stamps <= received)
 
 
+def test_send_clock_recovers_from_a_burst_at_the_start():
+    """The link hands over its first 10 samples at once (a busy start), then they arrive as sent: within
+    a few dozen samples every stamp is within 2 ms of its send time again, later than the one before."""
+    rng = np.random.default_rng(5)
+    sent = np.arange(400) * 10_000_000
+    received = sent + (rng.uniform(0.2, 1.5, len(sent)) * 1e6).astype(np.int64)
+    received[:10] = received[9]
+    clock = SendClock()
+    stamps = np.array([clock.stamp(int(r)) for r in received])
+    errors_ms = np.abs(stamps - sent)[60:] / 1e6
+    assert errors_ms.max() < 2.0, errors_ms.max()
+    assert np.all(np.diff(stamps[60:]) > 0)
+
+
 def simulated_config(tmp_path, **source):
     data = {"source": {"kind": "simulated_camera", **source},
             "camera": {"width": 320, "height": 240, "hfov_deg": 70.0},

@@ -178,7 +178,8 @@ class SendClock:
     old grid. Two arrivals in a row (not a burst: at least half an interval
     apart) later than the grid by the window's usual spread (90th percentile
     of the arrivals' lateness) plus half an interval are that restart, and
-    the window begins again from them, keeping the interval; the first of
+    the window begins again from them, keeping the interval (if fitted to
+    ``fit_after`` arrivals or more); the first of
     the two, stamped on the old grid, is then known to have been sent when
     it arrived (``restamped_ns``: its holder corrects it).
     """
@@ -189,6 +190,7 @@ class SendClock:
         self.fit_after = fit_after
         self.restarts = 0
         self._interval_ns = 0.0
+        self._fitted_over = 0           # arrivals the interval was last fitted to
         self._keep_interval = False     # after a restart: the interval fitted before it, until fit_after arrivals
         self._previous_late = False
         self.restamped_ns: int | None = None   # set by stamp(): the previous sample's corrected stamp
@@ -212,6 +214,7 @@ class SendClock:
         if not self._keep_interval:
             # least squares: interval = cov(i, t) / var(i)
             self._interval_ns = float(np.dot(i - i.mean(), t - t.mean()) / np.dot(i - i.mean(), i - i.mean()))
+            self._fitted_over = len(t)
         return t - i * self._interval_ns
 
     def _notice_restart(self, receive_ns: int) -> None:
@@ -221,7 +224,7 @@ class SendClock:
         promptest_ns = lateness_ns.min()
         spread_ns = np.percentile(lateness_ns, 90) - promptest_ns
         late_ns = (receive_ns - arrivals[0]) - len(arrivals) * self._interval_ns - promptest_ns
-        late = late_ns > spread_ns + self._interval_ns / 2
+        late = self._interval_ns > 0 and late_ns > spread_ns + self._interval_ns / 2
         burst = receive_ns - arrivals[-1] < self._interval_ns / 2
         if late and self._previous_late and not burst:
             previous_ns = arrivals[-1]
@@ -229,7 +232,8 @@ class SendClock:
             arrivals.append(previous_ns)
             self.restarts += 1
             self.restamped_ns = previous_ns
-            self._keep_interval = True
+            # an interval fitted to a young window (a burst at the start) is not kept
+            self._keep_interval = self._fitted_over >= self.fit_after
             late = False
         self._previous_late = late
 
