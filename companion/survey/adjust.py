@@ -138,6 +138,7 @@ class _Normal:
 
     A: (F, 6, 6) each camera's block; g_camera: (F, 6). B: (S, 6, 6) camera-marker block of each sighting
     of a free marker (zero for the others); C: (Mf, 6, 6) each free marker's block; g_marker: (Mf, 6).
+    C_prior: (Mf, 6, 6) the priors' part of C (their information, J^T J).
     """
 
     cost: float
@@ -146,6 +147,7 @@ class _Normal:
     B: np.ndarray
     C: np.ndarray
     g_marker: np.ndarray
+    C_prior: np.ndarray
 
 
 @dataclass
@@ -316,12 +318,12 @@ class BundleAdjustment:
         C, g_marker = np.zeros((n_free, 6, 6)), np.zeros((n_free, 6))
         np.add.at(C, self.sighting_free[free], C_sighting[free])
         np.add.at(g_marker, self.sighting_free[free], g_sighting[free])
-        prior_cost = 0.0
+        prior_cost, C_prior = 0.0, np.zeros_like(C)
         for k, r_prior, J_prior in self._prior_residuals(poses):
-            C[k] += J_prior.T @ J_prior
+            C_prior[k] += J_prior.T @ J_prior
             g_marker[k] += J_prior.T @ r_prior
             prior_cost += 0.5 * float(r_prior @ r_prior)
-        return _Normal(point_cost + prior_cost, A, g_camera, B, C, g_marker)
+        return _Normal(point_cost + prior_cost, A, g_camera, B, C + C_prior, g_marker, C_prior)
 
     def _reduced(self, normal: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(A^-1 (F, 6, 6), S (6Mf, 6Mf), A^-1 g_camera (F, 6)): the cameras eliminated.
@@ -433,8 +435,8 @@ class BundleAdjustment:
         # S = S_images + P, P the priors' information: the images' noise is s^2 times what their weights
         # say, a prior's is as stated, so Cov = S^-1 (s^2 (S - P) + P) S^-1 (s^2 S^-1 without priors)
         P = np.zeros_like(S)
-        for k, _, J in self._prior_residuals(poses):
-            P[6 * k:6 * k + 6, 6 * k:6 * k + 6] += J.T @ J
+        for k, block in enumerate(normal.C_prior):
+            P[6 * k:6 * k + 6, 6 * k:6 * k + 6] = block
         noise = S_inverse @ (variance * (S - P) + P) @ S_inverse
         X = (S_inverse @ self._systematic_gradients(poses, normal)).reshape(len(self.free_ids), 6, -1)
         systematic = SYSTEMATIC_POINT_PX ** 2 * np.einsum("kic,kjc->kij", X, X)
