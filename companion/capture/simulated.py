@@ -210,8 +210,7 @@ class SendClock:
         """(n,) each arrival's time after its slot on the grid from the oldest (fits the interval)."""
         t = np.asarray(self._arrivals_ns, dtype=np.float64) - self._arrivals_ns[0]
         i = np.arange(len(t), dtype=np.float64)
-        self._keep_interval = self._keep_interval and len(t) < self.fit_after
-        if not self._keep_interval:
+        if not (self._keep_interval and len(t) < self.fit_after):
             # least squares: interval = cov(i, t) / var(i)
             self._interval_ns = float(np.dot(i - i.mean(), t - t.mean()) / np.dot(i - i.mean(), i - i.mean()))
             self._fitted_over = len(t)
