@@ -18,7 +18,8 @@ The closed loop in a simulator (docs/sitl.md)::
   not used), ``alt`` in metres above mean sea level, ``vn, ve, vd`` in m/s.
   The position goes into the map frame through the map's ``geodetic_origin``
   and ``x_bearing_deg`` (``frames.ned_from_geodetic``: ArduPilot's own
-  flat-earth rule).
+  flat-earth rule), without the 1.1 cm steps of degE7 (``Dequantizer``:
+  the velocity is not quantized).
 * **Time.** SIM_STATE carries no timestamp: a sample's time comes from when
   the link received it. A busy machine delays the link's thread, by a
   varying amount, and hands it a burst of samples at once, which would stamp
@@ -32,7 +33,9 @@ The closed loop in a simulator (docs/sitl.md)::
   ArduPilot does: ``SendClock`` sees two arrivals in a row late on the old
   grid and starts a new one from them (on the old grid every later sample
   would be stamped a stall's length early for the window's 2 s, and the
-  camera, finding no sample near its render time, would stall).
+  camera, finding no sample near its render time, would stall). A late
+  arrival is held back until the next shows which it was, so that no frame
+  is rendered from a sample stamped a stall's length early.
   SITL must run in real time (speedup 1).
 * **Render.** Every ``1 / fps`` the thread renders the state at ``now -
   render_delay`` (interpolated between the two samples around it: positions
@@ -120,13 +123,6 @@ class SimStateHistory:
             self._states.append(state)
             return True
 
-    def restamp_newest(self, t_ns: int) -> None:
-        """The newest sample's time corrected to ``t_ns`` (kept only if still after the one before it)."""
-        with self._lock:
-            if self._states and (len(self._states) < 2 or t_ns > self._states[-2].t_ns):
-                newest = self._states.pop()
-                self._states.append(SimState(t_ns, newest.position_ned_m, newest.R_ned_body, newest.velocity_ned_m_s))
-
     def clear(self) -> None:
         with self._lock:
             self._states.clear()
@@ -181,7 +177,10 @@ class SendClock:
     the window begins again from them, keeping the interval (if fitted to
     ``fit_after`` arrivals or more); the first of
     the two, stamped on the old grid, is then known to have been sent when
-    it arrived (``restamped_ns``: its holder corrects it).
+    it arrived (``restamped_ns``: its holder corrects it). Unless the two are
+    further apart than an interval and a half plus that spread: then the
+    sender stalled between them, the first was only delayed on its way (its
+    stamp holds), and the window begins again from the second.
     """
 
     def __init__(self, window: int = 200, min_arrivals: int = 8, fit_after: int = 50):
@@ -194,6 +193,11 @@ class SendClock:
         self._keep_interval = False     # after a restart: the interval fitted before it, until fit_after arrivals
         self._previous_late = False
         self.restamped_ns: int | None = None   # set by stamp(): the previous sample's corrected stamp
+
+    @property
+    def late(self) -> bool:
+        """The newest arrival was late on the grid: the next one says whether its stamp holds (``restamped_ns``)."""
+        return self._previous_late
 
     def stamp(self, receive_ns: int) -> int:
         arrivals = self._arrivals_ns
@@ -228,13 +232,47 @@ class SendClock:
         if late and self._previous_late and not burst:
             previous_ns = arrivals[-1]
             arrivals.clear()
-            arrivals.append(previous_ns)
+            # a stall between the two: the previous one was merely delayed (its stamp holds), the grid starts here
+            if receive_ns - previous_ns <= 1.5 * self._interval_ns + spread_ns:
+                arrivals.append(previous_ns)
+                self.restamped_ns = previous_ns
             self.restarts += 1
-            self.restamped_ns = previous_ns
             # an interval fitted to a young window (a burst at the start) is not kept
             self._keep_interval = self._fitted_over >= self.fit_after
             late = False
         self._previous_late = late
+
+
+class Dequantizer:
+    """SIM_STATE positions without the steps of their degE7 latitude and longitude (1.1 cm of latitude).
+
+    A vehicle moving at 1 m/s crosses a step every 11 ms: frames rendered on
+    the raw positions jump by up to a centimetre against the truth, more than
+    the pose stage's own error. The velocity (vn, ve, vd) is not quantized,
+    so each position is taken as the mean, over the last ``window`` samples
+    j, of the quantized p_j carried to this sample along the velocity:
+    p_i = s_i + mean_j (p_j - s_j), s the velocity's running integral
+    (trapezoid rule over the samples' stamps). A gap of more than
+    ``max_gap_s`` (a stalled sender, a stopped stream) starts it again.
+    """
+
+    def __init__(self, window: int = 50, max_gap_s: float = 0.1):
+        self._offsets: collections.deque[np.ndarray] = collections.deque(maxlen=window)
+        self.max_gap_ns = int(max_gap_s * 1e9)
+        self._integral_m = np.zeros(3)
+        self._last: tuple[int, np.ndarray] | None = None
+
+    def smooth(self, t_ns: int, position_m: np.ndarray, velocity_m_s: np.ndarray) -> np.ndarray:
+        """(3,) the position of the sample at ``t_ns`` (samples in time order)."""
+        if self._last is not None:
+            last_ns, last_velocity = self._last
+            if not 0 < t_ns - last_ns <= self.max_gap_ns:
+                self._offsets.clear()
+            # s_i = s_(i-1) + (v_(i-1) + v_i) / 2 (t_i - t_(i-1))
+            self._integral_m = self._integral_m + (last_velocity + velocity_m_s) / 2 * ((t_ns - last_ns) * 1e-9)
+        self._last = (t_ns, velocity_m_s)
+        self._offsets.append(position_m - self._integral_m)
+        return self._integral_m + np.mean(self._offsets, axis=0)
 
 
 class SimStateStream:
@@ -254,20 +292,38 @@ class SimStateStream:
         self.unusable = 0
         self.request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SIM_STATE, rate_hz, request_retry_s)
         self.clock = SendClock()
+        self.dequantizer = Dequantizer()
+        self._held: SimState | None = None  # a late arrival, until the next says when it was sent
 
     def on_message(self, message, receive_ns: int) -> None:
-        state = sim_state_from_message(message, self.clock.stamp(receive_ns), self.origin)
-        if self.clock.restamped_ns is not None:
-            self.history.restamp_newest(self.clock.restamped_ns)
+        stamp_ns = self.clock.stamp(receive_ns)
+        if self._held is not None:
+            held, self._held = self._held, None
+            if self.clock.restamped_ns is not None:  # the sender restarted its clock: sent when it arrived
+                held = SimState(self.clock.restamped_ns, held.position_ned_m, held.R_ned_body, held.velocity_ned_m_s)
+            self._file(held)
+        state = sim_state_from_message(message, stamp_ns, self.origin)
         if state is None:
             self.unusable += 1
             if self.unusable == 1:
                 log.warning("simulated camera: SIM_STATE without lat_int/lon_int or with a non-finite value: "
                             "ignored (ArduPilot SITL from 4.5 on fills lat_int/lon_int)")
             return
-        if self.history.add(state):
+        self.request.arrived(receive_ns)
+        if self.clock.late:
+            # its grid stamp may be a stall's length early: rendered on it, a frame would show the vehicle
+            # where it was later than the frame's time says
+            self._held = state
+        else:
+            self._file(state)
+
+    def _file(self, state: SimState) -> None:
+        """Into the history, its position freed of the degE7 steps (``Dequantizer``)."""
+        if self.history.newest_t_ns is not None and state.t_ns <= self.history.newest_t_ns:
+            return
+        position = self.dequantizer.smooth(state.t_ns, state.position_ned_m, state.velocity_ned_m_s)
+        if self.history.add(SimState(state.t_ns, position, state.R_ned_body, state.velocity_ned_m_s)):
             self.received += 1
-            self.request.arrived(receive_ns)
 
     @property
     def requests(self) -> int:
