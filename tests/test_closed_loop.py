@@ -28,10 +28,10 @@ GAP_LIMIT_FRAMES = 2
 # between vision messages was 0.25-0.56 s (load 2-4, bench_closed_loop); a camera that stalls on a history
 # stamped on the old send clock: 1.0-1.1 s each time
 STALL_GAP_LIMIT_S = 0.9
-# and the estimates around the stalls: 95 % within 2 cm (on the old send clock 2.2 cm, with many over it).
-# Not the 5 cm bound on every estimate: a few near a stall are further off (one CI run: 9 cm, median
-# 0.31 cm), not from the send clock (their rendered state is within 0.5 cm of the truth; docs/sitl.md)
-STALL_P95_LIMIT_M = 0.02
+# and the estimates around the stalls: 95 % within 1 cm (0.3-0.4 cm here), every one within the 5 cm bound.
+# (On the old send clock the 95th percentile was 2.2 cm; with the first sample after a stall filed at its
+# grid stamp, one estimate in a flight could be 9-15 cm off: docs/sitl.md.)
+STALL_P95_LIMIT_M = 0.01
 assert FPS == 30
 
 
@@ -105,9 +105,9 @@ def test_closed_loop_flies_a_4_m_square_on_markers_alone(closed_loop):
 def test_closed_loop_keeps_its_estimate_when_the_simulator_stalls(closed_loop):
     """The stand-in's process stopped for 150 ms every 1.5 s of the 2 m square (a SITL falling behind on a
     loaded machine: it skips the sends it missed and restarts its clock): the rendered frames keep to the
-    truth (95 % of the estimates within 2 cm) and the camera keeps delivering. (Stamped on the old grid,
-    every sample for 2 s after a stall was 150 ms early: the camera found no sample near its render time
-    and stalled for a second.)"""
+    truth (every estimate within 5 cm, 95 % within 1 cm) and the camera keeps delivering. (Stamped on the
+    old grid, every sample for 2 s after a stall was 150 ms early: the camera found no sample near its
+    render time and stalled for a second.)"""
     loop = closed_loop(side_m=2.0)
     loop.stall_simulator(every_s=1.5, stall_s=0.15)
     mission = loop.fly()
@@ -119,5 +119,6 @@ def test_closed_loop_keeps_its_estimate_when_the_simulator_stalls(closed_loop):
           f"{np.median(errors_cm):.2f} cm, p95 {np.percentile(errors_cm, 95):.2f} cm, max {errors_cm.max():.2f} cm, longest gap {result['max_gap_s'] * 1000:.0f} "
           f"ms, {restarts} send clock restarts")
     assert np.percentile(errors_cm, 95) < STALL_P95_LIMIT_M * 100
+    assert errors_cm.max() < ESTIMATE_LIMIT_M * 100
     assert restarts >= 4
     assert result["max_gap_s"] < STALL_GAP_LIMIT_S
