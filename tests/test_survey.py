@@ -368,6 +368,32 @@ def test_a_marker_linked_only_through_a_far_view_is_named_and_its_sd_covers_its_
             assert "weakly linked" in surveyed.marker_by_symbol(entry["symbol"]).note
 
 
+def test_a_marker_the_images_barely_place_is_named_for_another_look(capsys):
+    """A surveyed marker whose sd is over LOOSE_SD_M (the benchmark's hall walk had two at 12 m: a pair barely
+    tied to the rest) is named on stderr with its sd and listed in survey.json; a weakly linked one is named
+    once, as weakly linked; anchors and well placed markers are not named."""
+    from companion.cli.survey import _notes
+    from companion.geometry.facility_map import MapMarker
+    from companion.survey.report import report_json
+    from companion.survey.survey import LOOSE_SD_M, SurveyedMarker, SurveyResult
+
+    def surveyed(symbol, marker_id, sd_m, anchor=False, weak=False):
+        marker = MapMarker(symbol, marker_id, 0.2, np.eye(4), "", sd_m, 1.0)
+        return SurveyedMarker(marker, anchor, 12, sd_m, 1.0, 0.1, None if anchor else np.eye(6), weak)
+
+    markers = [surveyed("A", 0, 0.0, anchor=True), surveyed("B", 1, 0.004), surveyed("AT", 2, 12.3),
+               surveyed("9", 3, LOOSE_SD_M * 1.2), surveyed("T", 4, 0.4, weak=True), surveyed("C", 5, LOOSE_SD_M)]
+    result = SurveyResult(load_map(MAP), markers, {}, [], [], np.zeros((0, 3)), 10, 0, 10,
+                          0.1, {})
+    assert [s.marker.symbol for s in result.loose] == ["AT", "9"]
+    _notes(result)
+    lines = capsys.readouterr().err.splitlines()
+    loose = [line for line in lines if "placed loosely" in line]
+    assert len(loose) == 1 and "need another look: AT (12.3 m), 9 (6 cm) (the images" in loose[0]
+    assert any("weakly linked" in line and "T" in line for line in lines)
+    assert report_json(result)["loose"] == ["AT", "9"]
+
+
 # ------------------------------------------------------------------ daemon watch
 
 def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):

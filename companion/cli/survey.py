@@ -14,7 +14,7 @@ from companion.cli.output import OutputError, output_dir, output_file
 from companion.geometry.camera import CameraError, load_camera
 from companion.geometry.facility_map import MapError, load_map, write_map
 from companion.survey.observations import SurveyError
-from companion.survey.survey import SurveyOptions, SurveyResult, survey
+from companion.survey.survey import LOOSE_SD_M, SurveyOptions, SurveyResult, survey
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -81,6 +81,10 @@ def _write_atomically(result: SurveyResult, args) -> None:
             os.unlink(temporary)
 
 
+def _length(metres: float) -> str:
+    return f"{metres:.1f} m" if metres >= 1 else f"{metres * 100:.0f} cm" if math.isfinite(metres) else "unbounded"
+
+
 def summary(result: SurveyResult) -> str:
     """A table of the markers (anchors first) and one line on the frames."""
     lines = [f"{'marker':<7} {'kind':<9} {'frames':>6} {'sd_mm':>6} {'sd_deg':>6} {'rms_px':>6}"]
@@ -110,6 +114,12 @@ def _notes(result: SurveyResult) -> None:
         print(f"companion survey: weakly linked to the anchors, need another look: {', '.join(weak)} (the images "
               f"fit another place for them nearly as well, their sd covers both; film them again together with "
               f"mapped markers, from more than one place and closer)", file=sys.stderr)
+    loose = result.loose
+    if loose:
+        names = ", ".join(f"{s.marker.symbol} ({_length(s.sd_position_m)})" for s in loose)
+        print(f"companion survey: placed loosely (sd over {LOOSE_SD_M * 100:g} cm), need another look: {names} (the "
+              f"images barely tie them to the rest; film them again together with mapped markers, from more than "
+              f"one place and closer)", file=sys.stderr)
     for check in result.moved:
         print(f"companion survey: marker {check.symbol} disagrees with the map by {check.position_error_m * 100:.1f} cm, "
               f"{check.angle_error_deg:.1f} deg: surveyed again", file=sys.stderr)

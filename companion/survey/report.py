@@ -55,6 +55,7 @@ def report_json(result: SurveyResult) -> dict:
                      "turned_by_images_deg": number(a.angle_deg, 4)} for a in result.anchors],
         "not_mapped": [{"symbol": symbol, "frames": frames} for symbol, frames in result.dropped.items()],
         "weakly_linked": [s.marker.symbol for s in result.markers if s.weakly_linked],
+        "loose": [s.marker.symbol for s in result.loose],
         "moved": [check.as_json() for check in result.moved],
         "markers": markers,
     }

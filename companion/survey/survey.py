@@ -42,6 +42,7 @@ MIN_POINTS_FOR_NOISE = 40  # a kind of point needs this many to measure its nois
 MIN_NOISE_PX = 0.005       # no kind of point is trusted beyond this (rendering and rounding)
 RIVAL_CHI2 = 25.0          # a rival placement whose adjustment fits worse by less than this is not ruled out
 MAX_RIVALS = 6             # rival placements adjusted (each costs an adjustment)
+LOOSE_SD_M = 0.05          # a surveyed marker placed no better than this is no better than a tape: named for another look
 
 
 @dataclass(frozen=True)
@@ -121,6 +122,12 @@ class SurveyResult:
     frames_adjusted: int
     sigma_px: float
     noise_px: dict[str, float]
+
+    @property
+    def loose(self) -> list[SurveyedMarker]:
+        """Surveyed markers placed no better than ``LOOSE_SD_M`` without a rival place to blame (the images
+        barely tie them to the rest: seen from too few places, or only far away); they need another look."""
+        return [s for s in self.markers if not s.anchor and not s.weakly_linked and not s.sd_position_m <= LOOSE_SD_M]
 
 
 def survey(sequences: list[Path], camera: CameraModel, anchors: FacilityMap, options: SurveyOptions = SurveyOptions(),
@@ -432,6 +439,8 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
         note = f"surveyed: sd {sd_position_m * 1000:.1f} mm, {sd_angle_deg:.2f} deg, {counts.get(m, 0)} frames"
         if m in weak:
             note += "; weakly linked to the anchors: survey again"
+        elif not sd_position_m <= LOOSE_SD_M:
+            note += "; placed loosely: survey again"
         marker = MapMarker(symbol, m, sizes(m), T, note, sd_position_m, sd_angle_deg)
         result.append(SurveyedMarker(marker, False, counts.get(m, 0), sd_position_m, sd_angle_deg, rms.get(m, math.nan),
                                      covariance, m in weak))
