@@ -10,7 +10,9 @@ view, at 640x480 and 1280x720 (``--work DIR`` keeps the walks in DIR/hall-WxH an
 sees the true map only through its anchors (one marker; and three spread over the hall), the marker sizes and
 which markers hang on walls, and is then held to the true map:
 
-* marker position and orientation errors (median, max), markers seen in >= 3 frames mapped;
+* marker position and orientation errors (median, max), markers seen in >= 3 frames mapped; and the position
+  errors left after the best rigid and similarity fit of the surveyed map to the truth (the map's turn, shift
+  and scale about its anchors taken out: what is left is its bending);
 * localization (``companion.localize``, joint PnP) on the committed flights with the surveyed
   map (each marker weighed by the ``sd`` the survey wrote for it), the true map and a "tape" map (the true
   map with +-2 cm and +-2 deg errors per marker);
@@ -215,6 +217,24 @@ def marker_errors(surveyed: FacilityMap, truth: FacilityMap, anchors) -> tuple[n
     return np.array(position), np.array(angle), symbols
 
 
+def aligned_errors(surveyed: FacilityMap, truth: FacilityMap, anchors) -> dict:
+    """Where the position error of the surveyed (non-anchor) markers lies: their errors (m) after the best
+    rigid fit of the surveyed map to the truth ("rigid": the map's turn and shift about its anchors taken out)
+    and after the best similarity ("similar": its scale too), with that fit's scale and turn (deg).
+    What is left after the fits is the map's own bending."""
+    ids = [i for i, m in surveyed.markers.items() if m.symbol not in anchors]
+    P = np.array([surveyed.markers[i].T_map_marker[:3, 3] for i in ids])
+    Q = np.array([truth.markers[i].T_map_marker[:3, 3] for i in ids])
+    p, q = P - P.mean(axis=0), Q - Q.mean(axis=0)
+    # Umeyama: R = U D V' from the SVD of the cross-covariance q' p / n; scale = trace(S D) / var(p)
+    U, S, Vt = np.linalg.svd(q.T @ p / len(P))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    scale = float(np.trace(np.diag(S) @ D) / (p * p).sum(axis=1).mean())
+    return {"rigid": np.linalg.norm(p @ R.T - q, axis=1), "similar": np.linalg.norm(scale * p @ R.T - q, axis=1),
+            "scale": scale, "turn_deg": math.degrees(frames.rotation_angle_rad(R, np.eye(3)))}
+
+
 def localization_median_m(flight: Path, facility_map: FacilityMap, map_sd_m: float,
                           map_sd_deg: float) -> tuple[float, int, int]:
     """(median position error m, frames with a pose, frames) of the flight localized on the map, the pose
@@ -250,7 +270,7 @@ def survey_runs(walks: dict[str, Path], truth: FacilityMap, anchor_sets, configs
     print(f"\n{'walk':<10} {'anchors':<8} {'frames':>6} {'adjusted':>8} {'mapped':>6} {'seen>=3':>7} "
           f"{'pos_med_mm':>10} {'pos_max_mm':>10} {'ang_med_deg':>11} {'ang_max_deg':>11} {'detect_s':>8} "
           f"{'adjust_s':>8} {'load':>5} {'in_3sd':>6}  worst  weak")
-    maps, checks = {}, []
+    maps, checks, aligned = {}, [], []
     for walk_name, walk in walks.items():
         camera = CameraModel.from_config(yaml.safe_load((walk / "sequence.yaml").read_text())["camera"], str(walk))
         first = anchors_map(truth, next(iter(anchor_sets.values())))
@@ -279,9 +299,16 @@ def survey_runs(walks: dict[str, Path], truth: FacilityMap, anchor_sets, configs
                   f"{len(mapped):>6} {len(seen_enough):>7} {np.median(position) * 1000:>10.1f} "
                   f"{position.max() * 1000:>10.1f} {np.median(angle):>11.3f} {angle.max():>11.3f} {detect_s:>8.1f} "
                   f"{adjust_s:>8.1f} {load:>5.2f} {f'{covered}/{len(position)}':>6}  {worst:<6} {weak}")
+            fit = aligned_errors(result.facility_map, truth, symbols)
+            aligned.append(f"  {walk_name}/{anchor_name}: best rigid fit to the truth {np.median(fit['rigid']) * 1000:.1f} / "
+                           f"{fit['rigid'].max() * 1000:.1f} mm (turn {fit['turn_deg']:.3f} deg), with scale "
+                           f"{np.median(fit['similar']) * 1000:.1f} / {fit['similar'].max() * 1000:.1f} mm "
+                           f"(scale {fit['scale']:.5f})")
             maps[(walk_name, anchor_name)] = (result.facility_map, *surveyed_sd(result))
             checks.append((walk_name, anchor_name, position, angle, seen_enough <= mapped, len(seen),
                            result.frames_read, detect_s + adjust_s, load))
+    print("\nposition error median / max without the map's gauge (what is left: its bending):")
+    print("\n".join(aligned))
     return {"maps": maps, "checks": checks}
 
 
