@@ -5,7 +5,9 @@ rendered at a few poses of its 2 m square: the plain rendering and the degraded 
 (noise seeded). First drawn before the speed-up (commit 20aea9d); drawn again when the
 texture filtering was made sharper on purpose (issue 9: anisotropic mip levels, box mip
 levels, bicubic lens remap; 0.4-0.9 DN mean change, the same markers within 0.055 px, one
-more marker found in pose 2's plain frame). A speed-up must draw the same images to within
+more marker found in pose 2's plain frame); and when the lens remap became Lanczos (bicubic
+shifted corners near the image centre: tests/test_render.py; 0.07-0.25 DN mean change, the same
+markers within 0.029 px). A speed-up must draw the same images to within
 rounding (tile seams apart, see below) and the detector must find the same markers at the
 same corners in them.
 
