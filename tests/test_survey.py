@@ -382,16 +382,17 @@ def test_a_marker_the_images_barely_place_is_named_for_another_look(capsys):
         return SurveyedMarker(marker, anchor, 12, sd_m, 1.0, 0.1, None if anchor else np.eye(6), weak)
 
     markers = [surveyed("A", 0, 0.0, anchor=True), surveyed("B", 1, 0.004), surveyed("AT", 2, 12.3),
-               surveyed("9", 3, LOOSE_SD_M * 1.2), surveyed("T", 4, 0.4, weak=True), surveyed("C", 5, LOOSE_SD_M)]
+               surveyed("9", 3, LOOSE_SD_M * 1.2), surveyed("T", 4, 0.4, weak=True), surveyed("C", 5, LOOSE_SD_M),
+               surveyed("D", 6, math.inf)]
     result = SurveyResult(load_map(MAP), markers, {}, [], [], np.zeros((0, 3)), 10, 0, 10,
                           0.1, {})
-    assert [s.marker.symbol for s in result.loose] == ["AT", "9"]
+    assert [s.marker.symbol for s in result.loose] == ["AT", "9", "D"]
     _notes(result)
     lines = capsys.readouterr().err.splitlines()
     loose = [line for line in lines if "placed loosely" in line]
-    assert len(loose) == 1 and "need another look: AT (12.3 m), 9 (6 cm) (the images" in loose[0]
+    assert len(loose) == 1 and "need another look: AT (12.3 m), 9 (6 cm), D (unbounded) (the images" in loose[0]
     assert any("weakly linked" in line and "T" in line for line in lines)
-    assert report_json(result)["loose"] == ["AT", "9"]
+    assert report_json(result)["loose"] == ["AT", "9", "D"]
 
 
 # ------------------------------------------------------------------ daemon watch

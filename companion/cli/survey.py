@@ -82,7 +82,9 @@ def _write_atomically(result: SurveyResult, args) -> None:
 
 
 def _length(metres: float) -> str:
-    return f"{metres:.1f} m" if metres >= 1 else f"{metres * 100:.0f} cm" if math.isfinite(metres) else "unbounded"
+    if not math.isfinite(metres):
+        return "unbounded"
+    return f"{metres:.1f} m" if metres >= 1 else f"{metres * 100:.0f} cm"
 
 
 def summary(result: SurveyResult) -> str:
