@@ -274,6 +274,19 @@ def test_map_check_flags_a_marker_moved_or_turned(tmp_path, north_walk, dx_m, tu
     assert all(lines[s]["verdict"] == "ok" for s in NORTH_WALL if s != "N")
 
 
+def test_map_check_flags_both_of_a_pair_that_only_disagree_with_each_other(tmp_path, north_walk):
+    """A map of N and O alone, N moved 6 cm: each is placed only by the other, so which one moved the images
+    cannot tell; both are flagged (excluding the worse one left the other unseen: the moved one went
+    unreported when O's disagreement happened to be the larger)."""
+    document = yaml.safe_load(moved_map(tmp_path, "N", dx_m=0.06).read_text())
+    document["markers"] = [m for m in document["markers"] if str(m["symbol"]) in ("N", "O")]
+    pair = tmp_path / "pair.yaml"
+    pair.write_text(yaml.safe_dump(document))
+    code, lines, stderr = check(north_walk, pair)
+    assert code == 1
+    assert lines["N"]["verdict"] == "moved" and lines["O"]["verdict"] == "moved", lines
+
+
 def with_sd(map_path: Path, sd_by_symbol: dict[str, dict]) -> Path:
     document = yaml.safe_load(map_path.read_text())
     for marker in document["markers"]:

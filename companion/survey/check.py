@@ -109,7 +109,11 @@ def check_markers(survey_frames: list[SurveyFrame], facility_map: FacilityMap, c
         # only the markers that shared a frame with it change
         affected = {m for f in shown if worst in f.marker_ids for m in f.marker_ids} - {worst}
         for m in affected:
-            results[m] = check(m, excluded - {m})
+            again = check(m, excluded - {m})
+            # left with no reference but the one it disagreed with: which of the two moved, the images cannot
+            # tell; it stays moved (dropped as unseen, the one that did move went unreported half the time)
+            if not (again.verdict == "unseen" and results[m].verdict == "moved"):
+                results[m] = again
     return [results[m] for m in facility_map.markers]
 
 
