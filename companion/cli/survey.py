@@ -17,6 +17,9 @@ from companion.survey.observations import SurveyError
 from companion.survey.survey import LOOSE_SD_M, SurveyOptions, SurveyResult, survey
 
 
+REFILM = "film them again together with mapped markers, from more than one place and closer"
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("sequences", nargs="+", metavar="SEQUENCE",
                         help="walk-through: sequence folder, video file or image folder (several: walks of one site)")
@@ -114,14 +117,12 @@ def _notes(result: SurveyResult) -> None:
     weak = [s.marker.symbol for s in result.markers if s.weakly_linked]
     if weak:
         print(f"companion survey: weakly linked to the anchors, need another look: {', '.join(weak)} (the images "
-              f"fit another place for them nearly as well, their sd covers both; film them again together with "
-              f"mapped markers, from more than one place and closer)", file=sys.stderr)
+              f"fit another place for them nearly as well, their sd covers both; {REFILM})", file=sys.stderr)
     loose = result.loose
     if loose:
         names = ", ".join(f"{s.marker.symbol} ({_length(s.sd_position_m)})" for s in loose)
         print(f"companion survey: placed loosely (sd over {LOOSE_SD_M * 100:g} cm), need another look: {names} (the "
-              f"images barely tie them to the rest; film them again together with mapped markers, from more than "
-              f"one place and closer)", file=sys.stderr)
+              f"images barely tie them to the rest; {REFILM})", file=sys.stderr)
     for check in result.moved:
         print(f"companion survey: marker {check.symbol} disagrees with the map by {check.position_error_m * 100:.1f} cm, "
               f"{check.angle_error_deg:.1f} deg: surveyed again", file=sys.stderr)

@@ -127,7 +127,12 @@ class SurveyResult:
     def loose(self) -> list[SurveyedMarker]:
         """Surveyed markers placed no better than ``LOOSE_SD_M`` without a rival place to blame (the images
         barely tie them to the rest: seen from too few places, or only far away); they need another look."""
-        return [s for s in self.markers if not s.anchor and not s.weakly_linked and not s.sd_position_m <= LOOSE_SD_M]
+        return [s for s in self.markers if not s.anchor and not s.weakly_linked and placed_loosely(s.sd_position_m)]
+
+
+def placed_loosely(sd_position_m: float) -> bool:
+    """An sd over ``LOOSE_SD_M`` (or not a number): the marker needs another look."""
+    return not sd_position_m <= LOOSE_SD_M
 
 
 def survey(sequences: list[Path], camera: CameraModel, anchors: FacilityMap, options: SurveyOptions = SurveyOptions(),
@@ -439,7 +444,7 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
         note = f"surveyed: sd {sd_position_m * 1000:.1f} mm, {sd_angle_deg:.2f} deg, {counts.get(m, 0)} frames"
         if m in weak:
             note += "; weakly linked to the anchors: survey again"
-        elif not sd_position_m <= LOOSE_SD_M:
+        elif placed_loosely(sd_position_m):
             note += "; placed loosely: survey again"
         marker = MapMarker(symbol, m, sizes(m), T, note, sd_position_m, sd_angle_deg)
         result.append(SurveyedMarker(marker, False, counts.get(m, 0), sd_position_m, sd_angle_deg, rms.get(m, math.nan),
