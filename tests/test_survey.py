@@ -354,11 +354,13 @@ def standpoint_walk(out: Path, stops, fps: float = 6.0) -> Path:
 
 def test_a_marker_linked_only_through_a_far_view_is_named_and_its_sd_covers_its_error(tmp_path):
     """A pans across A (close) and ENTRY (4.5 m away on the dock wall, ~25 px) from one standpoint, then films the
-    dock wall (ENTRY, T, S) from another: ENTRY and the markers placed through it hang on that one far view, whose
-    frames fit a second placement nearly as well. The survey names them on stderr, in survey.json and in the map's
-    notes, and each one's reported sd covers its error against the renderer's map."""
+    dock wall (ENTRY, T, S, DOCK) from another 3 m from it: ENTRY and the markers placed through it hang on that
+    one far view, whose frames fit a second placement nearly as well. The survey names them on stderr, in
+    survey.json and in the map's notes, and each one's reported sd covers its error against the renderer's map.
+    (With the second standpoint 2 m from the wall, its sharper views of the wall tell the two placements apart
+    once each sighting is weighed by its own noise: then nothing is weakly linked.)"""
     walk = standpoint_walk(tmp_path / "walk", [(4.5, 3.9, 187.0, 0.0), (4.5, 3.9, 203.0, 3.0),
-                                              (2.0, 5.0, 200.0, 4.0), (2.0, 5.0, 160.0, 4.0)])
+                                              (3.0, 5.0, 200.0, 4.0), (3.0, 5.0, 160.0, 4.0)])
     document = yaml.safe_load(MAP.read_text())
     document["markers"] = [m for m in document["markers"] if m["symbol"] == "A"]
     (tmp_path / "anchors.yaml").write_text(yaml.safe_dump(document))
@@ -370,7 +372,7 @@ def test_a_marker_linked_only_through_a_far_view_is_named_and_its_sd_covers_its_
     assert len(named) == 1 and "ENTRY" in named[0]
     summary = json.loads((report / "survey.json").read_text())
     weak = set(summary["weakly_linked"])
-    assert "ENTRY" in weak and weak <= {"ENTRY", "T", "S"} and all(symbol in named[0] for symbol in weak)
+    assert "ENTRY" in weak and weak <= {"ENTRY", "T", "S", "DOCK"} and all(symbol in named[0] for symbol in weak)
     truth, surveyed = load_map(MAP), load_map(out)
     for entry in summary["markers"]:
         assert entry["weakly_linked"] is (entry["symbol"] in weak)
@@ -525,3 +527,39 @@ def test_the_systematic_floor_does_not_shrink_with_the_number_of_frames():
         np.testing.assert_allclose(covariance(views), 4 * once, rtol=0.02, atol=1e-12)
     finally:
         adjust.SYSTEMATIC_POINT_PX = original
+
+
+def test_each_sighting_weighs_by_the_noise_the_detector_states_for_it():
+    """Half the views of two markers are read 20 times noisier than the others, and the detector says so
+    (``Sighting.sigma_px``): the adjustment then places the free marker by the sharp views; told nothing, it
+    averages in the noisy ones and lands several times further off."""
+    from companion.survey.adjust import BundleAdjustment
+    from companion.survey.observations import Sighting, SurveyFrame
+
+    truth = load_map(MAP)
+    model = CameraModel.from_config(CAMERA, "test camera")
+    o, n = truth.marker_by_symbol("O"), truth.marker_by_symbol("N")
+    target = (o.T_map_marker[:3, 3] + n.T_map_marker[:3, 3]) / 2
+    rng = np.random.default_rng(7)
+    views = []
+    for x in np.linspace(8.0, 11.0, 40):
+        heading = math.atan2(target[1] - 8.0, target[0] - x)
+        R_map_camera = np.column_stack([[math.sin(heading), -math.cos(heading), 0.0], [0.0, 0.0, -1.0],
+                                        [math.cos(heading), math.sin(heading), 0.0]])   # x right, y down, z ahead
+        views.append(frames.invert_transform(frames.make_transform(R_map_camera, [x, 8.0, 1.4])))
+    sigmas_px = [0.02 if k % 2 else 0.4 for k in range(len(views))]
+    seen = [[model.project_from(T, m.corners_map()) + rng.normal(0.0, sigma, (4, 2)) for m in (o, n)]
+            for T, sigma in zip(views, sigmas_px)]
+
+    def error_m(stated: bool) -> float:
+        survey_frames = [SurveyFrame(0, k, k, tuple(Sighting(m.id, m.corners_marker(), px, "square",
+                                                             sigma if stated else None)
+                                                    for m, px in zip((o, n), pixels)))
+                         for k, (pixels, sigma) in enumerate(zip(seen, sigmas_px))]
+        start = frames.make_transform(n.T_map_marker[:3, :3], n.T_map_marker[:3, 3] + [0.02, -0.01, 0.01])
+        problem = BundleAdjustment(survey_frames, model, {o.id: o.T_map_marker, n.id: start},
+                                   np.array(views), [n.id], noise_px=0.1)
+        return float(np.linalg.norm(problem.solve(20).markers[n.id][:3, 3] - n.T_map_marker[:3, 3]))
+
+    weighed, unweighed = error_m(True), error_m(False)
+    assert weighed < 0.3 * unweighed, (weighed, unweighed)

@@ -8,11 +8,14 @@ axes, as its covariance is reported. Fixed markers (anchors) do not move.
 
 Residuals, all in standard deviations:
 
-* every point of every sighting: (projected - detected pixels) / the noise of
-  its kind (``POINT_KINDS``: a square-path corner is aligned on the whole
+* every point of every sighting: (projected - detected pixels) / its noise:
+  its kind's (``POINT_KINDS``: a square-path corner is aligned on the whole
   printed pattern, a few hundredths of a pixel; the circles path's corners
-  and circle centres are tenths), under a Huber loss at ``HUBER_SIGMAS`` so
-  that a few bad points cannot pull the map;
+  and circle centres are tenths) times what the detector states for that
+  sighting relative to the kind's median (``Sighting.sigma_px``: a large,
+  sharp marker seen face-on weighs more than a small, blurred or oblique
+  one), under a Huber loss at ``HUBER_SIGMAS`` so that a few bad points
+  cannot pull the map;
 * "hangs on a vertical wall" priors: the horizontal part of the marker's
   y axis (map x, y) / ``wall_sd_rad`` (zero when the y axis is vertical);
 * soft anchors (to test how well several anchors agree): the position
@@ -97,7 +100,8 @@ class Adjustment:
     cost: half the sum of squared residuals in standard deviations (Huber on the points) at the solution;
     variance: the residuals' variance in standard deviations, s^2 (the covariance's factor).
     point_errors_px: (P, 2) projected minus detected pixels of every point, sighting by sighting;
-    point_kinds: (P,) index into POINT_KINDS; sighting_starts: (S + 1,) each sighting's first point.
+    point_kinds: (P,) index into POINT_KINDS; sighting_starts: (S + 1,) each sighting's first point;
+    point_factors: (P,) each point's noise over its kind's (its sighting's stated sigma over the kind's median).
     """
 
     markers: dict[int, np.ndarray]
@@ -115,10 +119,13 @@ class Adjustment:
     sighting_starts: np.ndarray
     cost: float = math.nan
     variance: float = math.nan
+    point_factors: np.ndarray | None = None   # None: 1 for every point
 
     def sighting_chi2(self, noise_px: dict[str, float]) -> np.ndarray:
         """(S,) each sighting's squared point errors in units of its points' noise (chi-square, 2 K dof)."""
         noise = np.array([noise_px[kind] for kind in POINT_KINDS])[self.point_kinds]
+        if self.point_factors is not None:
+            noise = noise * self.point_factors
         return np.add.reduceat(np.sum(self.point_errors_px ** 2, axis=1) / noise ** 2, self.sighting_starts[:-1])
 
 
@@ -167,7 +174,9 @@ class _Jacobians:
 class BundleAdjustment:
     """One adjustment problem: frames (each with its sightings), initial poses, which markers are free.
 
-    noise_px: the expected noise of one coordinate of a point, by kind (``POINT_KINDS``), or one value for all.
+    noise_px: the expected noise of one coordinate of a point, by kind (``POINT_KINDS``), or one value for all;
+    a sighting whose detector states its noise (``Sighting.sigma_px``) has its points' scaled by that over the
+    median of their kind's.
     """
 
     def __init__(self, survey_frames: list[SurveyFrame], camera: CameraModel, markers: dict[int, np.ndarray],
@@ -188,10 +197,11 @@ class BundleAdjustment:
     def _index_points(self) -> None:
         """Flat (P, ...) arrays over every point (frame by frame, sighting by sighting), and the sightings."""
         frame_of, slot_of, kind_of, points, pixels, self.sightings, starts = [], [], [], [], [], [], [0]
-        sides = []
+        sides, sigmas = [], []
         for k, frame in enumerate(self.frames):
             for s in frame.sightings:
                 n = len(s.points_px)
+                sigmas.append(np.full(n, np.nan if s.sigma_px is None else s.sigma_px))
                 sides.append(np.full(n, np.ptp(s.points_marker_m[:4, 0])))
                 frame_of.append(np.full(n, k))
                 slot_of.append(np.full(n, self.slot[s.marker_id]))
@@ -207,7 +217,8 @@ class BundleAdjustment:
         self.points_px = np.vstack(pixels)
         self.point_side_m = np.concatenate(sides)
         self.sighting_starts = np.array(starts)
-        self.point_noise_px = np.array([self.noise_px[POINT_KINDS[k]] for k in self.point_kind])
+        self.point_factor = self._point_factors(sigmas)
+        self.point_noise_px = np.array([self.noise_px[POINT_KINDS[k]] for k in self.point_kind]) * self.point_factor
         self.sighting_frame = np.array([k for k, _ in self.sightings])
         self.sighting_free = np.array([self.free_slot.get(m, -1) for _, m in self.sightings])
         self.point_sighting = np.repeat(np.arange(len(self.sightings)), np.diff(self.sighting_starts))
@@ -223,6 +234,17 @@ class BundleAdjustment:
         self.frame_starts = np.concatenate([[0], np.cumsum(np.bincount(self.point_frame, minlength=len(self.frames)))])
         self.wall_ids = [m for m in self.free_ids if m in self.priors.on_wall]
         self.anchor_ids = [m for m in self.free_ids if m in self.priors.soft_anchors]
+
+    def _point_factors(self, sigmas) -> np.ndarray:
+        """(P,) each point's noise relative to its kind's: the detector's sigma of its sighting over the median
+        of its kind's (1 where the detector states none)."""
+        sigma = np.concatenate(sigmas) if sigmas else np.zeros(0)
+        factor = np.ones(len(sigma))
+        for k in range(len(POINT_KINDS)):
+            stated = (self.point_kind == k) & np.isfinite(sigma) & (sigma > 0)
+            if stated.any():
+                factor[stated] = sigma[stated] / np.median(sigma[stated])
+        return factor
 
     def _sightings_of(self, k: int) -> range:
         return range(np.searchsorted(self.sighting_frame, k), np.searchsorted(self.sighting_frame, k, side="right"))
@@ -409,14 +431,15 @@ class BundleAdjustment:
         dof = max(n_residuals - self.n_params, 1)
         # the residuals' variance in standard deviations: (sum of squared point errors / noise^2) / dof
         variance = float(np.sum(squared / self.point_noise_px ** 2)) / dof
-        # each kind's noise: its RMS, scaled up for the parameters fitted (n_residuals / dof)
-        noise = {kind: math.sqrt(float(np.mean(squared[self.point_kind == k])) / 2 * n_residuals / dof)
+        # each kind's noise: its RMS (each point's error over its factor), scaled up for the parameters fitted
+        relative = squared / self.point_factor ** 2
+        noise = {kind: math.sqrt(float(np.mean(relative[self.point_kind == k])) / 2 * n_residuals / dof)
                  for k, kind in enumerate(POINT_KINDS) if np.any(self.point_kind == k)}
         counts_of_kind = {kind: int(np.sum(self.point_kind == k)) for k, kind in enumerate(POINT_KINDS)}
         covariance = self._marker_covariance(poses, normal, variance)
         return Adjustment(markers, cameras, covariance, self.sightings, sighting_rms,
                           math.sqrt(float(np.sum(squared)) / n_residuals), noise, counts_of_kind, steps, converged,
-                          errors, self.point_kind, self.sighting_starts, normal.cost, variance)
+                          errors, self.point_kind, self.sighting_starts, normal.cost, variance, self.point_factor)
 
     def _marker_covariance(self, poses: _Poses, normal: _Normal, variance: float) -> dict[int, np.ndarray]:
         """Free marker id -> (6, 6) covariance: the noise's, s^2 S^-1 (S the cameras' Schur complement), plus

@@ -41,12 +41,15 @@ class Sighting:
     points_marker_m: (K, 3) its points in the marker frame (4 corners TL, TR, BR, BL, then circle centres).
     points_px: (K, 2) where they are in the image.
     path: the detector's path that found it ("square" or "circles").
+    sigma_px: the detector's standard deviation of each point's x and y (``Detection.corner_sigma_px``), or
+        None where it states none.
     """
 
     marker_id: int
     points_marker_m: np.ndarray
     points_px: np.ndarray
     path: str = "square"
+    sigma_px: float | None = None
 
     def point_kinds(self) -> np.ndarray:
         """(K,) index into POINT_KINDS of each point."""
@@ -163,7 +166,8 @@ def sightings_of(detections: list[Detection], size_m: Callable[[int], float | No
             points_marker.append(frames.grid_to_marker_m(circles_uv[circle_ids[valid]], layout.inner_origin,
                                                          layout.inner_cells, size))
             points_px.append(np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid])
-        sightings.append(Sighting(detection.id, np.vstack(points_marker), np.vstack(points_px), detection.path))
+        sightings.append(Sighting(detection.id, np.vstack(points_marker), np.vstack(points_px), detection.path,
+                                  detection.corner_sigma_px))
     return tuple(sightings)
 
 

@@ -394,7 +394,7 @@ def _weak_links(adjustment: Adjustment, first: Adjustment,
 def _adjust_again(adjustment: Adjustment, posed_frames, camera, free_ids, priors, options: SurveyOptions):
     """From an adjustment with the expected noise: measure the noise of each kind of point from the residuals;
     leave out the sightings whose errors that noise cannot explain; adjust again, each point weighted by its
-    kind's noise."""
+    kind's noise (times its sighting's stated sigma over the kind's median)."""
     noise = _noise(adjustment, options)
     limits = chi2.ppf(GATE_PROBABILITY, 2 * np.diff(adjustment.sighting_starts))
     bad = {sighting for sighting, value, limit in zip(adjustment.sightings, adjustment.sighting_chi2(noise), limits)
