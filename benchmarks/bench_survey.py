@@ -92,6 +92,19 @@ def aim(x: float, y: float, heading_deg: float, pitch_deg: float = 0.0, hold_s: 
     return [(x, y, heading_deg - 30.0, pitch_deg)] + still + [(x, y, heading_deg + 30.0, pitch_deg)]
 
 
+def anchor_views(x: float, y: float, facing_deg: float, distance_m: float = 1.2) -> list[tuple]:
+    """Film a marker at (x, y) that faces ``facing_deg`` from ``distance_m``, 45 degrees to each side of it,
+    holding still at each: the way docs/survey.md asks to film a lone anchor (the map's heading is only as
+    good as the views of it with its neighbours, and an oblique view gives a marker's turn far better than a
+    straight one, which here would show the anchor alone)."""
+    poses = []
+    for side_deg in (-45.0, 45.0):
+        bearing = math.radians(facing_deg + side_deg)
+        px, py = x + distance_m * math.cos(bearing), y + distance_m * math.sin(bearing)
+        poses += [(px, py, facing_deg + side_deg + 180.0, 0.0)] * 5
+    return poses
+
+
 def along(y: float, xs, walking_deg: float, pan_to_deg: float) -> list[tuple]:
     """Walk along an aisle (at y) with the phone diagonally ahead at a rack face (walking_deg); at each stop
     (xs) pan across to the other face (pan_to_deg) and back."""
@@ -109,6 +122,7 @@ def hall_walk() -> list[tuple]:
     poses = []
     # loop 1, around rack R1, from the dock end of aisle 1 where the anchor A hangs
     poses += look(2.5, 5.0, 150.0, 210.0)                   # dock wall: ENTRY, T
+    poses += anchor_views(4.0, 3.5, 90.0)                   # the anchor A from 1.2 m, 45 deg to each side
     poses += aim(3.5, 5.0, 180.0, pitch_deg=25.0)           # the sign 4 above them
     poses += aim(2.75, 2.9, 104.0)                          # E with T
     poses += aim(4.5, 3.9, 203.0)                           # A with ENTRY
