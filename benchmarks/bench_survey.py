@@ -1,8 +1,8 @@
 """Survey accuracy, speed and map check on walk-throughs rendered through ``maps/warehouse.yaml``.
 
 A person walks the hall with a phone (70 degree field of view, at eye height 1.5 m, tilted 15 degrees down)
-the way docs/survey.md asks (``hall_walk``): a loop around each rack, each face filmed diagonally ahead with
-pans across the aisle at each stop, the rack's last marker held in view with the end wall's at each aisle end,
+the way docs/survey.md asks (``hall_walk``): the anchor filmed from 45 degrees to each side with its neighbours,
+a loop around each rack, each face filmed diagonally ahead with pans across the aisle at each stop, the rack's last marker held in view with the end wall's at each aisle end,
 the high signs looked up at, back to the anchor; slow walking and turning with the hand's shake
 (``handheld``). The simulator renders it with a phone video's degradations (``WALK_DEGRADATIONS``: motion
 blur, optics blur, vignetting, sensor noise, auto-exposure wander, JPEG) and people and boxes crossing the
@@ -116,7 +116,7 @@ def along(y: float, xs, walking_deg: float, pan_to_deg: float) -> list[tuple]:
 
 def hall_walk() -> list[tuple]:
     """(x, y, heading_deg, pitch_deg) stops of a walk through ``maps/warehouse.yaml``, the way docs/survey.md asks:
-    a loop around each rack, each face filmed from 1.4 m with the next markers in view, stops that pan across
+    the anchor A from 45 degrees to each side, a loop around each rack, each face filmed from 1.4 m with the next markers in view, stops that pan across
     the aisle, the high signs looked up at, and at every aisle end the rack's last marker aimed at together with
     the end wall's (perpendicular faces 4 m apart: at 640x480 only a few headings show both large enough)."""
     poses = []
