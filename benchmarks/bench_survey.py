@@ -1,14 +1,14 @@
 """Survey accuracy, speed and map check on walk-throughs rendered through ``maps/warehouse.yaml``.
 
-A person walks the hall with a phone (70 degree field of view, at eye height 1.5 m, tilted 15 degrees down)
-the way docs/survey.md asks (``hall_walk``): the anchor filmed from 45 degrees to each side with its neighbours,
-a loop around each rack, each face filmed diagonally ahead with pans across the aisle at each stop, the rack's last marker held in view with the end wall's at each aisle end,
-the high signs looked up at, back to the anchor; slow walking and turning with the hand's shake
-(``handheld``). The simulator renders it with a phone video's degradations (``WALK_DEGRADATIONS``: motion
-blur, optics blur, vignetting, sensor noise, auto-exposure wander, JPEG) and people and boxes crossing the
-view, at 640x480 and 1280x720 (``--work DIR`` keeps the walks in DIR/hall-WxH and reuses them). The survey
-sees the true map only through its anchors (one marker; and three spread over the hall), the marker sizes and
-which markers hang on walls, and is then held to the true map:
+A person walks the hall with a phone (70 degree field of view, at eye height 1.5 m, tilted 15 degrees down) the
+way docs/survey.md asks (``hall_walk``): the anchor filmed from 45 degrees to each side with its neighbours, a
+loop around each rack, each face filmed diagonally ahead with pans across the aisle at each stop, the rack's last
+marker held in view with the end wall's at each aisle end, the high signs looked up at, back to the anchor; slow
+walking and turning with the hand's shake (``handheld``). The simulator renders it with a phone video's
+degradations (``WALK_DEGRADATIONS``: motion blur, optics blur, vignetting, sensor noise, auto-exposure wander,
+JPEG) and people and boxes crossing the view, at 640x480 and 1280x720 (``--work DIR`` keeps the walks in
+DIR/hall-WxH and reuses them). The survey sees the true map only through its anchors (one marker; and three
+spread over the hall), the marker sizes and which markers hang on walls, and is then held to the true map:
 
 * marker position and orientation errors (median, max), markers seen in >= 3 frames mapped; and the position
   errors left after the best rigid and similarity fit of the surveyed map to the truth (the map's turn, shift
@@ -116,9 +116,10 @@ def along(y: float, xs, walking_deg: float, pan_to_deg: float) -> list[tuple]:
 
 def hall_walk() -> list[tuple]:
     """(x, y, heading_deg, pitch_deg) stops of a walk through ``maps/warehouse.yaml``, the way docs/survey.md asks:
-    the anchor A from 45 degrees to each side, a loop around each rack, each face filmed from 1.4 m with the next markers in view, stops that pan across
-    the aisle, the high signs looked up at, and at every aisle end the rack's last marker aimed at together with
-    the end wall's (perpendicular faces 4 m apart: at 640x480 only a few headings show both large enough)."""
+    the anchor A from 45 degrees to each side, a loop around each rack, each face filmed from 1.4 m with the next
+    markers in view, stops that pan across the aisle, the high signs looked up at, and at every aisle end the
+    rack's last marker aimed at together with the end wall's (perpendicular faces 4 m apart: at 640x480 only a few
+    headings show both large enough)."""
     poses = []
     # loop 1, around rack R1, from the dock end of aisle 1 where the anchor A hangs
     poses += look(2.5, 5.0, 150.0, 210.0)                   # dock wall: ENTRY, T
@@ -314,8 +315,9 @@ def survey_runs(walks: dict[str, Path], truth: FacilityMap, anchor_sets, configs
                   f"{position.max() * 1000:>10.1f} {np.median(angle):>11.3f} {angle.max():>11.3f} {detect_s:>8.1f} "
                   f"{adjust_s:>8.1f} {load:>5.2f} {f'{covered}/{len(position)}':>6}  {worst:<6} {weak}")
             fit = aligned_errors(result.facility_map, truth, symbols)
-            aligned.append(f"  {walk_name}/{anchor_name}: best rigid fit to the truth {np.median(fit['rigid']) * 1000:.1f} / "
-                           f"{fit['rigid'].max() * 1000:.1f} mm (turn {fit['turn_deg']:.3f} deg), with scale "
+            aligned.append(f"  {walk_name}/{anchor_name}: best rigid fit to the truth "
+                           f"{np.median(fit['rigid']) * 1000:.1f} / {fit['rigid'].max() * 1000:.1f} mm "
+                           f"(turn {fit['turn_deg']:.3f} deg), with scale "
                            f"{np.median(fit['similar']) * 1000:.1f} / {fit['similar'].max() * 1000:.1f} mm "
                            f"(scale {fit['scale']:.5f})")
             maps[(walk_name, anchor_name)] = (result.facility_map, *surveyed_sd(result))

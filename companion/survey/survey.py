@@ -42,7 +42,8 @@ MIN_POINTS_FOR_NOISE = 40  # a kind of point needs this many to measure its nois
 MIN_NOISE_PX = 0.005       # no kind of point is trusted beyond this (rendering and rounding)
 RIVAL_CHI2 = 25.0          # a rival placement whose adjustment fits worse by less than this is not ruled out
 MAX_RIVALS = 6             # rival placements adjusted (each costs an adjustment)
-LOOSE_SD_M = 0.05          # a surveyed marker placed no better than this is no better than a tape: named for another look
+# a surveyed marker placed no better than this is no better than a tape: named for another look
+LOOSE_SD_M = 0.05
 
 
 @dataclass(frozen=True)
