@@ -126,7 +126,7 @@ def map_detector(facility_map: FacilityMap, camera: CameraModel):
     """The detector for a map's markers (its parity and dictionary), aligning corners through the camera's lens."""
     from companion.detect.detector import Detector, DetectorParams
 
-    return Detector(DetectorParams(parity=facility_map.parity, dictionary=facility_map.dictionary), camera=camera)
+    return Detector(DetectorParams.for_footage(facility_map.parity, facility_map.dictionary), camera=camera)
 
 
 def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | None = None,

@@ -197,7 +197,7 @@ def check_map(sequences: list[Path], facility_map: FacilityMap, camera: CameraMo
     from companion.detect.detector import Detector, DetectorParams
 
     layout = MarkerLayout(parity=facility_map.parity, dictionary=facility_map.dictionary)
-    detector = Detector(DetectorParams(parity=facility_map.parity, dictionary=facility_map.dictionary), camera=camera)
+    detector = Detector(DetectorParams.for_footage(facility_map.parity, facility_map.dictionary), camera=camera)
 
     def size_m(marker_id: int) -> float | None:
         marker = facility_map.markers.get(marker_id)

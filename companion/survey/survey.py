@@ -143,7 +143,7 @@ def survey(sequences: list[Path], camera: CameraModel, anchors: FacilityMap, opt
     if detector is None:
         from companion.detect.detector import Detector, DetectorParams
 
-        detector = Detector(DetectorParams(parity=anchors.parity, dictionary=anchors.dictionary), camera=camera)
+        detector = Detector(DetectorParams.for_footage(anchors.parity, anchors.dictionary), camera=camera)
     sizes = _Sizes(anchors, options.size_m, layout)
     footage = collect(sequences, camera, detector, sizes, layout, options.fps, options.progress)
     return survey_footage(footage, camera, anchors, options, extend, sizes)
