@@ -216,9 +216,9 @@ class EdgeRefiner:
         points = self.edge_points(gray, H, half_width_cells, samples, p.square_stride)
         lines, enough = _fit_lines(points, p.min_points_per_edge)  # (M, 4, 3), (M, 4)
         # corner i is where edge i - 1 (the one ending there) meets edge i (the one starting there)
-        previous = np.roll(lines, 1, axis=1)
+        previous = lines[:, homography.PREVIOUS_CORNER]
         meet = np.cross(previous, lines)
-        ok = enough & np.roll(enough, 1, axis=1) & (np.abs(meet[..., 2]) > 1e-9)
+        ok = enough & enough[:, homography.PREVIOUS_CORNER] & (np.abs(meet[..., 2]) > 1e-9)
         with np.errstate(divide="ignore", invalid="ignore"):
             refined = meet[..., :2] / meet[..., 2:3]
         moved = np.linalg.norm(refined - corners_px, axis=2)

@@ -405,7 +405,7 @@ class MarkerRefiner:
             # inverse composition: W(x; p) <- W(x; p) o W(x; dp)^-1, with W(x; dp) = (I + D(dp)) x
             D = np.eye(3)
             D.flat[:8] += dp
-            M = M @ np.linalg.inv(D)
+            M = M @ homography.inv3(D)
             M /= M[2, 2]
             if np.abs(dp).max() < tolerance:
                 break

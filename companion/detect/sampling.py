@@ -141,7 +141,7 @@ def inside_grids(points_px: np.ndarray, H: np.ndarray, n_cells: int) -> np.ndarr
         return np.zeros(len(points_px), bool)
     outline = homography.project(H, np.array([[0, 0], [n_cells, 0], [n_cells, n_cells], [0, n_cells]], float))  # (M, 4, 2)
     # inside a convex clockwise polygon: on the right of (or on) every edge
-    edge = np.roll(outline, -1, axis=1) - outline
+    edge = outline[:, homography.NEXT_CORNER] - outline
     to_point = points_px[:, None, None, :] - outline[None]  # (K, M, 4, 2)
     cross = edge[None, ..., 0] * to_point[..., 1] - edge[None, ..., 1] * to_point[..., 0]
     return (cross >= 0).all(axis=2).any(axis=1)
