@@ -195,7 +195,7 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
     if len(fixed) >= 2 and not extend:
         agreement = _anchor_agreement(shared, camera, fixed, groups, counts, anchors, symbols, options,
                                       _noise(adjustment, options))
-    markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall, weak)
+    markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall, weak, extend)
     facility_map = replace(anchors, path="", markers={s.marker.id: s.marker for s in markers})
     if extend:  # the existing map's markers not seen this time stay as they were
         facility_map = replace(facility_map, markers={**anchors.markers, **facility_map.markers})
@@ -424,15 +424,16 @@ def _noise(adjustment: Adjustment, options: SurveyOptions) -> dict[str, float]:
 
 
 def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: FacilityMap, counts, sizes,
-                    on_wall: frozenset[int], weak: dict[int, tuple[float, float]]) -> list[SurveyedMarker]:
+                    on_wall: frozenset[int], weak: dict[int, tuple[float, float]],
+                    extend: bool) -> list[SurveyedMarker]:
     """Each marker with its uncertainty: the adjustment's covariance, widened for a weakly linked marker to
-    cover where a rival adjustment put it."""
+    cover where a rival adjustment put it; the anchors as ``_anchor_with_sd`` gives them."""
     rms = _marker_rms(adjustment)
     result = []
     for m, T in adjustment.markers.items():
         symbol = sizes.symbols[m]
         if m in fixed:
-            marker = _anchor_with_sd(anchors.markers[m], anchors, lone=len(fixed) == 1)
+            marker = _anchor_with_sd(anchors.markers[m], anchors, extend)
             result.append(SurveyedMarker(marker, True, counts.get(m, 0), 0.0, 0.0, rms.get(m, math.nan), None))
             continue
         covariance = adjustment.covariance[m]
@@ -453,11 +454,12 @@ def _result_markers(adjustment: Adjustment, posed_frames, fixed, anchors: Facili
     return result
 
 
-def _anchor_with_sd(anchor: MapMarker, anchors: FacilityMap, lone: bool) -> MapMarker:
-    """An anchor as the map gives it, with how well it is known: a lone anchor is the map frame (exact by
-    definition: sd 0); each of several was measured to its own ``sd``, else the stated
-    ``survey.anchor_sd_m`` / ``anchor_sd_deg``."""
-    if lone:
+def _anchor_with_sd(anchor: MapMarker, anchors: FacilityMap, extend: bool) -> MapMarker:
+    """An anchor as the map gives it, with how well it is known in the map. The anchors of an anchors file
+    are the map frame: held exactly, every other marker placed from them, so exact in the map by definition
+    (sd 0; how well they fit the site is the agreement test's, and every marker shares it). A marker of an
+    existing map extended keeps its own ``sd``, else the stated ``survey.anchor_sd_m`` / ``anchor_sd_deg``."""
+    if not extend:
         return replace(anchor, sd_position_m=0.0, sd_angle_deg=0.0)
     hints = anchors.survey
     return replace(anchor, sd_position_m=hints.anchor_sd_m if anchor.sd_position_m is None else anchor.sd_position_m,
