@@ -290,7 +290,7 @@ def survey_runs(walks: dict[str, Path], truth: FacilityMap, anchor_sets, configs
         camera = CameraModel.from_config(yaml.safe_load((walk / "sequence.yaml").read_text())["camera"], str(walk))
         first = anchors_map(truth, next(iter(anchor_sets.values())))
         layout = MarkerLayout(parity=first.parity, dictionary=first.dictionary)
-        detector = Detector(DetectorParams(parity=first.parity, dictionary=first.dictionary), camera=camera)
+        detector = Detector(DetectorParams.for_footage(first.parity, first.dictionary), camera=camera)
         start = time.perf_counter()
         footage = collect([walk], camera, detector, lambda m: truth.markers[m].size_m if m in truth.markers else None,
                           layout, progress=False)
