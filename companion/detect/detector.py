@@ -23,8 +23,9 @@ Stages (one module each in ``companion.detect``, run in this order):
    the square path (1-5) run again there for the markers the smear hid.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
-   (found at a pyramid level, on a second thread beside ArUco when OpenCV
-   may use two, at full resolution only where nothing was found at half)
+   (found at a pyramid level: half resolution beside markers found, full
+   where none was; on a second thread beside ArUco when OpenCV may use two,
+   at half, the frame searched again at full where that found nothing)
    are grouped into grids, read again in the frame, fitted,
    refined on the visible edges, sampled with occluded and out-of-image
    cells as erasures, and decoded the same way.
@@ -46,7 +47,8 @@ import numpy as np
 
 from companion.detect import homography, sampling
 from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, blob_level,
-                                      corner_triples, find_frame_blobs, find_window_blobs, missing_corner_cells, refine_centres)
+                                      corner_triples, find_frame_blobs, find_window_blobs, missing_corner_cells,
+                                      refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -177,7 +179,8 @@ class Detector:
                 blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
             elif expected_px is not None and detections:
                 windows = self._windows_of_missing(expected_px, found_H, gray.shape)
-                blobs, coarse = (find_window_blobs(gray, windows, circles) if len(windows) else None), False
+                blobs = find_window_blobs(gray, windows, circles) if len(windows) else None
+                coarse = False
             else:
                 # beside markers found, occluded ones are looked for at min_side_beside_found_px; in a frame
                 # with none, at min_side_px at once

@@ -10,12 +10,13 @@ built is all NaN and projects to NaN.
 Written for speed (they run on every candidate of every frame, mostly on
 arrays of a few dozen values, where numpy's cost per call, not the
 arithmetic, is the time): the batched 4-point solve of more than
-``FEW_HOMOGRAPHIES`` quads is one ``np.linalg.solve`` over all of them, a shared set of points goes through
-many homographies in one ``np.tensordot``; one homography (a few points,
-or the refiner's thousands of template points every step), and each of a
-batch of up to ``FEW_HOMOGRAPHIES``, is OpenCV's ``perspectiveTransform``
-/ ``getPerspectiveTransform`` (from float32 corners: about 1e-5 px at 1000 px),
-5-15x faster than numpy on small arrays;
+``FEW_HOMOGRAPHIES`` quads is one ``np.linalg.solve`` over all of them, a
+shared set of points goes through many homographies in one
+``np.tensordot``; one homography (a few points, or the refiner's thousands
+of template points every step), and each of a batch of up to
+``FEW_HOMOGRAPHIES``, is OpenCV's ``perspectiveTransform`` /
+``getPerspectiveTransform`` (from float32 corners: about 1e-5 px at 1000
+px), 5-15x faster than numpy on small arrays;
 3 x 3 determinants and inverses are written out, and an affine fit is one
 product with a solver cached per set of grid points.
 """
