@@ -23,10 +23,8 @@ Stages (one module each in ``companion.detect``, run in this order):
    the square path (1-5) run again there for the markers the smear hid.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
-   (found at a pyramid level: half resolution beside markers found, full
-   where none was; on a second thread beside ArUco when OpenCV may use two,
-   at half, the frame searched again at full where that found nothing)
-   are grouped into grids, read again in the frame, fitted,
+   (found at a pyramid level, on a second thread beside ArUco when OpenCV
+   may use two) are grouped into grids, read again in the frame, fitted,
    refined on the visible edges, sampled with occluded and out-of-image
    cells as erasures, and decoded the same way.
 
@@ -46,9 +44,8 @@ import cv2
 import numpy as np
 
 from companion.detect import homography, sampling
-from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, blob_level,
-                                      corner_triples, find_frame_blobs, find_window_blobs, missing_corner_cells,
-                                      refine_centres)
+from companion.detect.circles import (Blobs, CircleCandidate, CircleParams, assemble_candidates, corner_triples,
+                                      find_frame_blobs, find_window_blobs, missing_corner_cells, refine_centres)
 from companion.detect.edges import EdgeParams, EdgeRefiner
 from companion.detect.refine import MarkerRefiner, RefineParams
 from companion.detect.sampling import SamplingParams
@@ -103,7 +100,8 @@ class DetectorParams:
     @classmethod
     def for_footage(cls, parity: int = 2, dictionary: str = "6x6") -> DetectorParams:
         """For footage processed offline (survey, map check, localize), recall before speed: occluded
-        markers beside found ones are looked for down to ``circles.min_side_px`` too."""
+        markers beside found ones are looked for down to ``circles.min_side_px`` on one thread too (on
+        two the search beside ArUco does so by default)."""
         circles = CircleParams()
         return cls(parity=parity, dictionary=dictionary,
                    circles=replace(circles, min_side_beside_found_px=circles.min_side_px))
@@ -174,23 +172,18 @@ class Detector:
             found_H = homography.from_quads(self.layout.inner_corners_cells,
                                             np.stack([d.corners_px for d in detections])) if detections else None
             circles = self.params.circles
-            coarse = blob_level(circles, circles.min_side_beside_found_px) > blob_level(circles)
             if blobs_pending is not None and not blobs_pending.cancel():
                 blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
             elif expected_px is not None and detections:
                 windows = self._windows_of_missing(expected_px, found_H, gray.shape)
                 blobs = find_window_blobs(gray, windows, circles) if len(windows) else None
-                coarse = False
             else:
-                # beside markers found, occluded ones are looked for at min_side_beside_found_px; in a frame
-                # with none, at min_side_px at once
-                coarse = coarse and bool(detections)
-                blobs = find_frame_blobs(gray, circles, circles.min_side_beside_found_px if coarse else None)
+                # the same search whether or not the thread got to it: only where none was handed over does
+                # the square path's outcome choose the resolution
+                beside_found = bool(detections) and blobs_pending is None
+                blobs = find_frame_blobs(gray, circles, circles.min_side_beside_found_px if beside_found else None)
             if blobs is not None:
                 detections += self._circles_path(gray, blobs, found_H, clock)
-            if coarse and not detections:
-                # the coarse search beside ArUco found nothing either: the smallest markers, at min_side_px
-                detections += self._circles_path(gray, find_frame_blobs(gray, circles), None, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
 
@@ -208,8 +201,7 @@ class Detector:
             return None
         if self._blob_worker is None:
             self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
-        circles = self.params.circles
-        return self._blob_worker.submit(find_frame_blobs, gray, circles, circles.min_side_beside_found_px)
+        return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
 
     def _windows_of_missing(self, expected_px: np.ndarray, found_H: np.ndarray,
                             gray_shape: tuple[int, int]) -> np.ndarray:
@@ -490,5 +482,5 @@ class _StageClock:
 
     def lap(self, stage: str) -> None:
         now = time.perf_counter_ns()
-        self.stages_ms[stage] = self.stages_ms.get(stage, 0.0) + (now - self._last) / 1e6
+        self.stages_ms[stage] = (now - self._last) / 1e6
         self._last = now
