@@ -117,15 +117,13 @@ class Adjustment:
     point_errors_px: np.ndarray
     point_kinds: np.ndarray
     sighting_starts: np.ndarray
+    point_factors: np.ndarray
     cost: float = math.nan
     variance: float = math.nan
-    point_factors: np.ndarray | None = None   # None: 1 for every point
 
     def sighting_chi2(self, noise_px: dict[str, float]) -> np.ndarray:
         """(S,) each sighting's squared point errors in units of its points' noise (chi-square, 2 K dof)."""
-        noise = np.array([noise_px[kind] for kind in POINT_KINDS])[self.point_kinds]
-        if self.point_factors is not None:
-            noise = noise * self.point_factors
+        noise = np.array([noise_px[kind] for kind in POINT_KINDS])[self.point_kinds] * self.point_factors
         return np.add.reduceat(np.sum(self.point_errors_px ** 2, axis=1) / noise ** 2, self.sighting_starts[:-1])
 
 
@@ -439,7 +437,7 @@ class BundleAdjustment:
         covariance = self._marker_covariance(poses, normal, variance)
         return Adjustment(markers, cameras, covariance, self.sightings, sighting_rms,
                           math.sqrt(float(np.sum(squared)) / n_residuals), noise, counts_of_kind, steps, converged,
-                          errors, self.point_kind, self.sighting_starts, normal.cost, variance, self.point_factor)
+                          errors, self.point_kind, self.sighting_starts, self.point_factor, normal.cost, variance)
 
     def _marker_covariance(self, poses: _Poses, normal: _Normal, variance: float) -> dict[int, np.ndarray]:
         """Free marker id -> (6, 6) covariance: the noise's, s^2 S^-1 (S the cameras' Schur complement), plus
