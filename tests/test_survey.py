@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import resource
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -193,6 +195,23 @@ def test_several_anchors_that_disagree_stop_the_survey_naming_the_bad_one(tmp_pa
     written = {str(m["symbol"]): m for m in yaml.safe_load(out.read_text())["markers"]}
     assert all(written[s]["sd"] == {"position_m": 0.0, "angle_deg": 0.0} for s in ("O", "UP", "DOWN"))
     assert all(0 < written[s]["sd"]["position_m"] < 0.01 for s in set(written) - {"O", "UP", "DOWN"})
+
+
+def test_a_map_that_cannot_be_written_out_is_named_with_no_partial_file(tmp_path, north_walk):
+    # the process may write no file over 1 KB (as a full disk refuses the write: an error that names no file)
+    def small_files_only():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1024, 1024))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    out = tmp_path / "out" / "site.yaml"
+    out.parent.mkdir()
+    result = subprocess.run([sys.executable, "-m", "companion", "survey", str(north_walk), "--camera",
+                             str(north_walk / "camera.yaml"), "--anchors", str(anchors_file(tmp_path / "o.yaml", {"O"})),
+                             "--out", str(out)], capture_output=True, text=True, cwd=REPO, timeout=300,
+                            preexec_fn=small_files_only)
+    assert result.returncode == 2
+    assert result.stderr == f"companion survey: cannot write {out}: File too large\n"
+    assert list(out.parent.iterdir()) == []
 
 
 def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):

@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 
 from companion.capture.replay import image_files
-from companion.cli.output import output_dir, output_file
+from companion.cli.output import cannot_write, output_dir, output_file
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
                                             CharucoBoard, calibrate, capture_live, write_calibration)
 from companion.markers.charuco import DEFAULT_DICTIONARY, CharucoError, CharucoSpec
@@ -103,7 +103,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion calibrate: {error}", file=sys.stderr)
         return 2
     except OSError as error:
-        print(f"companion calibrate: cannot write {error.filename or args.out}: {error.strerror}", file=sys.stderr)
+        print(f"companion calibrate: {cannot_write(error, args.out)}", file=sys.stderr)
         return 2
     print_result(calibration, paths_count, args.out)
     return 0

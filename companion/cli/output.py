@@ -38,6 +38,11 @@ def output_file(path: Path, option: str) -> Path:
     return path
 
 
+def cannot_write(error: OSError, path) -> str:
+    """"cannot write PATH: why" for an OSError raised while writing ``path`` (a full disk's error names no file)."""
+    return f"cannot write {error.filename or path}: {error.strerror or error}"
+
+
 def _probe(folder: Path, option: str, named: Path) -> None:
     try:
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".companion-write-test-"):

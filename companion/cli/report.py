@@ -7,6 +7,7 @@ from pathlib import Path
 
 from companion.capture.replay import sequence_map_path
 from companion.capture.source import SourceError
+from companion.cli.output import cannot_write
 from companion.geometry.facility_map import FacilityMap, MapError, load_map
 from companion.report.flight_log import FlightLog, ReportError, read_flight
 
@@ -29,7 +30,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion report: {error}", file=sys.stderr)
         return 2
     except OSError as error:
-        print(f"companion report: cannot write {error.filename}: {error.strerror}", file=sys.stderr)
+        print(f"companion report: {cannot_write(error, args.out or args.folder)}", file=sys.stderr)
         return 2
     gaps = log.gaps()
     print(f"{out}: {len(log.frame)} frames, {log.duration_s:.1f} s, fresh fixes in "

@@ -10,7 +10,7 @@ import tempfile
 from pathlib import Path
 
 from companion.capture.source import SourceError
-from companion.cli.output import OutputError, output_dir, output_file
+from companion.cli.output import OutputError, cannot_write, output_dir, output_file
 from companion.geometry.camera import CameraError, load_camera
 from companion.geometry.facility_map import MapError, load_map, write_map
 from companion.survey.observations import SurveyError
@@ -40,6 +40,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def main(args) -> int:
     """0: map written; 2: the input cannot make a map (nothing written)."""
     progress = sys.stderr.isatty() if args.progress is None else args.progress
+    writing = args.out
     try:
         if args.size_m is not None and not (math.isfinite(args.size_m) and args.size_m > 0):
             raise SurveyError(f"--size-m must be a positive number of metres, got {args.size_m:g}")
@@ -55,12 +56,13 @@ def main(args) -> int:
         if args.report:
             from companion.survey.report import write_report
 
+            writing = args.report
             write_report(result, args.report)
     except (SurveyError, MapError, CameraError, SourceError, OutputError) as error:
         print(f"companion survey: {error}", file=sys.stderr)
         return 2
     except OSError as error:
-        print(f"companion survey: cannot write {error.filename}: {error.strerror}", file=sys.stderr)
+        print(f"companion survey: {cannot_write(error, writing)}", file=sys.stderr)
         return 2
     print(summary(result))
     _notes(result)
