@@ -151,10 +151,12 @@ def square_window_ns(rows: list[dict]) -> tuple[int, int]:
 
 
 def truth_track(rows: list[dict]) -> tuple[np.ndarray, np.ndarray]:
-    """(t_ns (N,), NED from the EKF origin (N, 3)) of every SIM_STATE the peer sent after it had the origin."""
-    truth = [(r["t_ns"], r["fields"]["ned_from_origin"]) for r in rows
-             if r["name"] == "SIM_STATE" and r["fields"]["ned_from_origin"] is not None]
-    return np.array([t for t, _ in truth]), np.array([p for _, p in truth])
+    """(t_ns (N,), NED from the EKF origin (N, 3)) of every state the peer sent after it had the origin,
+    at the time the vehicle was there (not when it was sent: after a stall the two differ by the stall)."""
+    truth = {r["fields"]["state_t_ns"]: r["fields"]["ned_from_origin"] for r in rows
+             if r["name"] == "SIM_STATE" and r["fields"]["ned_from_origin"] is not None}
+    times = sorted(truth)
+    return np.array(times), np.array([truth[t] for t in times])
 
 
 def local_copy(config_path: Path, folder: Path, companion_port: int) -> Path:

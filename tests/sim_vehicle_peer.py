@@ -97,8 +97,10 @@ class Vehicle:
         self.target: list[float] | None = None
         self.armed = False
         self.mode = 0  # STABILIZE
+        self.t_s = time.monotonic()  # the time (monotonic clock) the state is for
 
     def step(self, dt_s: float) -> None:
+        self.t_s += dt_s
         if self.target is None or not self.armed:
             self.velocity = [0.0, 0.0, 0.0]
             return
@@ -186,8 +188,10 @@ class Peer:
             alt = self.home[2] - v.position[2]
             q = v.quaternion()
             truth = self.truth_from_origin(lat, lon, alt)
+            # state_t_ns: when the vehicle was there. A send can leave well after: a process stopped between
+            # the physics step and the send (a stalled simulator) sends the state from before the stall
             self.record("sent", "SIM_STATE", {"lat": lat, "lon": lon, "alt": alt, "yaw": v.yaw_rad,
-                                              "ned_from_origin": truth})
+                                              "ned_from_origin": truth, "state_t_ns": int(v.t_s * 1e9)})
             return mavlink.MAVLink_sim_state_message(
                 q[0], q[1], q[2], q[3], 0.0, 0.0, v.yaw_rad, 0.0, 0.0, -9.81, 0.0, 0.0, 0.0,
                 lat * 1e7, lon * 1e7, alt, 0.0, 0.0, *v.velocity, int(round(lat * 1e7)), int(round(lon * 1e7)))
@@ -329,6 +333,7 @@ class Peer:
         self.record("event", "listening", {})
         deadline = time.monotonic() + duration_s
         next_beat = next_step = next_ekf_report = time.monotonic()
+        self.vehicle.t_s = next_step
         while not stop.is_set() and time.monotonic() < deadline:
             now = time.monotonic()
             while next_step <= now:
