@@ -41,6 +41,8 @@ from companion.params import require
 
 RING_ANGLES = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
 RING_DIRECTIONS = np.stack([np.cos(RING_ANGLES), np.sin(RING_ANGLES)], axis=1)
+# a blob whose box ellipse is turned less than this (correlation) is tested one way only
+MIN_TESTED_TURN = 0.3
 PIXEL_VARIANCE_PX2 = 1.0 / 12.0  # of a uniform unit square along each axis
 CENTROID_OFFSETS = np.stack(np.meshgrid(np.linspace(-1, 1, 9), np.linspace(-1, 1, 9)), axis=-1).reshape(-1, 2)
 MAX_LENGTH_PER_SQRT_AREA = 6.0  # boundary pixels of a compact blob over the root of its area (with a margin)
@@ -84,13 +86,18 @@ class CircleParams:
     pre_blur: 3 x 3 box blur before thresholding (fewer noise specks, but
         merges circles with their neighbours on oblique markers; off: the
         ring test removes the specks).
-    blob_method: "contours" (outer contours, statistics vectorised over the
-        concatenated points: 2-4x faster on ordinary frames, 4-5x slower on
-        noisy ones, whose thousands of specks each become a Python array),
-        "components" (OpenCV's connected components with statistics), or
-        "auto": contours unless more than ``max_speck_fraction`` of the
-        pixels are isolated specks (what a 3 x 3 median removes; measured:
-        under 0.8 % on ordinary frames, over 1.6 % on noisy ones).
+    blob_method: "components" (OpenCV's 16-bit connected components with
+        statistics; each blob's ellipse from its bounding box and area, its
+        turn's sign tried both ways), "contours" (outer contours, statistics
+        vectorised over the concatenated points; each blob's own moment
+        ellipse; 4-5x slower on noisy frames, whose thousands of specks each
+        become a Python array), or "auto": contours unless more than
+        ``max_speck_fraction`` of the pixels are isolated specks (what a
+        3 x 3 median removes; under 0.8 % on ordinary frames, over 1.6 % on
+        noisy ones). Components by default: the benchmark finds the same
+        markers either way, and its one OpenCV call leaves the interpreter
+        to the square path on the other thread (docs/detector.md,
+        "Decisions").
     max_blobs: keep at most this many blobs (the darkest), a bound on the
         work a speckled texture causes (a marker has 12 circles).
     min_area_px: smallest blob (a small circle of a 40 px marker is ~12 px).
@@ -151,7 +158,7 @@ class CircleParams:
     threshold_offset_gray: float = 7.0
     threshold_ratio: float = 0.75
     pre_blur: bool = False
-    blob_method: str = "auto"
+    blob_method: str = "components"
     max_speck_fraction: float = 0.01
     max_blobs: int = 300
     min_area_px: int = 5
@@ -235,14 +242,16 @@ class Blobs:
 @dataclass(frozen=True)
 class _BlobTable:
     """Every dark region of a binary image: centres (K, 2), areas (K,) in pixels, and the second central
-    moments (K, 3) = (var x, var y, cov xy) in px^2 of the region's shape."""
+    moments (K, 3) = (var x, var y, cov xy) in px^2 of the region's shape; turn_known False: the sign of
+    cov xy is not known (it is given positive)."""
 
     centres: np.ndarray
     areas: np.ndarray
     moments: np.ndarray
+    turn_known: bool = True
 
     def subset(self, keep: np.ndarray) -> "_BlobTable":
-        return _BlobTable(self.centres[keep], self.areas[keep], self.moments[keep])
+        return _BlobTable(self.centres[keep], self.areas[keep], self.moments[keep], self.turn_known)
 
 
 def blob_level(params: CircleParams, min_side_px: float | None = None) -> int:
@@ -313,7 +322,7 @@ def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1,
         longest_run_px = 1 + np.floor(np.sqrt((params.max_aspect ** 2 - 1) / 3))
         table = _contour_table(binary, max_area_px, min_points=3 if min_area_px > longest_run_px else 1)
     else:
-        table = _component_table(binary, max_area_px)
+        table = _component_table(binary)
     var_x, var_y, cov = table.moments.T
     # eigenvalues of the shape's covariance: its squared half axes / 4 for a filled ellipse
     half_sum, half_diff = (var_x + var_y) / 2, np.hypot((var_x - var_y) / 2, cov)
@@ -325,7 +334,10 @@ def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1,
                     & (minor > 0) & (major <= params.max_aspect ** 2 * minor)
                     & (table.areas >= params.min_fill * 4 * np.pi * np.sqrt(major * minor)))
     table = table.subset(shape_ok)
-    passed, darkness = _ring_test(smooth, table, params)
+    if table.turn_known:
+        passed, darkness = _ring_test(smooth, table, params)
+    else:
+        passed, darkness = _ring_test_either_turn(smooth, table, params)
     keep = np.flatnonzero(passed)
     if len(keep) > params.max_blobs:
         # a speckled texture: keep the darkest spots (relative to their rings), a bound on later work
@@ -428,19 +440,24 @@ def _contour_table(binary: np.ndarray, max_area_px: float, min_points: int = 1) 
     return _BlobTable(np.column_stack([cx, cy]), area, moments)
 
 
-def _component_table(binary: np.ndarray, max_area_px: float) -> _BlobTable:
+def _component_table(binary: np.ndarray) -> _BlobTable:
     """The same table from OpenCV's connected components with statistics (16-bit labels, 2-3x faster
-    than 32-bit; 32-bit when a frame has more than 65534 components); the moments of the bounding
-    box's ellipse (no orientation): the speckled frames this runs on need no finer shape test."""
+    than 32-bit; 32-bit when a frame has more than 65534 components); each blob's moments those of the
+    ellipse with its bounding box and its area, turned by a positive angle (``turn_known`` False: the
+    box does not say which way)."""
     try:
         _, _, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(binary, 8, cv2.CV_16U, cv2.CCL_DEFAULT)
     except cv2.error:
         _, _, stats, centroids = cv2.connectedComponentsWithStats(binary, connectivity=8)
-    # an ellipse through the boundary pixels' centres, half axes (w - 1) / 2: variance half axis^2 / 4
     w, h = stats[1:, 2].astype(np.float64), stats[1:, 3].astype(np.float64)
-    moments = np.column_stack([(w - 1) ** 2 / 16 + PIXEL_VARIANCE_PX2, (h - 1) ** 2 / 16 + PIXEL_VARIANCE_PX2,
-                               np.zeros(len(w))])
-    return _BlobTable(centroids[1:], stats[1:, 4].astype(np.float64), moments)
+    area = stats[1:, 4].astype(np.float64)
+    # an ellipse through the boundary pixels' centres, of moments S: its box's half widths 2 sqrt(S_xx),
+    # 2 sqrt(S_yy), (w - 1) / 2 and (h - 1) / 2; its area 4 pi sqrt(det S) = the blob's, so that
+    # S_xy^2 = S_xx S_yy - (area / 4 pi)^2 (0 for a blob that fills at least an upright ellipse)
+    var_x, var_y = (w - 1) ** 2 / 16, (h - 1) ** 2 / 16
+    cov = np.sqrt(np.maximum(var_x * var_y - (area / (4 * np.pi)) ** 2, 0.0))
+    moments = np.column_stack([var_x + PIXEL_VARIANCE_PX2, var_y + PIXEL_VARIANCE_PX2, cov])
+    return _BlobTable(centroids[1:], area, moments, turn_known=False)
 
 
 def _ring_test(smooth: np.ndarray, table: _BlobTable, params: CircleParams) -> tuple[np.ndarray, np.ndarray]:
@@ -473,6 +490,22 @@ def _ring_test(smooth: np.ndarray, table: _BlobTable, params: CircleParams) -> t
     with np.errstate(invalid="ignore", divide="ignore"):
         darkness = centre / ring_median
     return passed, darkness
+
+
+def _ring_test_either_turn(smooth: np.ndarray, table: _BlobTable, params: CircleParams) -> tuple[np.ndarray, np.ndarray]:
+    """``_ring_test`` of blobs whose turn's sign is not known: each turned one also tested the other way
+    (one call for both), passed if either way passes (its darkness then from the way that passed)."""
+    var_x, var_y, cov = table.moments.T
+    turned = np.flatnonzero(cov > MIN_TESTED_TURN * np.sqrt(var_x * var_y))
+    both = _BlobTable(np.concatenate([table.centres, table.centres[turned]]),
+                      np.concatenate([table.areas, table.areas[turned]]),
+                      np.concatenate([table.moments, table.moments[turned] * [1.0, 1.0, -1.0]]))
+    passed, darkness = _ring_test(smooth, both, params)
+    count = len(table.areas)
+    only_other_way = passed[count:] & ~passed[turned]
+    passed[turned[only_other_way]] = True
+    darkness[turned[only_other_way]] = darkness[count:][only_other_way]
+    return passed[:count], darkness[:count]
 
 
 def refine_centres(gray: np.ndarray, H: np.ndarray, circles_cells: np.ndarray) -> np.ndarray:
