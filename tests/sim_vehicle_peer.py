@@ -40,7 +40,9 @@ conversion here is written out on its own, from ArduPilot's sources.
   ground). Every command gets a COMMAND_ACK.
 * Records as JSON lines (``t_ns`` on the machine's monotonic clock): every
   vision message received, every SIM_STATE sent with the truth in NED from
-  the EKF origin, every command and its result.
+  the EKF origin and the time the vehicle was there (``state_t_ns``: the
+  physics clock's, which a send after a stall can trail by the stall),
+  every command and its result.
 """
 from __future__ import annotations
 
