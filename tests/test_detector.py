@@ -361,7 +361,7 @@ def test_footage_settings_look_for_small_occluded_markers_beside_found_ones_too(
     assert {(d.id, d.path) for d in Detector(DetectorParams.for_footage()).detect(image)} == both
 
 
-def test_either_blob_method_finds_the_occluded_markers(layout):
+def test_either_blob_method_finds_the_occluded_markers(layout, opencv_threads):
     """Connected components (the default: shape tests on each blob's bounding box) and outer contours
     (moment ellipses at any angle) find the same markers under strips, a hidden side and a hidden corner,
     tilted up to 50 degrees and turned at any angle, and no wrong one."""
@@ -523,6 +523,25 @@ def test_square_path_detections_state_their_corners_joint_covariance():
         np.testing.assert_allclose(np.trace(d.corner_cov_px2) / 8, d.corner_sigma_px ** 2, rtol=1e-9)
         np.testing.assert_allclose(d.corner_cov_px2, d.corner_cov_px2.T, atol=1e-15)
         assert np.linalg.eigvalsh(d.corner_cov_px2).min() > 0
+
+
+@pytest.mark.parametrize("angle_deg, neighbour_px", [(45, (-10, 10)), (135, (10, 10))])
+def test_a_turned_oblique_circle_passes_the_ring_test_whichever_way_it_is_turned(angle_deg, neighbour_px):
+    """An elongated dark blob (a circle seen obliquely) turned either way, a dark square off its narrow
+    side clear of its ring. Connected components give its box and area, not the sign of its turn: the
+    ring test tries both (with the wrong one the ring runs over the square and both ends of the blob).
+    Contours read the turn from the blob's moments."""
+    from companion.detect.circles import find_blobs
+
+    image = np.full((240, 320), 220, np.uint8)
+    cv2.ellipse(image, (160, 120), (9, 3), angle_deg, 0, 360, 30, -1, lineType=cv2.LINE_AA)
+    x, y = 160 + neighbour_px[0], 120 + neighbour_px[1]
+    cv2.rectangle(image, (x - 3, y - 3), (x + 3, y + 3), 30, -1)
+    image = cv2.GaussianBlur(image, (0, 0), 0.8)
+    for method in ("components", "contours"):
+        blobs = find_blobs(image, CircleParams(blob_method=method))
+        assert len(blobs) == 2, method  # the blob and the square
+        assert np.linalg.norm(blobs.centres_px - [160, 120], axis=1).min() < 0.5, method
 
 
 def test_the_blob_table_agrees_with_opencv_on_drawn_shapes():
