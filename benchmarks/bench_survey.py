@@ -41,7 +41,6 @@ import numpy as np
 import yaml
 from common import REPO
 
-from companion.detect.detector import Detector, DetectorParams
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap, MapMarker, load_map
@@ -290,7 +289,7 @@ def survey_runs(walks: dict[str, Path], truth: FacilityMap, anchor_sets, configs
         camera = CameraModel.from_config(yaml.safe_load((walk / "sequence.yaml").read_text())["camera"], str(walk))
         first = anchors_map(truth, next(iter(anchor_sets.values())))
         layout = MarkerLayout(parity=first.parity, dictionary=first.dictionary)
-        detector = Detector(DetectorParams.for_footage(first.parity, first.dictionary), camera=camera)
+        detector = map_detector(first, camera)
         start = time.perf_counter()
         footage = collect([walk], camera, detector, lambda m: truth.markers[m].size_m if m in truth.markers else None,
                           layout, progress=False)

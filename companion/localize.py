@@ -123,10 +123,12 @@ def groundtruth(sequence: Path) -> dict[int, np.ndarray] | None:
 # ---------------------------------------------------------------- the loop
 
 def map_detector(facility_map: FacilityMap, camera: CameraModel):
-    """The detector for a map's markers (its parity and dictionary), aligning corners through the camera's lens."""
+    """The detector for footage of a map's markers (its parity and dictionary, ``DetectorParams.for_footage``),
+    aligning corners through the camera's lens: the survey, map check and localize use it."""
     from companion.detect.detector import Detector, DetectorParams
 
-    return Detector(DetectorParams.for_footage(facility_map.parity, facility_map.dictionary), camera=camera)
+    return Detector(DetectorParams.for_footage(parity=facility_map.parity, dictionary=facility_map.dictionary),
+                    camera=camera)
 
 
 def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | None = None,

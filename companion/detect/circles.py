@@ -242,16 +242,14 @@ class Blobs:
 @dataclass(frozen=True)
 class _BlobTable:
     """Every dark region of a binary image: centres (K, 2), areas (K,) in pixels, and the second central
-    moments (K, 3) = (var x, var y, cov xy) in px^2 of the region's shape; turn_known False: the sign of
-    cov xy is not known (it is given positive)."""
+    moments (K, 3) = (var x, var y, cov xy) in px^2 of the region's shape."""
 
     centres: np.ndarray
     areas: np.ndarray
     moments: np.ndarray
-    turn_known: bool = True
 
     def subset(self, keep: np.ndarray) -> "_BlobTable":
-        return _BlobTable(self.centres[keep], self.areas[keep], self.moments[keep], self.turn_known)
+        return _BlobTable(self.centres[keep], self.areas[keep], self.moments[keep])
 
 
 def blob_level(params: CircleParams, min_side_px: float | None = None) -> int:
@@ -315,7 +313,8 @@ def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1,
     binary = dark_pixels(smooth, params, scale)
     max_area_px = params.max_area_fraction * (level_image.size if frame_pixels is None else frame_pixels)
     min_area_px = params.min_area_px / scale ** 2
-    if _use_contours(binary, params):
+    contours = _use_contours(binary, params)
+    if contours:
         # a contour of one or two points is a speck or a straight run of k + 1 pixels; the run passes the
         # elongation test below only while its variance along, k^2 / 4 + 1/12, is at most max_aspect^2 / 12
         # (across: 1/12): so none of them where blobs need more pixels than the longest such run has
@@ -334,10 +333,8 @@ def find_blobs(level_image: np.ndarray, params: CircleParams, scale: int = 1,
                     & (minor > 0) & (major <= params.max_aspect ** 2 * minor)
                     & (table.areas >= params.min_fill * 4 * np.pi * np.sqrt(major * minor)))
     table = table.subset(shape_ok)
-    if table.turn_known:
-        passed, darkness = _ring_test(smooth, table, params)
-    else:
-        passed, darkness = _ring_test_either_turn(smooth, table, params)
+    # a contour gives the turn of a blob; a component's box only its size (the ring test tries both signs)
+    passed, darkness = (_ring_test if contours else _ring_test_either_turn)(smooth, table, params)
     keep = np.flatnonzero(passed)
     if len(keep) > params.max_blobs:
         # a speckled texture: keep the darkest spots (relative to their rings), a bound on later work
@@ -443,8 +440,8 @@ def _contour_table(binary: np.ndarray, max_area_px: float, min_points: int = 1) 
 def _component_table(binary: np.ndarray) -> _BlobTable:
     """The same table from OpenCV's connected components with statistics (16-bit labels, 2-3x faster
     than 32-bit; 32-bit when a frame has more than 65534 components); each blob's moments those of the
-    ellipse with its bounding box and its area, turned by a positive angle (``turn_known`` False: the
-    box does not say which way)."""
+    ellipse with its bounding box and its area, turned by a positive angle (the box does not say which
+    way: cov xy >= 0)."""
     try:
         _, _, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(binary, 8, cv2.CV_16U, cv2.CCL_DEFAULT)
     except cv2.error:
@@ -457,7 +454,7 @@ def _component_table(binary: np.ndarray) -> _BlobTable:
     var_x, var_y = (w - 1) ** 2 / 16, (h - 1) ** 2 / 16
     cov = np.sqrt(np.maximum(var_x * var_y - (area / (4 * np.pi)) ** 2, 0.0))
     moments = np.column_stack([var_x + PIXEL_VARIANCE_PX2, var_y + PIXEL_VARIANCE_PX2, cov])
-    return _BlobTable(centroids[1:], area, moments, turn_known=False)
+    return _BlobTable(centroids[1:], area, moments)
 
 
 def _ring_test(smooth: np.ndarray, table: _BlobTable, params: CircleParams) -> tuple[np.ndarray, np.ndarray]:

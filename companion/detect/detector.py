@@ -98,13 +98,12 @@ class DetectorParams:
                 self.duplicate_offset_fraction)
 
     @classmethod
-    def for_footage(cls, parity: int = 2, dictionary: str = "6x6") -> DetectorParams:
-        """For footage processed offline (survey, map check, localize), recall before speed: occluded
-        markers beside found ones are looked for down to ``circles.min_side_px`` on one thread too (on
-        two the search beside ArUco does so by default)."""
-        circles = CircleParams()
-        return cls(parity=parity, dictionary=dictionary,
-                   circles=replace(circles, min_side_beside_found_px=circles.min_side_px))
+    def for_footage(cls, **fields) -> DetectorParams:
+        """``fields`` for footage processed offline (survey, map check, localize), recall before speed:
+        occluded markers beside found ones are looked for down to ``circles.min_side_px`` on one thread
+        too (on two the search beside ArUco does so by default)."""
+        params = cls(**fields)
+        return replace(params, circles=replace(params.circles, min_side_beside_found_px=params.circles.min_side_px))
 
     @classmethod
     def from_mapping(cls, mapping) -> DetectorParams:

@@ -194,10 +194,10 @@ def _spread(items: list, count: int) -> list:
 def check_map(sequences: list[Path], facility_map: FacilityMap, camera: CameraModel, params: CheckParams = CheckParams(),
               fps: float | None = None, min_motion_px: float = 3.0, progress: bool = False) -> list[MarkerCheck]:
     """Replay walk-throughs against a map: a MarkerCheck per map marker (markers not in the map are ignored)."""
-    from companion.detect.detector import Detector, DetectorParams
+    from companion.localize import map_detector
 
     layout = MarkerLayout(parity=facility_map.parity, dictionary=facility_map.dictionary)
-    detector = Detector(DetectorParams.for_footage(facility_map.parity, facility_map.dictionary), camera=camera)
+    detector = map_detector(facility_map, camera)
 
     def size_m(marker_id: int) -> float | None:
         marker = facility_map.markers.get(marker_id)

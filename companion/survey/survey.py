@@ -141,9 +141,9 @@ def survey(sequences: list[Path], camera: CameraModel, anchors: FacilityMap, opt
     """Map every marker seen in the footage; ``anchors`` is the anchors file, or the existing map with ``extend``."""
     layout = MarkerLayout(parity=anchors.parity, dictionary=anchors.dictionary)
     if detector is None:
-        from companion.detect.detector import Detector, DetectorParams
+        from companion.localize import map_detector
 
-        detector = Detector(DetectorParams.for_footage(anchors.parity, anchors.dictionary), camera=camera)
+        detector = map_detector(anchors, camera)
     sizes = _Sizes(anchors, options.size_m, layout)
     footage = collect(sequences, camera, detector, sizes, layout, options.fps, options.progress)
     return survey_footage(footage, camera, anchors, options, extend, sizes)
