@@ -19,6 +19,7 @@ from companion.detect import homography
 from companion.detect.circles import CircleParams
 from companion.detect.detector import Detector, DetectorError, DetectorParams
 from companion.detect.smear import Smear, SmearParams, deconvolve
+from companion.detect.square import SquareParams
 from companion.markers.codec import GridDecoder
 from companion.markers.layout import UNKNOWN, MarkerLayout
 from companion.params import ParamsError
@@ -168,7 +169,7 @@ def test_golden_frames_exist_for_every_case():
     notes = {path.stem for path in GOLDEN}
     assert {"square_rotations", "circles_rotations", "strip_1_8", "strip_1_4", "strip_1_4_parity4", "blob",
             "marker_free_clutter", "other_families", "too_occluded", "side_corners", "clean_beside_occluded",
-            "motion_blur", "motion_blur_small"} <= notes
+            "motion_blur", "motion_blur_small", "dim_small", "thin_oblique_blurred"} <= notes
 
 
 @pytest.mark.parametrize("golden", GOLDEN, ids=lambda path: path.stem)
@@ -219,6 +220,18 @@ def test_a_small_smeared_marker_is_found_only_with_the_smear_undone():
     found = by_id(Detector().detect(image))
     assert small["id"] in found
     assert np.abs(found[small["id"]].corners_px - np.array(small["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
+
+
+def test_a_dim_frame_is_thresholded_with_a_lower_offset():
+    # mean gray 20, the marker's contrast 24: ArUco's usual 7-gray offset finds no quad for it
+    image, expected = golden("dim_small")
+    marker = expected["markers"][0]
+    assert cv2.mean(image)[0] < SquareParams().dim_frame_mean_gray
+    without = Detector(DetectorParams(square=SquareParams(dim_frame_mean_gray=0.0))).detect(image)
+    assert marker["id"] not in by_id(without)
+    found = by_id(Detector().detect(image))
+    assert marker["id"] in found
+    assert np.abs(found[marker["id"]].corners_px - np.array(marker["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
 
 
 def test_the_smear_is_measured_on_a_found_marker(detector):

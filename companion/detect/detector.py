@@ -299,7 +299,8 @@ class Detector:
         Rejected quads come with whole-pixel corners, off by up to a few pixels on small markers:
         their corners are taken from the edges first (a wide pass, then a fine one). ArUco's
         sub-pixel corners read almost every identified grid as they are; a thin, oblique marker
-        that does not decode is read again from its edges' corners.
+        that does not decode is read again from its edges' corners (a fine pass; where ArUco's
+        corners are off by a few pixels along its long sides, a wide pass then a fine one).
         """
         if len(quads) == 0:
             return []
@@ -308,9 +309,13 @@ class Detector:
         if rough.any():
             quads[rough] = self._edge_corners(gray, self._edge_corners(gray, quads[rough], rough=True))
         results = self._decode_grids(gray, quads)
-        again = np.flatnonzero(from_aruco & np.array([r is None for r in results]))
-        if len(again):
-            quads[again] = self._edge_corners(gray, quads[again])
+        aruco_quads = quads.copy()
+        for wide_first in (False, True):
+            again = np.flatnonzero(from_aruco & np.array([r is None for r in results]))
+            if len(again) == 0:
+                break
+            start = self._edge_corners(gray, aruco_quads[again], rough=True) if wide_first else aruco_quads[again]
+            quads[again] = self._edge_corners(gray, start)
             for i, result in zip(again, self._decode_grids(gray, quads[again])):
                 results[i] = result
         detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(q, -r.rotation, axis=0), path="square",

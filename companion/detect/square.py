@@ -43,9 +43,14 @@ class SquareParams:
         (15, 15, 10) once: 40 % of OpenCV's time on one thread, with the same
         recall here (docs/detector.md has the measurement).
     aruco_threshold_constant_gray: ArUco's adaptive-threshold offset (OpenCV's
-        7). 5 finds more small markers in dim frames (low light 97.8 -> 99.3 %
-        in the benchmark) but costs 25 % more ArUco time on every frame
-        (0.55 ms at 640x480 and 1280x720): not the default.
+        7), in a frame of normal brightness. Lower values find more small
+        markers in dim frames but cost ArUco time on every frame (5: 25 % more).
+    dim_frame_mean_gray, dim_threshold_constant_gray: a frame whose mean gray
+        level is below ``dim_frame_mean_gray`` is thresholded with the offset
+        ``dim_threshold_constant_gray`` instead: the offset is in gray levels,
+        and a marker in a frame a sixth as bright has a sixth of the contrast
+        (the benchmark's low light, mean 16-21: 266 -> 268 of 270 markers
+        with 4, for 50 % more time in those frames; 3 and 2 found no more).
     min_side_px: the smallest inner square the path reads, mean side in
         pixels, whatever the image size (ArUco's smallest quad perimeter is
         4 x this). 12, as ArUco's relative default (0.08 of the long side)
@@ -64,6 +69,8 @@ class SquareParams:
     decode_rejected: bool = True
     aruco_threshold_windows_px: tuple[int, int, int] = (15, 15, 10)
     aruco_threshold_constant_gray: float = 7.0
+    dim_frame_mean_gray: float = 50.0
+    dim_threshold_constant_gray: float = 4.0
     min_side_px: float = 12.0
     min_fixed_agreement_fraction: float = 0.75
     min_dark_codeword_fraction: float = 0.15
@@ -79,6 +86,7 @@ class SquareParams:
                 "step >= 1", self.aruco_threshold_windows_px)
         object.__setattr__(self, "aruco_threshold_windows_px", windows)
         require(self.min_side_px > 0, "min_side_px", "> 0", self.min_side_px)
+        require(0 <= self.dim_frame_mean_gray <= 255, "dim_frame_mean_gray", "in [0, 255]", self.dim_frame_mean_gray)
         for key in ("min_fixed_agreement_fraction", "min_dark_codeword_fraction", "max_dark_codeword_fraction"):
             require(0.0 <= getattr(self, key) <= 1.0, key, "in [0, 1]", getattr(self, key))
 
@@ -96,9 +104,11 @@ class SquareCandidates:
     from_aruco: np.ndarray
 
 
-def make_aruco_detector(layout: MarkerLayout, params: SquareParams, image_side_px: int) -> cv2.aruco.ArucoDetector:
+def make_aruco_detector(layout: MarkerLayout, params: SquareParams, image_side_px: int,
+                        threshold_constant_gray: float | None = None) -> cv2.aruco.ArucoDetector:
     """ArucoDetector for the layout's inner marker, sub-pixel corners, no border margin, for images
-    whose larger side is ``image_side_px`` (OpenCV sets the smallest quad as a share of it)."""
+    whose larger side is ``image_side_px`` (OpenCV sets the smallest quad as a share of it), thresholding
+    with ``threshold_constant_gray`` (default: ``params.aruco_threshold_constant_gray``)."""
     aruco_params = cv2.aruco.DetectorParameters()
     aruco_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     aruco_params.minDistanceToBorder = 0
@@ -106,7 +116,8 @@ def make_aruco_detector(layout: MarkerLayout, params: SquareParams, image_side_p
     aruco_params.adaptiveThreshWinSizeMin, aruco_params.adaptiveThreshWinSizeMax, \
         aruco_params.adaptiveThreshWinSizeStep = params.aruco_threshold_windows_px
     aruco_params.minMarkerPerimeterRate = 4.0 * params.min_side_px / image_side_px
-    aruco_params.adaptiveThreshConstant = params.aruco_threshold_constant_gray
+    aruco_params.adaptiveThreshConstant = (params.aruco_threshold_constant_gray if threshold_constant_gray is None
+                                           else threshold_constant_gray)
     return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), aruco_params)
 
 
@@ -126,7 +137,9 @@ class SquareFinder:
         self._probe = sampling.CellProbe(layout)
 
     def find(self, gray: np.ndarray) -> SquareCandidates:
-        corners, _, rejected = self._aruco(max(gray.shape)).detectMarkers(gray)
+        dim = cv2.mean(gray)[0] < self.params.dim_frame_mean_gray
+        constant = self.params.dim_threshold_constant_gray if dim else self.params.aruco_threshold_constant_gray
+        corners, _, rejected = self._aruco(max(gray.shape), constant).detectMarkers(gray)
         accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
         others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if self.params.decode_rejected and len(others):
@@ -137,13 +150,16 @@ class SquareFinder:
         return SquareCandidates(np.concatenate([accepted, others]),
                                 np.r_[np.ones(len(accepted), bool), np.zeros(len(others), bool)])
 
-    def _aruco(self, image_side_px: int) -> cv2.aruco.ArucoDetector:
-        """The ArUco detector for images of this larger side (a few kept: frames rarely change size)."""
-        detector = self._aruco_by_side.get(image_side_px)
+    def _aruco(self, image_side_px: int, threshold_constant_gray: float) -> cv2.aruco.ArucoDetector:
+        """The ArUco detector for images of this larger side and threshold offset (a few kept: frames rarely
+        change size)."""
+        key = (image_side_px, threshold_constant_gray)
+        detector = self._aruco_by_side.get(key)
         if detector is None:
             if len(self._aruco_by_side) >= ARUCO_DETECTORS_KEPT:
                 self._aruco_by_side.pop(next(iter(self._aruco_by_side)))
-            detector = self._aruco_by_side[image_side_px] = make_aruco_detector(self.layout, self.params, image_side_px)
+            detector = self._aruco_by_side[key] = make_aruco_detector(self.layout, self.params, image_side_px,
+                                                                      threshold_constant_gray)
         return detector
 
     def _within(self, quads: np.ndarray, markers: np.ndarray) -> np.ndarray:

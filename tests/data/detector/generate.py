@@ -170,6 +170,33 @@ def main() -> None:
     ], note="a 9 px linear smear at 60 degrees over a 38 px marker beside a 67 px one", seed=21,
        degradations=scenes.BASE_DEGRADATIONS.with_(motion_length_px=9.0, motion_angle_rad=math.radians(60)))
 
+    benchmark_crops()
+
+
+def benchmark_crops() -> None:
+    """Frames cut (400 x 300 around one marker) from scenes of ``benchmarks/bench_detector.py`` (seed 2024) that
+    the detector once missed; the truth is the benchmark renderer's."""
+    import sys
+    sys.path.insert(0, str(HERE.parents[2] / "benchmarks"))
+    import bench_detector as bench
+    textures = bench.Textures()
+    layout = MarkerLayout(2)
+    for name, condition, index, marker_id, note in (
+            ("dim_small", "low_light", 138, 1,
+             "a 33 px marker seen obliquely in a dim frame (mean gray 20, marker contrast 24): ArUco finds its quad "
+             "only with the dim frame's lower threshold offset"),
+            ("thin_oblique_blurred", "gaussian_blur", 36, 42,
+             "a thin oblique 40 px marker under blur: ArUco identifies it with corners 2 px off along its long "
+             "sides, and it decodes only after the edges' wide pass")):
+        rendered = bench.render_family(textures, "rs", bench.scene_ids(2024, condition, index), condition, 2024, index)
+        truth = next(t for t in rendered.truths if t.marker_id == marker_id)
+        height, width = rendered.image.shape
+        x0, y0 = np.clip(np.round(truth.corners_px.mean(axis=0) - [W / 2, H / 2]), 0, [width - W, height - H]).astype(int)
+        cv2.imwrite(str(HERE / f"{name}.png"), rendered.image[y0:y0 + H, x0:x0 + W])
+        marker = {"symbol": layout.dictionary.symbol_of(marker_id), "id": marker_id,
+                  "corners": np.round(truth.corners_px - [x0, y0], 3).tolist(), "path": "square", "occlusion": "none"}
+        (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": [marker], "note": note}, indent=1) + "\n")
+
 
 if __name__ == "__main__":
     main()
