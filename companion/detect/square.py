@@ -132,7 +132,7 @@ class SquareFinder:
         self.params = params
         self.min_contrast_gray = min_contrast_gray
         self._screen = screen
-        self._aruco_by_side: dict[int, cv2.aruco.ArucoDetector] = {}
+        self._aruco_detectors: dict[tuple[int, float], cv2.aruco.ArucoDetector] = {}
         self._inner_corners = layout.inner_corners_cells
         self._probe = sampling.CellProbe(layout)
 
@@ -154,11 +154,11 @@ class SquareFinder:
         """The ArUco detector for images of this larger side and threshold offset (a few kept: frames rarely
         change size)."""
         key = (image_side_px, threshold_constant_gray)
-        detector = self._aruco_by_side.get(key)
+        detector = self._aruco_detectors.get(key)
         if detector is None:
-            if len(self._aruco_by_side) >= ARUCO_DETECTORS_KEPT:
-                self._aruco_by_side.pop(next(iter(self._aruco_by_side)))
-            detector = self._aruco_by_side[key] = make_aruco_detector(self.layout, self.params, image_side_px,
+            if len(self._aruco_detectors) >= ARUCO_DETECTORS_KEPT:
+                self._aruco_detectors.pop(next(iter(self._aruco_detectors)))
+            detector = self._aruco_detectors[key] = make_aruco_detector(self.layout, self.params, image_side_px,
                                                                       threshold_constant_gray)
         return detector
 
