@@ -20,7 +20,9 @@ Stages (one module each in ``companion.detect``, run in this order):
    the detector has the camera).
    ``smear``: where a found marker's edges are wide, the frame's motion
    smear is measured on its known pattern, the frame deconvolved with it and
-   the square path (1-5) run again there for the markers the smear hid.
+   the square path (1-5) run again there for the markers the smear hid; a
+   round blur (no line smear fits) is read again with a smaller threshold
+   window instead.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
    (found at a pyramid level, on a second thread beside ArUco when OpenCV
@@ -248,10 +250,11 @@ class Detector:
         return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px, corner_cov_px2=cov_px2)
 
     def _smeared_markers(self, gray: np.ndarray, found: list[Detection]) -> list[Detection]:
-        """Markers the square path missed in a smeared frame (``smear``): the edges of one found marker
-        measured (a sharp frame stops there), its pattern compared with the image under line smears, the
-        frame deconvolved with the best one and the square path run again there (quads inside the found
-        markers' grids skipped)."""
+        """Markers the square path missed in a smeared or blurred frame (``smear``): the edges of one found
+        marker measured (a sharp frame stops there), its pattern compared with the image under line smears,
+        the frame deconvolved with the best one and the square path run again there; where no line smear
+        fits (a round blur), the square path run again on the frame with ``square.blurred_window_px``
+        (either way, quads inside the found markers' grids skipped)."""
         params = self.params.smear
         corners_px = np.stack([d.corners_px for d in found])  # (M, 4, 2)
         sides_px = homography.mean_side_px(corners_px)
@@ -264,15 +267,17 @@ class Detector:
             return []
         smear = self.smear.estimate(gray, marker.id, marker.corners_px)
         if smear is None or smear.length_px < params.min_recover_length_px:
-            return []
-        sharp = deconvolve(gray, smear, params.noise_to_signal)
-        candidates = self.square.find(sharp)
+            # wide edges and no line smear to undo: a round blur, read again with a smaller threshold window
+            image, window_px = gray, self.params.square.blurred_window_px
+        else:
+            image, window_px = deconvolve(gray, smear, params.noise_to_signal), None
+        candidates = self.square.find(image, window_px)
         if len(candidates.corners_px) == 0:
             return []
         H = homography.from_quads(self.layout.inner_corners_cells, corners_px)
         new = ~sampling.inside_grids(candidates.corners_px.mean(axis=1), H, self.layout.n_cells)
-        detections = self._decode_quads(sharp, candidates.corners_px[new], candidates.from_aruco[new])
-        return [self._aligned(sharp, d) for d in detections]
+        detections = self._decode_quads(image, candidates.corners_px[new], candidates.from_aruco[new])
+        return [self._aligned(image, d) for d in detections]
 
     def _pattern_inside(self, corners_px: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether the marker's whole printed grid lies inside the frame (the alignment saw all of it)."""

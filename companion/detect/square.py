@@ -17,7 +17,7 @@ rejected quad); the decode finds the rotation.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -51,6 +51,11 @@ class SquareParams:
         and a marker in a frame a sixth as bright has a sixth of the contrast
         (the benchmark's low light, mean 16-21: 266 -> 268 of 270 markers
         with 4, for 50 % more time in those frames; 3 and 2 found no more).
+    blurred_window_px: the threshold window of the square path's second pass
+        over a blurred frame (the detector's ``smear`` stage: found markers'
+        edges wide, no line smear to undo): at 15 px the local mean of a small
+        blurred marker closes its white gap ring (Gaussian blur in the
+        benchmark: 290 -> 291 of 294 markers).
     min_side_px: the smallest inner square the path reads, mean side in
         pixels, whatever the image size (ArUco's smallest quad perimeter is
         4 x this). 12, as ArUco's relative default (0.08 of the long side)
@@ -71,6 +76,7 @@ class SquareParams:
     aruco_threshold_constant_gray: float = 7.0
     dim_frame_mean_gray: float = 50.0
     dim_threshold_constant_gray: float = 4.0
+    blurred_window_px: int = 7
     min_side_px: float = 12.0
     min_fixed_agreement_fraction: float = 0.75
     min_dark_codeword_fraction: float = 0.15
@@ -86,6 +92,8 @@ class SquareParams:
                 "step >= 1", self.aruco_threshold_windows_px)
         object.__setattr__(self, "aruco_threshold_windows_px", windows)
         require(self.min_side_px > 0, "min_side_px", "> 0", self.min_side_px)
+        require(isinstance(self.blurred_window_px, int) and self.blurred_window_px >= 3 and self.blurred_window_px % 2,
+                "blurred_window_px", "an odd integer >= 3", self.blurred_window_px)
         require(0 <= self.dim_frame_mean_gray <= 255, "dim_frame_mean_gray", "in [0, 255]", self.dim_frame_mean_gray)
         for key in ("min_fixed_agreement_fraction", "min_dark_codeword_fraction", "max_dark_codeword_fraction"):
             require(0.0 <= getattr(self, key) <= 1.0, key, "in [0, 1]", getattr(self, key))
@@ -132,14 +140,17 @@ class SquareFinder:
         self.params = params
         self.min_contrast_gray = min_contrast_gray
         self._screen = screen
-        self._aruco_detectors: dict[tuple[int, float], cv2.aruco.ArucoDetector] = {}
+        self._aruco_detectors: dict[tuple, cv2.aruco.ArucoDetector] = {}
         self._inner_corners = layout.inner_corners_cells
         self._probe = sampling.CellProbe(layout)
 
-    def find(self, gray: np.ndarray) -> SquareCandidates:
+    def find(self, gray: np.ndarray, window_px: int | None = None) -> SquareCandidates:
+        """Candidate inner squares; window_px: one ArUco threshold window of this size instead of
+        ``aruco_threshold_windows_px`` (``blurred_window_px``: the detector's second pass over a blurred frame)."""
         dim = cv2.mean(gray)[0] < self.params.dim_frame_mean_gray
         constant = self.params.dim_threshold_constant_gray if dim else self.params.aruco_threshold_constant_gray
-        corners, _, rejected = self._aruco(max(gray.shape), constant).detectMarkers(gray)
+        windows = self.params.aruco_threshold_windows_px if window_px is None else (window_px, window_px, 10)
+        corners, _, rejected = self._aruco(max(gray.shape), constant, windows).detectMarkers(gray)
         accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
         others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
         if self.params.decode_rejected and len(others):
@@ -150,15 +161,17 @@ class SquareFinder:
         return SquareCandidates(np.concatenate([accepted, others]),
                                 np.r_[np.ones(len(accepted), bool), np.zeros(len(others), bool)])
 
-    def _aruco(self, image_side_px: int, threshold_constant_gray: float) -> cv2.aruco.ArucoDetector:
-        """The ArUco detector for images of this larger side and threshold offset (a few kept: frames rarely
-        change size)."""
-        key = (image_side_px, threshold_constant_gray)
+    def _aruco(self, image_side_px: int, threshold_constant_gray: float,
+               windows_px: tuple[int, int, int]) -> cv2.aruco.ArucoDetector:
+        """The ArUco detector for images of this larger side, threshold offset and windows (a few kept:
+        frames rarely change size)."""
+        key = (image_side_px, threshold_constant_gray, windows_px)
         detector = self._aruco_detectors.get(key)
         if detector is None:
             if len(self._aruco_detectors) >= ARUCO_DETECTORS_KEPT:
                 self._aruco_detectors.pop(next(iter(self._aruco_detectors)))
-            detector = self._aruco_detectors[key] = make_aruco_detector(self.layout, self.params, image_side_px,
+            params = replace(self.params, aruco_threshold_windows_px=windows_px)
+            detector = self._aruco_detectors[key] = make_aruco_detector(self.layout, params, image_side_px,
                                                                       threshold_constant_gray)
         return detector
 
