@@ -175,6 +175,32 @@ def test_wall_prior_writes_upright_markers_with_facing(tmp_path, north_walk):
         assert pose_errors(T, truth.marker_by_symbol(symbol).T_map_marker)[1] < 0.5
 
 
+def test_anchors_are_not_called_in_disagreement_when_the_first_map_starts_far_off(tmp_path, north_walk, monkeypatch):
+    """The anchors' check grows its first map from one anchor per group, the others placed from the images'
+    single-frame poses: an anchor reached through one small sighting can start far off (bench_survey's quick walk:
+    one 12 px sighting of G, placed 1.4 m off), and the adjustment stop in a wrong minimum. A disagreement found
+    so is checked again from the anchors as stated: agreeing anchors pass, a badly measured one does not (above)."""
+    from companion.survey import graph
+    from companion.survey.survey import SurveyOptions, survey
+    grown = graph.initial_poses
+    far_off = frames.make_transform(frames.rot_z(math.radians(30.0)), [0.0, 0.0, 0.0])
+
+    def first_map(survey_frames, references, camera):
+        start = grown(survey_frames, references, camera)
+        # every anchor placed from the images starts 1 m off and turned 30 degrees, about the first reference
+        pivot = next(iter(references.values()))[:3, 3]
+        shift = frames.make_transform(np.eye(3), pivot + [1.0, 0.0, 0.0]) @ far_off \
+            @ frames.make_transform(np.eye(3), -pivot)
+        return {m: (shift @ T if m in anchors.markers and m not in references else T) for m, T in start.items()}
+
+    monkeypatch.setattr(graph, "initial_poses", first_map)
+    anchors = load_map(anchors_file(tmp_path / "a.yaml", {"O", "UP", "DOWN"}))
+    camera = CameraModel.from_config(yaml.safe_load((north_walk / "camera.yaml").read_text())["camera"], "camera")
+    result = survey([north_walk], camera, anchors, SurveyOptions())
+    assert len(result.anchors) == 3
+    assert all(a.position_m < 0.01 and a.angle_deg < 1.0 for a in result.anchors), result.anchors
+
+
 def test_several_anchors_that_disagree_stop_the_survey_naming_the_bad_one(tmp_path, north_walk):
     anchors = yaml.safe_load(anchors_file(tmp_path / "a.yaml", {"O", "UP", "DOWN"}).read_text())
     for marker in anchors["markers"]:
