@@ -25,7 +25,7 @@ spread over the hall), the marker sizes and which markers hang on walls, and is 
 the 640x480 walk is among them.
 
 ``--quick`` (CI's smoke run): a short walk at the anchor's end of aisle 1 at 640x480 (three anchors: it
-sees three groups of markers never in view together), the hover flight, two check trials.
+sees three groups of markers hardly ever in view together), the hover flight, two check trials.
 """
 from __future__ import annotations
 
@@ -63,8 +63,8 @@ TURN_DEG_S = 30.0         # ... and turned slowly (peak rates 1.875 times these)
 WALK_DEGRADATIONS = replace(simulate.DEFAULT_DEGRADATIONS, exposure_ms=12.0, exposure_wander=0.2, jpeg_quality=90)
 WALK_OCCLUDERS = 12
 ANCHORS = {"one": ("A",), "three": ("A", "X", "STOP")}
-# the quick walk sees three groups of markers never in view together (the dock end with R2's E and F, its G and
-# H, its I and J): an anchor in each
+# the quick walk sees three groups of markers hardly ever in view together (the dock end with R2's E and F, its G
+# and H, its I and J; one frame shows G, 12 px, with E and F): an anchor in each
 QUICK_ANCHORS = {"three": ("A", "G", "I")}
 TARGETS = ("position median <= 5 mm, max <= 2 cm; orientation median <= 0.3 deg, max <= 1 deg; every marker seen "
            "in >= 3 frames mapped; localization median within 1.5x of the true map's and below the tape map's; "
