@@ -112,11 +112,9 @@ class SquareCandidates:
     from_aruco: np.ndarray
 
 
-def make_aruco_detector(layout: MarkerLayout, params: SquareParams, image_side_px: int,
-                        threshold_constant_gray: float | None = None) -> cv2.aruco.ArucoDetector:
+def make_aruco_detector(layout: MarkerLayout, params: SquareParams, image_side_px: int) -> cv2.aruco.ArucoDetector:
     """ArucoDetector for the layout's inner marker, sub-pixel corners, no border margin, for images
-    whose larger side is ``image_side_px`` (OpenCV sets the smallest quad as a share of it), thresholding
-    with ``threshold_constant_gray`` (default: ``params.aruco_threshold_constant_gray``)."""
+    whose larger side is ``image_side_px`` (OpenCV sets the smallest quad as a share of it)."""
     aruco_params = cv2.aruco.DetectorParameters()
     aruco_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     aruco_params.minDistanceToBorder = 0
@@ -124,8 +122,7 @@ def make_aruco_detector(layout: MarkerLayout, params: SquareParams, image_side_p
     aruco_params.adaptiveThreshWinSizeMin, aruco_params.adaptiveThreshWinSizeMax, \
         aruco_params.adaptiveThreshWinSizeStep = params.aruco_threshold_windows_px
     aruco_params.minMarkerPerimeterRate = 4.0 * params.min_side_px / image_side_px
-    aruco_params.adaptiveThreshConstant = (params.aruco_threshold_constant_gray if threshold_constant_gray is None
-                                           else threshold_constant_gray)
+    aruco_params.adaptiveThreshConstant = params.aruco_threshold_constant_gray
     return cv2.aruco.ArucoDetector(layout.dictionary.aruco(), aruco_params)
 
 
@@ -170,9 +167,9 @@ class SquareFinder:
         if detector is None:
             if len(self._aruco_detectors) >= ARUCO_DETECTORS_KEPT:
                 self._aruco_detectors.pop(next(iter(self._aruco_detectors)))
-            params = replace(self.params, aruco_threshold_windows_px=windows_px)
-            detector = self._aruco_detectors[key] = make_aruco_detector(self.layout, params, image_side_px,
-                                                                      threshold_constant_gray)
+            params = replace(self.params, aruco_threshold_windows_px=windows_px,
+                             aruco_threshold_constant_gray=threshold_constant_gray)
+            detector = self._aruco_detectors[key] = make_aruco_detector(self.layout, params, image_side_px)
         return detector
 
     def _within(self, quads: np.ndarray, markers: np.ndarray) -> np.ndarray:
