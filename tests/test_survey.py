@@ -282,6 +282,21 @@ def test_markers_never_seen_together_are_named_with_the_markers_that_need_a_shar
     assert "No anchor is in {" in result.stderr and "share a view" in result.stderr
 
 
+def test_an_anchor_no_frame_ties_to_the_others_is_said_to_be_unchecked(tmp_path, north_walk):
+    # two walks no view links (the north wall; rack R1's south face from aisle 0), an anchor in each, and a
+    # second one on the north wall: O and UP are checked against each other, Q against nothing
+    aisle0 = render(tmp_path / "aisle0", [(5.0, 1.0, 1.3, 90.0), (8.0, 1.0, 1.3, 90.0)], seed=6)
+    anchors = anchors_file(tmp_path / "a.yaml", {"O", "UP", "Q"}, survey={"sizes_m": {s: 0.18 for s in "PQRYZ"}})
+    out, report = tmp_path / "site.yaml", tmp_path / "report"
+    result = run("survey", str(north_walk), str(aisle0), "--camera", str(north_walk / "camera.yaml"),
+                 "--anchors", str(anchors), "--out", str(out), "--report", str(report))
+    assert result.returncode == 0, result.stderr
+    assert "anchor O: the images move it by" in result.stderr and "anchor UP: the images move it by" in result.stderr
+    assert "anchor Q: not checked against the other anchors" in result.stderr
+    tied = {a["symbol"]: a["tied_to_other_anchors"] for a in json.loads((report / "survey.json").read_text())["anchors"]}
+    assert tied == {"O": True, "UP": True, "Q": False}
+
+
 # ------------------------------------------------------------------ map check
 
 def moved_map(tmp_path: Path, symbol: str, dx_m: float = 0.0, turn_deg: float = 0.0) -> Path:

@@ -114,8 +114,12 @@ def _notes(result: SurveyResult) -> None:
                           for symbol, frames in result.dropped.items())
         print(f"companion survey: not mapped, seen in fewer than 3 frames: {names}", file=sys.stderr)
     for a in result.anchors:
-        print(f"companion survey: anchor {a.symbol}: the images move it by {a.position_m * 1000:.1f} mm, "
-              f"{a.angle_deg:.2f} deg", file=sys.stderr)
+        if a.tied:
+            print(f"companion survey: anchor {a.symbol}: the images move it by {a.position_m * 1000:.1f} mm, "
+                  f"{a.angle_deg:.2f} deg", file=sys.stderr)
+        else:
+            print(f"companion survey: anchor {a.symbol}: not checked against the other anchors (no frame links its "
+                  f"markers to theirs; film them together to check it)", file=sys.stderr)
     weak = [s.marker.symbol for s in result.markers if s.weakly_linked]
     if weak:
         print(f"companion survey: weakly linked to the anchors, need another look: {', '.join(weak)} (the images "

@@ -52,7 +52,8 @@ def report_json(result: SurveyResult) -> dict:
         "frames_adjusted": result.frames_adjusted,
         "point_noise_px": number(result.sigma_px, 4),
         "anchors": [{"symbol": a.symbol, "moved_by_images_m": number(a.position_m, 5),
-                     "turned_by_images_deg": number(a.angle_deg, 4)} for a in result.anchors],
+                     "turned_by_images_deg": number(a.angle_deg, 4), "tied_to_other_anchors": a.tied}
+                    for a in result.anchors],
         "not_mapped": [{"symbol": symbol, "frames": frames} for symbol, frames in result.dropped.items()],
         "weakly_linked": [s.marker.symbol for s in result.markers if s.weakly_linked],
         "loose": [s.marker.symbol for s in result.loose],

@@ -93,12 +93,17 @@ class SurveyedMarker:
 
 @dataclass(frozen=True)
 class AnchorAgreement:
-    """How far the images move an anchor from its stated pose when all anchors are held only softly."""
+    """How far the images move an anchor from its stated pose when all anchors are held only softly.
+
+    tied: the images tie it to another anchor (some frames link their markers); if not, nothing checks it
+    against the others and it moves by nothing.
+    """
 
     symbol: str
     position_m: float
     angle_deg: float
     chi2: float
+    tied: bool = True
 
 
 @dataclass(frozen=True)
@@ -320,6 +325,9 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
     agreement = _anchors_moved(shared, camera, fixed, references, anchors, symbols, options, noise_px)
     if sum(a.chi2 for a in agreement) > limit and len(references) < len(fixed):
         agreement = _anchors_moved(shared, camera, fixed, fixed, anchors, symbols, options, noise_px)
+    # an anchor is tied to the others where a group of markers seen together holds another anchor too
+    tied = {m for group in groups if len(group & set(fixed)) >= 2 for m in group & set(fixed)}
+    agreement = [replace(a, tied=m in tied) for m, a in zip(sorted(fixed), agreement)]
     total = sum(a.chi2 for a in agreement)
     if total > limit:
         worst = max(agreement, key=lambda a: a.chi2)
