@@ -309,12 +309,11 @@ class Detector:
         """
         if len(quads) == 0:
             return []
-        quads = quads.copy()
+        aruco_quads, quads = quads, quads.copy()  # ArUco's corners, kept for the passes below
         rough = ~from_aruco
         if rough.any():
             quads[rough] = self._edge_corners(gray, self._edge_corners(gray, quads[rough], rough=True))
         results = self._decode_grids(gray, quads)
-        aruco_quads = quads.copy()
         for wide_first in (False, True):
             again = np.flatnonzero(from_aruco & np.array([r is None for r in results]))
             if len(again) == 0:

@@ -103,7 +103,7 @@ class AnchorAgreement:
     position_m: float
     angle_deg: float
     chi2: float
-    tied: bool = True
+    tied: bool
 
 
 @dataclass(frozen=True)
@@ -322,12 +322,11 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
             references[best] = fixed[best]
     hints = anchors.survey
     limit = float(chi2.ppf(GATE_PROBABILITY, 6 * (len(fixed) - len(references))))
-    agreement = _anchors_moved(shared, camera, fixed, references, anchors, symbols, options, noise_px)
-    if sum(a.chi2 for a in agreement) > limit and len(references) < len(fixed):
-        agreement = _anchors_moved(shared, camera, fixed, fixed, anchors, symbols, options, noise_px)
     # an anchor is tied to the others where a group of markers seen together holds another anchor too
     tied = {m for group in groups if len(group & set(fixed)) >= 2 for m in group & set(fixed)}
-    agreement = [replace(a, tied=m in tied) for m, a in zip(sorted(fixed), agreement)]
+    agreement = _anchors_moved(shared, camera, fixed, references, tied, anchors, symbols, options, noise_px)
+    if sum(a.chi2 for a in agreement) > limit and len(references) < len(fixed):
+        agreement = _anchors_moved(shared, camera, fixed, fixed, tied, anchors, symbols, options, noise_px)
     total = sum(a.chi2 for a in agreement)
     if total > limit:
         worst = max(agreement, key=lambda a: a.chi2)
@@ -338,10 +337,10 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
     return agreement
 
 
-def _anchors_moved(shared, camera, fixed: dict[int, np.ndarray], references: dict[int, np.ndarray],
+def _anchors_moved(shared, camera, fixed: dict[int, np.ndarray], references: dict[int, np.ndarray], tied: set[int],
                    anchors: FacilityMap, symbols, options: SurveyOptions, noise_px) -> list[AnchorAgreement]:
     """How far the images move each anchor, every anchor held softly, adjusted from the map grown from
-    ``references``."""
+    ``references`` (``tied``: the anchors the images tie to another)."""
     start = graph.initial_poses(shared, references, camera)
     posed_frames, cameras = _posed(shared, start, camera)
     hints = anchors.survey
@@ -356,7 +355,7 @@ def _anchors_moved(shared, camera, fixed: dict[int, np.ndarray], references: dic
         position_m = float(np.linalg.norm(T[:3, 3] - T_stated[:3, 3]))
         angle_rad = frames.rotation_angle_rad(T[:3, :3], T_stated[:3, :3])
         chi2_value = (position_m / hints.anchor_sd_m) ** 2 + (angle_rad / math.radians(hints.anchor_sd_deg)) ** 2
-        agreement.append(AnchorAgreement(symbols[m], position_m, math.degrees(angle_rad), chi2_value))
+        agreement.append(AnchorAgreement(symbols[m], position_m, math.degrees(angle_rad), chi2_value, m in tied))
     return agreement
 
 

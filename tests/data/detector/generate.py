@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import Path
 
 import cv2
@@ -176,7 +177,6 @@ def main() -> None:
 def benchmark_crops() -> None:
     """Frames cut (400 x 300 around the markers named) from scenes of ``benchmarks/bench_detector.py`` (seed 2024)
     in which the detector once missed a marker; the truth is the benchmark renderer's."""
-    import sys
     sys.path.insert(0, str(HERE.parents[2] / "benchmarks"))
     import bench_detector as bench
     textures = bench.Textures()
@@ -202,6 +202,7 @@ def benchmark_crops() -> None:
                     "corners": np.round(t.corners_px - [x0, y0], 3).tolist(), "path": "square", "occlusion": "none"}
                    for t in truths]
         (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": markers, "note": note}, indent=1) + "\n")
+
 
 if __name__ == "__main__":
     main()
