@@ -169,7 +169,8 @@ def test_golden_frames_exist_for_every_case():
     notes = {path.stem for path in GOLDEN}
     assert {"square_rotations", "circles_rotations", "strip_1_8", "strip_1_4", "strip_1_4_parity4", "blob",
             "marker_free_clutter", "other_families", "too_occluded", "side_corners", "clean_beside_occluded",
-            "motion_blur", "motion_blur_small", "dim_small", "thin_oblique_blurred", "round_blur"} <= notes
+            "motion_blur", "motion_blur_small", "dim_small", "thin_oblique_blurred", "round_blur",
+            "noisy_small", "dim_oblique"} <= notes
 
 
 @pytest.mark.parametrize("golden", GOLDEN, ids=lambda path: path.stem)
@@ -232,6 +233,31 @@ def test_a_dim_frame_is_thresholded_with_a_lower_offset():
     found = by_id(Detector().detect(image))
     assert marker["id"] in found
     assert np.abs(found[marker["id"]].corners_px - np.array(marker["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
+
+
+@pytest.mark.parametrize("name", ["noisy_small", "dim_oblique"])
+def test_a_noisy_or_dim_frame_is_read_again_with_a_small_threshold_window(name):
+    # grain (sd 12) or a dim frame (mean gray 20) breaks up a small marker's quad at the usual 15 px window
+    image, expected = golden(name)
+    marker = expected["markers"][0]
+    without = Detector(DetectorParams(square=SquareParams(small_window_px=15))).detect(image)
+    assert marker["id"] not in by_id(without)
+    found = by_id(Detector().detect(image))
+    assert marker["id"] in found
+    assert np.abs(found[marker["id"]].corners_px - np.array(marker["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
+
+
+def test_only_a_noisy_frame_is_called_noisy(layout):
+    finder = Detector().square
+    noisy, _ = golden("noisy_small")
+    assert finder.is_noisy(noisy)
+    for name in ("dim_small", "round_blur", "square_rotations", "marker_free_clutter", "motion_blur"):
+        assert not finder.is_noisy(golden(name)[0]), name
+    texture = raster.rs_marker_texture(layout, 7)
+    clean, _ = render_scene([(texture, facing_pose(0.7, spin_deg=20, tilt_deg=15))])
+    assert not finder.is_noisy(clean)
+    grain = np.random.default_rng(3).normal(0.0, 12.0, clean.shape)
+    assert finder.is_noisy(np.clip(clean + grain, 0, 255).astype(np.uint8))
 
 
 def test_the_smear_is_measured_on_a_found_marker(detector):

@@ -20,9 +20,11 @@ Stages (one module each in ``companion.detect``, run in this order):
    the detector has the camera).
    ``smear``: where a found marker's edges are wide, the frame's motion
    smear is measured on its known pattern, the frame deconvolved with it and
-   the square path (1-5) run again there for the markers the smear hid; a
-   round blur (no line smear fits) is read again with a smaller threshold
-   window instead.
+   the square path (1-5) run again there for the markers the smear hid.
+   ``small_window``: a frame that is round blurred (wide edges, no line
+   smear fits), dim or noisy is read again by the square path (1-5) with a
+   small threshold window, for the small markers whose quads the usual
+   window loses.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
    (found at a pyramid level, on a second thread beside ArUco when OpenCV
@@ -159,15 +161,21 @@ class Detector:
         clock = _StageClock()
         run = self.params.circles.run
         blobs_pending = self._blob_search_beside(gray) if run == "always" and expected_px is None else None
-        candidates = self.square.find(gray)
+        dim = self.square.is_dim(gray)
+        candidates = self.square.find(gray, dim=dim)
         clock.lap("square")
         detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
         clock.lap("square_decode")
         detections = [self._aligned(gray, d) for d in detections]
         clock.lap("square_align")
+        round_blur = False
         if self.params.smear.recover and detections:
-            detections += self._smeared_markers(gray, detections)
+            smeared, round_blur = self._smeared_markers(gray, detections)
+            detections += smeared
             clock.lap("smear")
+        if round_blur or dim or self.square.is_noisy(gray):
+            detections += self._found_again(gray, detections, self.params.square.small_window_px, dim)
+            clock.lap("small_window")
         if run == "always" or (run == "when_square_empty" and not detections):
             # (M, 3, 3) grid -> frame of the markers found so far: the circles path looks only outside them
             found_H = homography.from_quads(self.layout.inner_corners_cells,
@@ -249,12 +257,11 @@ class Detector:
             cov_px2 = None if cov_px2 is None else cov_px2 * CUT_SIGMA_FACTOR ** 2
         return replace(detection, corners_px=corners_px, corner_sigma_px=sigma_px, corner_cov_px2=cov_px2)
 
-    def _smeared_markers(self, gray: np.ndarray, found: list[Detection]) -> list[Detection]:
-        """Markers the square path missed in a smeared or blurred frame (``smear``): the edges of one found
-        marker measured (a sharp frame stops there), its pattern compared with the image under line smears,
-        the frame deconvolved with the best one and the square path run again there; where no line smear
-        fits (a round blur), the square path run again on the frame with ``square.blurred_window_px``
-        (either way, quads inside the found markers' grids skipped)."""
+    def _smeared_markers(self, gray: np.ndarray, found: list[Detection]) -> tuple[list[Detection], bool]:
+        """Markers the square path missed in a smeared frame (``smear``): the edges of one found marker
+        measured (a sharp frame stops there), its pattern compared with the image under line smears, the
+        frame deconvolved with the best one and the square path run again there. Also whether the frame is
+        round blurred instead (wide edges, no line smear fits), for the ``small_window`` stage."""
         params = self.params.smear
         corners_px = np.stack([d.corners_px for d in found])  # (M, 4, 2)
         sides_px = homography.mean_side_px(corners_px)
@@ -264,20 +271,25 @@ class Detector:
         widths_px = self.edges.step_widths_px(gray, H, sides_px[pick] / self.layout.inner_cells)
         # the smear widens both edges of a pair alike; one widened edge is more likely an occluder or a shadow
         if not max(min(widths_px[0], widths_px[2]), min(widths_px[1], widths_px[3])) >= params.min_edge_width_px:
-            return []
+            return [], False
         smear = self.smear.estimate(gray, marker.id, marker.corners_px)
         if smear is None or smear.length_px < params.min_recover_length_px:
-            # wide edges and no line smear to undo: a round blur, read again with a smaller threshold window
-            image, window_px = gray, self.params.square.blurred_window_px
-        else:
-            image, window_px = deconvolve(gray, smear, params.noise_to_signal), None
-        candidates = self.square.find(image, window_px)
-        if len(candidates.corners_px) == 0:
+            return [], True
+        return self._found_again(deconvolve(gray, smear, params.noise_to_signal), found), False
+
+    def _found_again(self, image: np.ndarray, found: list[Detection], window_px: int | None = None,
+                     dim: bool | None = None) -> list[Detection]:
+        """Markers the square path (1-5) finds in ``image`` (the frame deconvolved, or read with another
+        threshold window ``window_px``) whose quads lie outside the grids of the markers already found."""
+        candidates = self.square.find(image, window_px, dim)
+        corners_px, from_aruco = candidates.corners_px, candidates.from_aruco
+        if len(corners_px) and found:
+            H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
+            new = ~sampling.inside_grids(corners_px.mean(axis=1), H, self.layout.n_cells)
+            corners_px, from_aruco = corners_px[new], from_aruco[new]
+        if len(corners_px) == 0:
             return []
-        H = homography.from_quads(self.layout.inner_corners_cells, corners_px)
-        new = ~sampling.inside_grids(candidates.corners_px.mean(axis=1), H, self.layout.n_cells)
-        detections = self._decode_quads(image, candidates.corners_px[new], candidates.from_aruco[new])
-        return [self._aligned(image, d) for d in detections]
+        return [self._aligned(image, d) for d in self._decode_quads(image, corners_px, from_aruco)]
 
     def _pattern_inside(self, corners_px: np.ndarray, shape: tuple[int, int]) -> bool:
         """Whether the marker's whole printed grid lies inside the frame (the alignment saw all of it)."""

@@ -28,6 +28,11 @@ from companion.params import require
 
 
 ARUCO_DETECTORS_KEPT = 4
+# the noise test reads every ROW_STRIDE-th row through a second difference along it
+ROW_STRIDE = 24
+SECOND_DIFFERENCE = np.array([[1.0, -2.0, 1.0]])
+# pixel noise of sd s gives second differences of sd s * sqrt(6); 20 % of them exceed 1.2816 of that
+NOISE_TAIL_SD, NOISE_TAIL_FRACTION = 1.2816, 0.2
 
 
 @dataclass(frozen=True)
@@ -51,11 +56,16 @@ class SquareParams:
         and a marker in a frame a sixth as bright has a sixth of the contrast
         (the benchmark's low light, mean 16-21: 266 -> 268 of 270 markers
         with 4, for 50 % more time in those frames; 3 and 2 found no more).
-    blurred_window_px: the threshold window of the square path's second pass
-        over a blurred frame (the detector's ``smear`` stage: found markers'
-        edges wide, no line smear to undo): at 15 px the local mean of a small
-        blurred marker closes its white gap ring (Gaussian blur in the
-        benchmark: 290 -> 291 of 294 markers).
+    small_window_px: the threshold window of the square path's second pass
+        (the detector's ``small_window`` stage) over a frame that is round
+        blurred (found markers' edges wide, no line smear to undo), dim, or
+        noisy: at 15 px the local mean of a small blurred marker closes its
+        white gap ring, and a grainy or dim small marker's quad breaks up
+        (benchmark: Gaussian blur 290 -> 291 of 294 markers; noise 276 -> 277
+        of 277, low light 268 -> 269 of 270).
+    noisy_frame_sd_gray: pixel noise (standard deviation, gray levels) from
+        which a frame is called noisy and read again with ``small_window_px``
+        (the benchmark's noise is sd 12; a sharp clean frame measures ~2).
     min_side_px: the smallest inner square the path reads, mean side in
         pixels, whatever the image size (ArUco's smallest quad perimeter is
         4 x this). 12, as ArUco's relative default (0.08 of the long side)
@@ -76,7 +86,8 @@ class SquareParams:
     aruco_threshold_constant_gray: float = 7.0
     dim_frame_mean_gray: float = 50.0
     dim_threshold_constant_gray: float = 4.0
-    blurred_window_px: int = 7
+    small_window_px: int = 7
+    noisy_frame_sd_gray: float = 8.0
     min_side_px: float = 12.0
     min_fixed_agreement_fraction: float = 0.75
     min_dark_codeword_fraction: float = 0.15
@@ -92,8 +103,9 @@ class SquareParams:
                 "step >= 1", self.aruco_threshold_windows_px)
         object.__setattr__(self, "aruco_threshold_windows_px", windows)
         require(self.min_side_px > 0, "min_side_px", "> 0", self.min_side_px)
-        require(isinstance(self.blurred_window_px, int) and self.blurred_window_px >= 3 and self.blurred_window_px % 2,
-                "blurred_window_px", "an odd integer >= 3", self.blurred_window_px)
+        require(isinstance(self.small_window_px, int) and self.small_window_px >= 3 and self.small_window_px % 2,
+                "small_window_px", "an odd integer >= 3", self.small_window_px)
+        require(self.noisy_frame_sd_gray > 0, "noisy_frame_sd_gray", "> 0", self.noisy_frame_sd_gray)
         require(0 <= self.dim_frame_mean_gray <= 255, "dim_frame_mean_gray", "in [0, 255]", self.dim_frame_mean_gray)
         for key in ("min_fixed_agreement_fraction", "min_dark_codeword_fraction", "max_dark_codeword_fraction"):
             require(0.0 <= getattr(self, key) <= 1.0, key, "in [0, 1]", getattr(self, key))
@@ -141,10 +153,24 @@ class SquareFinder:
         self._inner_corners = layout.inner_corners_cells
         self._probe = sampling.CellProbe(layout)
 
-    def find(self, gray: np.ndarray, window_px: int | None = None) -> SquareCandidates:
+    def is_dim(self, gray: np.ndarray) -> bool:
+        """Whether the frame's mean gray level (of every 8th row) is below ``dim_frame_mean_gray``."""
+        return cv2.mean(gray[::8])[0] < self.params.dim_frame_mean_gray
+
+    def is_noisy(self, gray: np.ndarray) -> bool:
+        """Whether the frame's pixel noise is about ``noisy_frame_sd_gray`` or more, judged on every
+        ``ROW_STRIDE``-th row: edges and texture give large second differences along a row in a few
+        places, pixel noise everywhere, so the test is the share of them beyond the noise's 80th percentile."""
+        rows = np.ascontiguousarray(gray[ROW_STRIDE // 3::ROW_STRIDE], dtype=np.float32)
+        second = cv2.filter2D(rows, -1, SECOND_DIFFERENCE, borderType=cv2.BORDER_REPLICATE)
+        limit = NOISE_TAIL_SD * np.sqrt(6.0) * self.params.noisy_frame_sd_gray
+        return bool(np.count_nonzero(np.abs(second) > limit) > NOISE_TAIL_FRACTION * second.size)
+
+    def find(self, gray: np.ndarray, window_px: int | None = None, dim: bool | None = None) -> SquareCandidates:
         """Candidate inner squares; window_px: one ArUco threshold window of this size instead of
-        ``aruco_threshold_windows_px`` (``blurred_window_px``: the detector's second pass over a blurred frame)."""
-        dim = cv2.mean(gray)[0] < self.params.dim_frame_mean_gray
+        ``aruco_threshold_windows_px`` (``small_window_px``: the detector's second pass); dim: whether the
+        frame is dim (``is_dim``), when already known."""
+        dim = self.is_dim(gray) if dim is None else dim
         constant = self.params.dim_threshold_constant_gray if dim else self.params.aruco_threshold_constant_gray
         windows = self.params.aruco_threshold_windows_px if window_px is None else (window_px, window_px, 10)
         corners, _, rejected = self._aruco(max(gray.shape), constant, windows).detectMarkers(gray)

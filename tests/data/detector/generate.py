@@ -191,7 +191,13 @@ def benchmark_crops() -> None:
             ("round_blur", "gaussian_blur", 68, (30, 23),
              "a Gaussian blur: the 39 px marker's wide edges and no line smear send the square path over the frame "
              "again with a 7 px threshold window, which finds the small oblique one (the 15 px window closes its "
-             "gap ring)")):
+             "gap ring)"),
+            ("noisy_small", "noise", 122, (36, 38),
+             "grain of sd 12 over two 36-38 px markers: the 15 px threshold window breaks their quads up, the "
+             "small_window pass over the noisy frame (7 px) finds them"),
+            ("dim_oblique", "low_light", 20, (33,),
+             "an oblique marker in a dim frame (mean gray about 20): found only by the small_window pass (7 px) "
+             "with the dim frame's lower offset")):
         rendered = bench.render_family(textures, "rs", bench.scene_ids(2024, condition, index), condition, 2024, index)
         truths = [next(t for t in rendered.truths if t.marker_id == marker_id) for marker_id in marker_ids]
         height, width = rendered.image.shape
