@@ -91,7 +91,8 @@ AISLE_WAYPOINTS = [tuple(p) for p in yaml.safe_load(
     (REPO / "companion" / "data" / "sequences" / "warehouse_aisle" / "sequence.yaml").read_text())["trajectory"]["points"]]
 
 
-def render_sequence(folder: Path, width: int, height: int, waypoints) -> Path:
+def render_sequence(folder: Path, width: int, height: int, waypoints, simulate_args=()) -> Path:
+    """The aisle flight rendered at this size (``simulate_args``: more ``companion simulate`` options)."""
     camera = {"camera": {"width": width, "height": height, "hfov_deg": HFOV_DEG,
                          "distortion": [-0.05, 0.02, 0.0, 0.0, 0.0],
                          "mount": {"lever_arm_m": [0.10, 0.0, 0.05], "facing": "forward", "tilt_down_deg": 20.0}}}
@@ -100,7 +101,8 @@ def render_sequence(folder: Path, width: int, height: int, waypoints) -> Path:
     out = folder / f"seq_{width}x{height}"
     code = cli.main(["simulate", str(out), "--map", str(REPO / "maps" / "warehouse.yaml"),
                      "--camera", str(camera_file), "--pattern", "path", "--speed", "1.4",
-                     "--waypoints", ";".join(",".join(str(v) for v in p) for p in waypoints), "--no-progress"])
+                     "--waypoints", ";".join(",".join(str(v) for v in p) for p in waypoints), "--no-progress",
+                     *simulate_args])
     if code != 0:
         raise SystemExit(f"simulate failed for {width}x{height}")
     return out
@@ -126,7 +128,10 @@ def raw_copy(sequence: Path) -> Path:
     return raw
 
 
-def run_daemon(sequence: Path, realtime: bool, port: int, workdir: Path) -> tuple[Daemon, float, float]:
+def run_daemon(sequence: Path, realtime: bool, port: int, workdir: Path,
+               detector: dict | None = None) -> tuple[Daemon, float, float]:
+    """The daemon replaying ``sequence`` to a UDP sink (``detector``: the config's detector section); it, and
+    the wall and CPU seconds of its run."""
     data = {
         "source": {"kind": "replay", "path": str(sequence), "realtime": realtime},
         "map": str(REPO / "maps" / "warehouse.yaml"),
@@ -135,6 +140,7 @@ def run_daemon(sequence: Path, realtime: bool, port: int, workdir: Path) -> tupl
         # --quick frames the fast replay sent 38 and held back 80, the paced one held back its first 43).
         "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "max_rate_hz": 50, "origin_wait_s": 0.0,
                     "duplicate_listen_s": 0.0},
+        "detector": detector or {},
     }
     config = config_from_dict(data, workdir / "bench.yaml")
     daemon = Daemon(config, status_stream=None, record_frames=100_000)
