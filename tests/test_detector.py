@@ -247,6 +247,21 @@ def test_a_noisy_or_dim_frame_is_read_again_with_a_small_threshold_window(name):
     assert np.abs(found[marker["id"]].corners_px - np.array(marker["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
 
 
+def test_with_expected_places_the_small_window_pass_runs_only_for_a_missing_marker_while_few_are_found():
+    # in noisy_small the usual window finds LEFT (38) and the small window UP (36)
+    image, expected = golden("noisy_small")
+    corners = {m["id"]: np.array(m["corners"]) for m in expected["markers"]}
+    both_expected = np.stack([corners[38], corners[36]])
+    detector = Detector()
+    assert set(by_id(detector.detect(image, expected_px=corners[38][None]))) == {38}
+    assert "small_window" not in detector.last_stage_ms
+    assert set(by_id(detector.detect(image, expected_px=both_expected))) == {36, 38}
+    assert "small_window" in detector.last_stage_ms
+    one_is_enough = Detector(DetectorParams(square=SquareParams(small_window_enough_markers=1)))
+    assert set(by_id(one_is_enough.detect(image, expected_px=both_expected))) == {38}
+    assert set(by_id(one_is_enough.detect(image))) == {36, 38}
+
+
 def test_only_a_noisy_frame_is_called_noisy(layout):
     finder = Detector().square
     noisy, _ = golden("noisy_small")

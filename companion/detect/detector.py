@@ -155,7 +155,9 @@ class Detector:
         frame where the square path found a marker, the circles path looks only around the expected
         markers it did not find that face the camera and are large enough for it
         (``circles.expected_margin_fraction``, ``circles.min_side_px``), and not at all when there are
-        none; without them, or when the square path found nothing, it searches the whole frame.
+        none; without them, or when the square path found nothing, it searches the whole frame. The
+        ``small_window`` pass, too, is skipped when every expected marker the square path could read
+        (``square.min_side_px``) is found.
         """
         gray = _as_gray(gray)
         clock = _StageClock()
@@ -173,7 +175,7 @@ class Detector:
             smeared, round_blur = self._smeared_markers(gray, detections)
             detections += smeared
             clock.lap("smear")
-        if round_blur or dim or self.square.is_noisy(gray):
+        if (round_blur or dim or self.square.is_noisy(gray)) and self._may_miss(expected_px, detections, gray.shape):
             detections += self._found_again(gray, detections, self.params.square.small_window_px, dim)
             clock.lap("small_window")
         if run == "always" or (run == "when_square_empty" and not detections):
@@ -184,7 +186,7 @@ class Detector:
             if blobs_pending is not None and not blobs_pending.cancel():
                 blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
             elif expected_px is not None and detections:
-                windows = self._windows_of_missing(expected_px, found_H, gray.shape)
+                windows = self._windows_of_missing(expected_px, found_H, gray.shape, circles.min_side_px)
                 blobs = find_window_blobs(gray, windows, circles) if len(windows) else None
             else:
                 # the same search whether or not the thread got to it: only where none was handed over does
@@ -212,10 +214,21 @@ class Detector:
             self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
         return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
 
-    def _windows_of_missing(self, expected_px: np.ndarray, found_H: np.ndarray,
-                            gray_shape: tuple[int, int]) -> np.ndarray:
+    def _may_miss(self, expected_px: np.ndarray | None, found: list[Detection], gray_shape: tuple[int, int]) -> bool:
+        """Whether the frame is worth reading again for a marker not yet found: no expected places were
+        given; or fewer than ``square.small_window_enough_markers`` were found and an expected marker
+        (facing the camera, ``square.min_side_px`` or larger, in the frame) lies outside every found grid."""
+        if expected_px is None or not found:
+            return True
+        if len(found) >= self.params.square.small_window_enough_markers:
+            return False
+        found_H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
+        return len(self._windows_of_missing(expected_px, found_H, gray_shape, self.params.square.min_side_px)) > 0
+
+    def _windows_of_missing(self, expected_px: np.ndarray, found_H: np.ndarray, gray_shape: tuple[int, int],
+                            min_side_px: float) -> np.ndarray:
         """(B, 4) int windows (x0, y0, x1, y1) inside the frame around the expected markers (K, 4, 2) that
-        face the camera (clockwise in the image), have a mean side of ``circles.min_side_px`` or more, and
+        face the camera (clockwise in the image), have a mean side of ``min_side_px`` or more, and
         whose centres no found marker's whole grid (``found_H`` (M, 3, 3)) covers: each one's square grown about its centre to
         the whole grid, its bounding box grown by ``circles.expected_margin_fraction`` of its larger side."""
         expected = np.asarray(expected_px, dtype=np.float64).reshape(-1, 4, 2)
@@ -223,7 +236,7 @@ class Detector:
             x, y = expected[..., 0], expected[..., 1]
             # shoelace: twice the signed area, > 0 for TL, TR, BR, BL clockwise on the screen (y down)
             facing = (x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y).sum(axis=1) > 0
-            usable = facing & (homography.mean_side_px(expected) >= self.params.circles.min_side_px)
+            usable = facing & (homography.mean_side_px(expected) >= min_side_px)
         expected = expected[usable]
         if len(expected) == 0:
             return np.zeros((0, 4), np.int64)
