@@ -193,8 +193,8 @@ def benchmark_crops() -> None:
              "again with a 7 px threshold window, which finds the small oblique one (the 15 px window closes its "
              "gap ring)"),
             ("noisy_small", "noise", 122, (36, 38),
-             "grain of sd 12 over two 36-38 px markers: the 15 px threshold window breaks their quads up, the "
-             "small_window pass over the noisy frame (7 px) finds them"),
+             "grain of sd 12: the 15 px threshold window finds LEFT but breaks the quad of UP, small and oblique, "
+             "up; the small_window pass over the noisy frame (7 px) finds it"),
             ("dim_oblique", "low_light", 20, (33,),
              "an oblique marker in a dim frame (mean gray about 20): found only by the small_window pass (7 px) "
              "with the dim frame's lower offset")):
