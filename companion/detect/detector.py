@@ -155,9 +155,9 @@ class Detector:
         frame where the square path found a marker, the circles path looks only around the expected
         markers it did not find that face the camera and are large enough for it
         (``circles.expected_margin_fraction``, ``circles.min_side_px``), and not at all when there are
-        none; without them, or when the square path found nothing, it searches the whole frame. The
-        ``small_window`` pass, too, is skipped when every expected marker the square path could read
-        (``square.min_side_px``) is found.
+        none; without them, or when the square path found nothing, it searches the whole frame. With
+        them the ``small_window`` pass, too, runs only where fewer than ``square.small_window_enough_markers``
+        markers were found and an expected marker the square path could read (``square.min_side_px``) is not.
         """
         gray = _as_gray(gray)
         clock = _StageClock()
@@ -180,8 +180,7 @@ class Detector:
             clock.lap("small_window")
         if run == "always" or (run == "when_square_empty" and not detections):
             # (M, 3, 3) grid -> frame of the markers found so far: the circles path looks only outside them
-            found_H = homography.from_quads(self.layout.inner_corners_cells,
-                                            np.stack([d.corners_px for d in detections])) if detections else None
+            found_H = self._grids_of(detections) if detections else None
             circles = self.params.circles
             if blobs_pending is not None and not blobs_pending.cancel():
                 blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
@@ -214,6 +213,10 @@ class Detector:
             self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
         return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
 
+    def _grids_of(self, found: list[Detection]) -> np.ndarray:
+        """(M, 3, 3) homographies grid cells -> frame of M found markers (M >= 1)."""
+        return homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
+
     def _may_miss(self, expected_px: np.ndarray | None, found: list[Detection], gray_shape: tuple[int, int]) -> bool:
         """Whether the frame is worth reading again for a marker not yet found: no expected places were
         given; or fewer than ``square.small_window_enough_markers`` were found and an expected marker
@@ -222,7 +225,7 @@ class Detector:
             return True
         if len(found) >= self.params.square.small_window_enough_markers:
             return False
-        found_H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
+        found_H = self._grids_of(found)
         return len(self._windows_of_missing(expected_px, found_H, gray_shape, self.params.square.min_side_px)) > 0
 
     def _windows_of_missing(self, expected_px: np.ndarray, found_H: np.ndarray, gray_shape: tuple[int, int],
@@ -297,8 +300,7 @@ class Detector:
         candidates = self.square.find(image, window_px, dim)
         corners_px, from_aruco = candidates.corners_px, candidates.from_aruco
         if len(corners_px) and found:
-            H = homography.from_quads(self.layout.inner_corners_cells, np.stack([d.corners_px for d in found]))
-            new = ~sampling.inside_grids(corners_px.mean(axis=1), H, self.layout.n_cells)
+            new = ~sampling.inside_grids(corners_px.mean(axis=1), self._grids_of(found), self.layout.n_cells)
             corners_px, from_aruco = corners_px[new], from_aruco[new]
         if len(corners_px) == 0:
             return []
