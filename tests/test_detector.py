@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -170,14 +171,15 @@ def test_golden_frames_exist_for_every_case():
     assert {"square_rotations", "circles_rotations", "strip_1_8", "strip_1_4", "strip_1_4_parity4", "blob",
             "marker_free_clutter", "other_families", "too_occluded", "side_corners", "clean_beside_occluded",
             "motion_blur", "motion_blur_small", "dim_small", "thin_oblique_blurred", "round_blur",
-            "noisy_small", "dim_oblique"} <= notes
+            "noisy_small", "dim_oblique", "walk_smeared_small"} <= notes
 
 
 @pytest.mark.parametrize("golden", GOLDEN, ids=lambda path: path.stem)
 def test_golden_frame(golden):
     expected = json.loads(golden.read_text())
     image = cv2.imread(str(golden.with_suffix(".png")), cv2.IMREAD_GRAYSCALE)
-    detector = Detector(DetectorParams(parity=expected["parity"]))
+    params = {None: DetectorParams, "for_footage": DetectorParams.for_footage}[expected.get("params")]
+    detector = Detector(params(parity=expected["parity"]))
     found = detector.detect(image)
     assert sorted(d.id for d in found) == sorted(m["id"] for m in expected["markers"]), expected["note"]
     layout = detector.layout
@@ -245,6 +247,35 @@ def test_a_noisy_or_dim_frame_is_read_again_with_a_small_threshold_window(name):
     found = by_id(Detector().detect(image))
     assert marker["id"] in found
     assert np.abs(found[marker["id"]].corners_px - np.array(marker["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
+
+
+def test_the_survey_detector_reads_every_frame_again_with_the_small_window():
+    # a walk's 20 px marker smeared by about 2 px in a frame that looks neither blurred, dim nor noisy
+    image, expected = golden("walk_smeared_small")
+    clean, smeared = expected["markers"]
+    default = Detector()
+    assert set(by_id(default.detect(image))) == {clean["id"]}
+    assert "small_window" not in default.last_stage_ms
+    assert not DetectorParams().square.small_window_every_frame
+    footage = Detector(DetectorParams.for_footage())
+    found = by_id(footage.detect(image))
+    assert set(found) == {clean["id"], smeared["id"]}
+    assert "small_window" in footage.last_stage_ms
+    assert np.abs(found[smeared["id"]].corners_px - np.array(smeared["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
+
+
+def test_the_survey_detector_reads_a_deconvolved_frame_with_the_small_window_too():
+    # a 21 px marker of a walk, found on neither the frame nor its deconvolution with the usual window alone
+    image, expected = golden("walk_smeared_deconvolved")
+    clean, smeared = expected["markers"]
+    footage = DetectorParams.for_footage()
+    found = by_id(Detector(footage).detect(image))
+    assert set(found) == {clean["id"], smeared["id"]}
+    assert np.abs(found[smeared["id"]].corners_px - np.array(smeared["corners"])).max() < GOLDEN_TOLERANCE_PX["square"]
+    no_smear = replace(footage, smear=replace(footage.smear, recover=False))
+    assert set(by_id(Detector(no_smear).detect(image))) == {clean["id"]}
+    no_small_window = replace(footage, square=replace(footage.square, small_window_every_frame=False))
+    assert set(by_id(Detector(no_small_window).detect(image))) == {clean["id"]}
 
 
 def test_with_expected_places_the_small_window_pass_runs_only_for_a_missing_marker_while_few_are_found():

@@ -22,9 +22,9 @@ Stages (one module each in ``companion.detect``, run in this order):
    smear is measured on its known pattern, the frame deconvolved with it and
    the square path (1-5) run again there for the markers the smear hid.
    ``small_window``: a frame that is round blurred (wide edges, no line
-   smear fits), dim or noisy is read again by the square path (1-5) with a
-   small threshold window, for the small markers whose quads the usual
-   window loses.
+   smear fits), dim or noisy (or every frame, for the survey) is read again
+   by the square path (1-5) with a small threshold window, for the small
+   markers whose quads the usual window loses.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
    (found at a pyramid level, on a second thread beside ArUco when OpenCV
@@ -62,6 +62,11 @@ from companion.params import from_mapping, require
 from companion.types import Detection
 
 DICTIONARIES = tuple(f"{n}x{n}" for n in SIZES)
+
+
+# the survey's detector measures the smear in every frame with a found marker (a sharp frame's edges are 1.9-3.1 px
+# wide) and undoes it from 2 px on (the daemon's: only from 3.3 px wide edges and 7 px smears), docs/detector.md
+FOOTAGE_SMEAR = {"min_edge_width_px": 1.0, "min_length_px": 2.0, "min_recover_length_px": 2.0}
 
 
 class DetectorError(ValueError):
@@ -105,9 +110,14 @@ class DetectorParams:
     def for_footage(cls, **fields) -> DetectorParams:
         """``fields`` for footage processed offline (survey, map check, localize), recall before speed:
         occluded markers beside found ones are looked for down to ``circles.min_side_px`` on one thread
-        too (on two the search beside ArUco does so by default)."""
+        too (on two the search beside ArUco does so by default); for the small markers a walk's motion
+        smears by a few pixels, every frame is read again with the small threshold window
+        (``square.small_window_every_frame``) and its smear measured and, from 2 px on, undone
+        (``FOOTAGE_SMEAR``)."""
         params = cls(**fields)
-        return replace(params, circles=replace(params.circles, min_side_beside_found_px=params.circles.min_side_px))
+        return replace(params, circles=replace(params.circles, min_side_beside_found_px=params.circles.min_side_px),
+                       square=replace(params.square, small_window_every_frame=True),
+                       smear=replace(params.smear, **FOOTAGE_SMEAR))
 
     @classmethod
     def from_mapping(cls, mapping) -> DetectorParams:
@@ -175,7 +185,8 @@ class Detector:
             smeared, round_blur = self._smeared_markers(gray, detections)
             detections += smeared
             clock.lap("smear")
-        if (round_blur or dim or self.square.is_noisy(gray)) and self._may_miss(expected_px, detections, gray.shape):
+        again = self.params.square.small_window_every_frame or round_blur or dim or self.square.is_noisy(gray)
+        if again and self._may_miss(expected_px, detections, gray.shape):
             detections += self._found_again(gray, detections, self.params.square.small_window_px, dim)
             clock.lap("small_window")
         if run == "always" or (run == "when_square_empty" and not detections):
@@ -276,7 +287,8 @@ class Detector:
     def _smeared_markers(self, gray: np.ndarray, found: list[Detection]) -> tuple[list[Detection], bool]:
         """Markers the square path missed in a smeared frame (``smear``): the edges of one found marker
         measured (a sharp frame stops there), its pattern compared with the image under line smears, the
-        frame deconvolved with the best one and the square path run again there. Also whether the frame is
+        frame deconvolved with the best one and the square path run again there (with the small window too
+        where every frame is, ``square.small_window_every_frame``). Also whether the frame is
         round blurred instead (wide edges, no line smear fits), for the ``small_window`` stage."""
         params = self.params.smear
         corners_px = np.stack([d.corners_px for d in found])  # (M, 4, 2)
@@ -291,7 +303,11 @@ class Detector:
         smear = self.smear.estimate(gray, marker.id, marker.corners_px)
         if smear is None or smear.length_px < params.min_recover_length_px:
             return [], True
-        return self._found_again(deconvolve(gray, smear, params.noise_to_signal), found), False
+        deconvolved = deconvolve(gray, smear, params.noise_to_signal)
+        again = self._found_again(deconvolved, found)
+        if self.params.square.small_window_every_frame:
+            again += self._found_again(deconvolved, found + again, self.params.square.small_window_px)
+        return again, False
 
     def _found_again(self, image: np.ndarray, found: list[Detection], window_px: int | None = None,
                      dim: bool | None = None) -> list[Detection]:

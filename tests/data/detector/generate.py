@@ -5,7 +5,11 @@
 Each NAME.png (400 x 300, 8-bit gray; markers with a 45-55 px inner square) comes with NAME.json:
 
     {"parity": 2, "markers": [{"symbol": "A", "id": 0, "corners": [[x, y] x 4],
-      "path": "square" | "circles", "occlusion": "none" | "strip_1_8" | ...}], "note": "..."}
+      "path": "square" | "circles", "occlusion": "none" | "strip_1_8" | ...}], "note": "...",
+     "params": "for_footage"}
+
+"params" (optional): the markers are those ``DetectorParams.for_footage`` finds (the survey's detector),
+not the daemon's default.
 
 corners are the renderer's ground truth (inner square TL, TR, BR, BL of the
 upright marker, through the same camera model), not detector output; path is
@@ -172,6 +176,7 @@ def main() -> None:
        degradations=scenes.BASE_DEGRADATIONS.with_(motion_length_px=9.0, motion_angle_rad=math.radians(60)))
 
     benchmark_crops()
+    walk_crops()
 
 
 def benchmark_crops() -> None:
@@ -208,6 +213,38 @@ def benchmark_crops() -> None:
                     "corners": np.round(t.corners_px - [x0, y0], 3).tolist(), "path": "square", "occlusion": "none"}
                    for t in truths]
         (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": markers, "note": note}, indent=1) + "\n")
+
+
+
+def walk_crops() -> None:
+    """Frames cut (400 x 300 around the markers named) from ``benchmarks/bench_survey.py``'s 640x480 hall walk,
+    found only by the survey's detector (``DetectorParams.for_footage``); the truth is the simulator's."""
+    sys.path.insert(0, str(HERE.parents[2] / "benchmarks"))
+    import bench_survey as bench
+    from companion.sim import simulate
+    simulator = simulate.Simulator(simulate.build_world(bench.load_map(bench.MAP_PATH)), bench.camera_model(640, 480),
+                                   bench.handheld(bench.hall_walk()), bench.WALK_DEGRADATIONS, seed=11,
+                                   occluder_count=bench.WALK_OCCLUDERS)
+    layout = MarkerLayout(2)
+    for name, index, marker_ids, note in (
+            ("walk_smeared_small", 247, (44, 19),
+             "a frame of a hand-held walk: a 20 px marker smeared by about 2 px, in a frame that looks neither "
+             "blurred, dim nor noisy; the usual 15 px threshold window closes its gap ring, the survey's detector "
+             "reads every frame again with the 7 px window and finds it"),
+            ("walk_smeared_deconvolved", 2075, (13, 14),
+             "a frame of a hand-held walk: a 21 px marker beside a larger one, found only on the frame deconvolved "
+             "with the smear measured on the larger one and read with the 7 px window (the survey's detector)"),):
+        frame = simulator.render_frame(index, round(index * 1e9 / 4.0))
+        truths = [next(t for t in frame.truths if t.marker_id == marker_id) for marker_id in marker_ids]
+        height, width = frame.image.shape
+        centre = truths[-1].corners_px.mean(axis=0)
+        x0, y0 = np.clip(np.round(centre - [W / 2, H / 2]), 0, [width - W, height - H]).astype(int)
+        cv2.imwrite(str(HERE / f"{name}.png"), frame.image[y0:y0 + H, x0:x0 + W])
+        markers = [{"symbol": layout.dictionary.symbol_of(t.marker_id), "id": t.marker_id,
+                    "corners": np.round(t.corners_px - [x0, y0], 3).tolist(), "path": "square", "occlusion": "none"}
+                   for t in truths]
+        (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": markers, "note": note,
+                                                       "params": "for_footage"}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
