@@ -65,8 +65,9 @@ DICTIONARIES = tuple(f"{n}x{n}" for n in SIZES)
 
 
 # the survey's detector measures the smear in every frame with a found marker (a sharp frame's edges are 1.9-3.1 px
-# wide) and undoes it from 2 px on (the daemon's: only from 3.3 px wide edges and 7 px smears), docs/detector.md
-FOOTAGE_SMEAR = {"min_edge_width_px": 1.0, "min_length_px": 2.0, "min_recover_length_px": 2.0}
+# wide) and undoes it from 3 px on (the daemon's: only from 3.3 px wide edges and 7 px smears); a sharp frame's lens
+# blur reads as a 2 px smear, and undone it made a sharp walk's map worse (docs/detector.md)
+FOOTAGE_SMEAR = {"min_edge_width_px": 1.0, "min_length_px": 2.0, "min_recover_length_px": 3.0}
 
 
 class DetectorError(ValueError):
@@ -112,7 +113,7 @@ class DetectorParams:
         occluded markers beside found ones are looked for down to ``circles.min_side_px`` on one thread
         too (on two the search beside ArUco does so by default); for the small markers a walk's motion
         smears by a few pixels, every frame is read again with the small threshold window
-        (``square.small_window_every_frame``) and its smear measured and, from 2 px on, undone
+        (``square.small_window_every_frame``) and its smear measured and, from 3 px on, undone
         (``FOOTAGE_SMEAR``)."""
         params = cls(**fields)
         return replace(params, circles=replace(params.circles, min_side_beside_found_px=params.circles.min_side_px),
