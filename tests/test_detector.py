@@ -171,7 +171,7 @@ def test_golden_frames_exist_for_every_case():
     assert {"square_rotations", "circles_rotations", "strip_1_8", "strip_1_4", "strip_1_4_parity4", "blob",
             "marker_free_clutter", "other_families", "too_occluded", "side_corners", "clean_beside_occluded",
             "motion_blur", "motion_blur_small", "dim_small", "thin_oblique_blurred", "round_blur",
-            "noisy_small", "dim_oblique", "walk_smeared_small"} <= notes
+            "noisy_small", "dim_oblique", "walk_smeared_small", "walk_smeared_deconvolved"} <= notes
 
 
 @pytest.mark.parametrize("golden", GOLDEN, ids=lambda path: path.stem)

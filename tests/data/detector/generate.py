@@ -215,7 +215,6 @@ def benchmark_crops() -> None:
         (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": markers, "note": note}, indent=1) + "\n")
 
 
-
 def walk_crops() -> None:
     """Frames cut (400 x 300 around the markers named) from ``benchmarks/bench_survey.py``'s 640x480 hall walk,
     found only by the survey's detector (``DetectorParams.for_footage``); the truth is the simulator's."""
