@@ -186,8 +186,8 @@ class Detector:
             smeared, round_blur = self._smeared_markers(gray, detections)
             detections += smeared
             clock.lap("smear")
-        again = self.params.square.small_window_every_frame or round_blur or dim or self.square.is_noisy(gray)
-        if again and self._may_miss(expected_px, detections, gray.shape):
+        read_again = self.params.square.small_window_every_frame or round_blur or dim or self.square.is_noisy(gray)
+        if read_again and self._may_miss(expected_px, detections, gray.shape):
             detections += self._found_again(gray, detections, self.params.square.small_window_px, dim)
             clock.lap("small_window")
         if run == "always" or (run == "when_square_empty" and not detections):

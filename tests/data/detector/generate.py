@@ -185,7 +185,6 @@ def benchmark_crops() -> None:
     sys.path.insert(0, str(HERE.parents[2] / "benchmarks"))
     import bench_detector as bench
     textures = bench.Textures()
-    layout = MarkerLayout(2)
     for name, condition, index, marker_ids, note in (
             ("dim_small", "low_light", 138, (1,),
              "a 33 px marker seen obliquely in a dim frame (mean gray 20, marker contrast 24): ArUco finds its quad "
@@ -205,14 +204,8 @@ def benchmark_crops() -> None:
              "with the dim frame's lower offset")):
         rendered = bench.render_family(textures, "rs", bench.scene_ids(2024, condition, index), condition, 2024, index)
         truths = [next(t for t in rendered.truths if t.marker_id == marker_id) for marker_id in marker_ids]
-        height, width = rendered.image.shape
-        centre = np.mean([t.corners_px.mean(axis=0) for t in truths], axis=0)
-        x0, y0 = np.clip(np.round(centre - [W / 2, H / 2]), 0, [width - W, height - H]).astype(int)
-        cv2.imwrite(str(HERE / f"{name}.png"), rendered.image[y0:y0 + H, x0:x0 + W])
-        markers = [{"symbol": layout.dictionary.symbol_of(t.marker_id), "id": t.marker_id,
-                    "corners": np.round(t.corners_px - [x0, y0], 3).tolist(), "path": "square", "occlusion": "none"}
-                   for t in truths]
-        (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": markers, "note": note}, indent=1) + "\n")
+        write_crop(name, rendered.image, truths, np.mean([t.corners_px.mean(axis=0) for t in truths], axis=0),
+                   {"note": note})
 
 
 def walk_crops() -> None:
@@ -224,7 +217,6 @@ def walk_crops() -> None:
     simulator = simulate.Simulator(simulate.build_world(bench.load_map(bench.MAP_PATH)), bench.camera_model(640, 480),
                                    bench.handheld(bench.hall_walk()), bench.WALK_DEGRADATIONS, seed=11,
                                    occluder_count=bench.WALK_OCCLUDERS)
-    layout = MarkerLayout(2)
     for name, index, marker_ids, note in (
             ("walk_smeared_small", 247, (44, 19),
              "a frame of a hand-held walk: a 20 px marker smeared by about 2 px, in a frame that looks neither "
@@ -235,15 +227,21 @@ def walk_crops() -> None:
              "with the smear measured on the larger one and read with the 7 px window (the survey's detector)"),):
         frame = simulator.render_frame(index, round(index * 1e9 / 4.0))
         truths = [next(t for t in frame.truths if t.marker_id == marker_id) for marker_id in marker_ids]
-        height, width = frame.image.shape
-        centre = truths[-1].corners_px.mean(axis=0)
-        x0, y0 = np.clip(np.round(centre - [W / 2, H / 2]), 0, [width - W, height - H]).astype(int)
-        cv2.imwrite(str(HERE / f"{name}.png"), frame.image[y0:y0 + H, x0:x0 + W])
-        markers = [{"symbol": layout.dictionary.symbol_of(t.marker_id), "id": t.marker_id,
-                    "corners": np.round(t.corners_px - [x0, y0], 3).tolist(), "path": "square", "occlusion": "none"}
-                   for t in truths]
-        (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": markers, "note": note,
-                                                       "params": "for_footage"}, indent=1) + "\n")
+        write_crop(name, frame.image, truths, truths[-1].corners_px.mean(axis=0),
+                   {"note": note, "params": "for_footage"})
+
+
+def write_crop(name: str, image: np.ndarray, truths, centre_px: np.ndarray, fields: dict) -> None:
+    """NAME.png, the W x H window of a parity-2 frame about centre_px (kept inside it), and NAME.json: the
+    square-path markers ``truths`` in the window, then ``fields`` (note, params)."""
+    height, width = image.shape
+    x0, y0 = np.clip(np.round(centre_px - [W / 2, H / 2]), 0, [width - W, height - H]).astype(int)
+    cv2.imwrite(str(HERE / f"{name}.png"), image[y0:y0 + H, x0:x0 + W])
+    layout = MarkerLayout(2)
+    markers = [{"symbol": layout.dictionary.symbol_of(t.marker_id), "id": t.marker_id,
+                "corners": np.round(t.corners_px - [x0, y0], 3).tolist(), "path": "square", "occlusion": "none"}
+               for t in truths]
+    (HERE / f"{name}.json").write_text(json.dumps({"parity": 2, "markers": markers, **fields}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
