@@ -1,0 +1,198 @@
+"""Where a survey's error comes from: the walk surveyed again with its detections' errors taken apart.
+
+bench_survey's walk (rendered the same way, or reused from ``--work DIR``) is detected once, and every
+sighting's points are compared with where the renderer's true camera pose (groundtruth.csv) and the true map
+put them. The survey is then run on the detections as they are, and on the true points plus parts of the
+detector's error, each against the true map (median / max marker position error, median / max angle error,
+and the median left after the best rigid fit):
+
+* ``detected``: the points as the survey sees them (bench_survey's row);
+* ``true + noise of the stated sigma``: independent noise as large as the detector says each sighting's is
+  (``Sighting.sigma_px``): what the map would be if the errors were only that (one draw of the noise moves a
+  one-anchor map's median by a factor of two: the median of ``NOISE_DRAWS`` draws, their range beside it);
+* ``detected, <part> taken out``: each sighting's four corners' error split into the affine map of the
+  quadrilateral that fits it best (shift, scale, turn, aspect: x against y, shear) and the rest; one part
+  removed (from every point of the sighting), the others kept;
+* ``true + shift only``: every part but the shift removed.
+
+A part whose removal shrinks the error most is what limits the map. The table after it gives each part's size
+(RMS over the sightings, px at the corners) and how alike it is in two sightings of one marker some frames
+apart (correlation of the sigma-normalised corner errors, shift removed): errors that repeat from frame to
+frame do not average out over a walk.
+
+    PYTHONPATH=. python benchmarks/bench_survey_budget.py [--quick] [--work DIR] [--size 640x480]
+        [--anchors one|three]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import yaml
+from bench_survey import (ANCHORS, MAP_PATH, QUICK_ANCHORS, aligned_errors, anchors_map, hall_walk, marker_errors,
+                          quick_walk, render_walk)
+
+from companion.geometry import frames
+from companion.geometry.camera import CameraModel
+from companion.geometry.facility_map import load_map
+from companion.localize import groundtruth, map_detector
+from companion.markers.layout import MarkerLayout
+from companion.survey.observations import Footage, collect
+from companion.survey.survey import SurveyOptions, survey_footage
+
+PARTS = ("shift", "scale", "turn", "aspect", "shear")
+GAPS = ((1, 2), (2, 5), (5, 20), (20, 10 ** 6))  # frame gaps between two sightings of one marker
+NOISE_DRAWS = 3
+
+
+def true_points(footage: Footage, walk: Path, truth, camera: CameraModel) -> list[list[np.ndarray]]:
+    """Per frame, per sighting: (K, 2) where the true camera pose and the true map put its points (px)."""
+    T_map_body = groundtruth(walk)
+    projected = []
+    for frame in footage.frames:
+        T_camera_map = camera.T_camera_body @ frames.invert_transform(T_map_body[frame.index])
+        projected.append([camera.project_from(T_camera_map @ truth.markers[s.marker_id].T_map_marker,
+                                              s.points_marker_m) for s in frame.sightings])
+    return projected
+
+
+def affine_parts(true_px: np.ndarray, error_px: np.ndarray) -> dict[str, np.ndarray]:
+    """Each part's (2,) shift or (2, 2) matrix of the affine map that fits a sighting's corner errors best:
+    error ~ shift + M (corner - centre), M = scale I + turn [[0, -1], [1, 0]] + aspect diag(1, -1)
+    + shear [[0, 1], [1, 0]] (aspect: the width read long against the height, in image axes)."""
+    corners = true_px[:4] - true_px[:4].mean(axis=0)
+    coefficients, *_ = np.linalg.lstsq(np.column_stack([corners, np.ones(4)]), error_px[:4], rcond=None)
+    (a, b), (c, d) = coefficients[:2].T
+    return {"shift": coefficients[2],
+            "scale": (a + d) / 2 * np.eye(2),
+            "turn": (c - b) / 2 * np.array([[0.0, -1.0], [1.0, 0.0]]),
+            "aspect": (a - d) / 2 * np.diag([1.0, -1.0]),
+            "shear": (b + c) / 2 * np.array([[0.0, 1.0], [1.0, 0.0]])}
+
+
+def part_px(part: np.ndarray, true_px: np.ndarray) -> np.ndarray:
+    """(K, 2) what one part moves each point of the sighting by."""
+    if part.shape == (2,):
+        return np.broadcast_to(part, true_px.shape)
+    return (true_px - true_px[:4].mean(axis=0)) @ part.T
+
+
+def variant(footage: Footage, projected, how: str, rng: np.random.Generator) -> Footage:
+    """The footage with every sighting's points replaced as ``how`` says (see the module's list)."""
+    out = []
+    for frame, true_frame in zip(footage.frames, projected):
+        sightings = []
+        for s, true_px in zip(frame.sightings, true_frame):
+            error = s.points_px - true_px
+            if how == "detected":
+                points = s.points_px
+            elif how == "noise":
+                points = true_px + rng.normal(0.0, s.sigma_px or 0.1, true_px.shape)
+            else:
+                parts = affine_parts(true_px, error)
+                if how == "shift only":
+                    points = true_px + part_px(parts["shift"], true_px)
+                else:
+                    points = s.points_px - part_px(parts[how], true_px)
+            sightings.append(replace(s, points_px=np.asarray(points, dtype=float)))
+        out.append(replace(frame, sightings=tuple(sightings)))
+    return replace(footage, frames=tuple(out))
+
+
+def errors(footage: Footage, camera: CameraModel, anchor_map, truth, anchors) -> tuple[float, ...]:
+    """The footage surveyed against the true map: position median, max (m), angle median, max (deg), median
+    position error after the best rigid fit (m)."""
+    result = survey_footage(footage, camera, anchor_map, SurveyOptions())
+    position, angle, _ = marker_errors(result.facility_map, truth, anchors)
+    rigid = aligned_errors(result.facility_map, truth, anchors)["rigid"]
+    return (float(np.median(position)), float(position.max()), float(np.median(angle)), float(angle.max()),
+            float(np.median(rigid)))
+
+
+def error_sizes(footage: Footage, projected) -> tuple[dict[str, float], list[tuple[int, float]]]:
+    """RMS at the corners of each part (px) over the square-path sightings; and per frame gap (GAPS) the number
+    of same-marker sighting pairs and the correlation of their sigma-normalised corner errors (shift removed)."""
+    moved = {part: [] for part in PARTS}
+    shapes: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for frame, true_frame in zip(footage.frames, projected):
+        for s, true_px in zip(frame.sightings, true_frame):
+            if s.path != "square":
+                continue
+            error = s.points_px - true_px
+            parts = affine_parts(true_px, error)
+            for part in PARTS:
+                moved[part].append(part_px(parts[part], true_px[:4]))
+            shape = (error[:4] - parts["shift"]).ravel() / (s.sigma_px or 0.02)
+            shapes.setdefault(s.marker_id, []).append((frame.index, shape))
+    sizes = {part: float(np.sqrt(np.mean(np.square(moved[part])))) for part in PARTS}
+    correlations = []
+    for low, high in GAPS:
+        first, second = [], []
+        for sightings in shapes.values():
+            for i, (index, shape) in enumerate(sightings):
+                for later_index, later in sightings[i + 1:]:
+                    if later_index - index >= high:
+                        break
+                    if later_index - index >= low:
+                        first.append(shape)
+                        second.append(later)
+        a, b = np.array(first), np.array(second)
+        correlation = float(np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b))) if len(a) else np.nan
+        correlations.append((len(a), correlation))
+    return sizes, correlations
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="CI smoke run: bench_survey's short walk, a minute")
+    parser.add_argument("--work", help="folder of bench_survey's rendered walks, reused (default: a temporary one)")
+    parser.add_argument("--size", default="640x480", choices=("640x480", "1280x720"), help="which walk")
+    parser.add_argument("--anchors", default="one", choices=sorted(ANCHORS), help="bench_survey's anchor set")
+    args = parser.parse_args()
+    truth = load_map(MAP_PATH)
+    print(f"bench_survey_budget: {'quick' if args.quick else 'full'} run on {os.cpu_count()} cores, "
+          f"load average {os.getloadavg()[0]:.2f}")
+    with tempfile.TemporaryDirectory() as temporary:
+        work = Path(args.work or temporary)
+        size = (640, 480) if args.quick else tuple(int(v) for v in args.size.split("x"))
+        walk = work / ("quick-640x480" if args.quick else f"hall-{args.size}")
+        if not (walk / "sequence.yaml").exists():
+            render_walk(walk, quick_walk() if args.quick else hall_walk(), size, 4.0)
+        anchors = QUICK_ANCHORS["three"] if args.quick else ANCHORS[args.anchors]
+        camera = CameraModel.from_config(yaml.safe_load((walk / "sequence.yaml").read_text())["camera"], str(walk))
+        anchor_map = anchors_map(truth, anchors)
+        footage = collect([walk], camera, map_detector(anchor_map, camera), lambda m: truth.markers[m].size_m,
+                          MarkerLayout(parity=truth.parity, dictionary=truth.dictionary), progress=False)
+        projected = true_points(footage, walk, truth, camera)
+        print(f"\nwalk {walk.name}, anchors {','.join(anchors)}: {footage.frame_count} frames, "
+              f"{sum(len(f.sightings) for f in footage.frames)} sightings")
+        print(f"\n{'points surveyed':<34} {'pos_med_mm':>10} {'pos_max_mm':>10} {'ang_med_deg':>11} "
+              f"{'ang_max_deg':>11} {'rigid_med_mm':>12} {'vs_detected':>11}")
+        rows = [("detected", "detected"), ("noise", "true + noise of the stated sigma")]
+        rows += [(part, f"detected, {part} taken out") for part in PARTS] + [("shift only", "true + shift only")]
+        reference = None
+        for how, label in rows:
+            draws = [errors(variant(footage, projected, how, np.random.default_rng(seed)), camera, anchor_map,
+                            truth, anchors) for seed in range(NOISE_DRAWS if how == "noise" else 1)]
+            medians = [d[0] for d in draws]
+            median, worst, angle_median, angle_max, rigid = sorted(draws)[len(draws) // 2]
+            reference = reference or median
+            spread = f"  (draws {min(medians) * 1000:.2f}-{max(medians) * 1000:.2f})" if len(draws) > 1 else ""
+            print(f"{label:<34} {median * 1000:>10.2f} {worst * 1000:>10.2f} {angle_median:>11.3f} "
+                  f"{angle_max:>11.3f} {rigid * 1000:>12.2f} {median / reference:>11.2f}{spread}", flush=True)
+        sizes, correlations = error_sizes(footage, projected)
+        print("\nthe detector's corner error, square-path sightings, by part (RMS at the corners, px): "
+              + ", ".join(f"{part} {sizes[part]:.4f}" for part in PARTS))
+        print("alike in two sightings of one marker (correlation of the sigma-normalised corner errors, shift "
+              "removed), by frames apart: "
+              + ", ".join(f"{low}{'+' if high > 10 ** 5 else f'-{high - 1}'}: {c:.2f} ({n} pairs)"
+                          for (low, high), (n, c) in zip(GAPS, correlations)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
