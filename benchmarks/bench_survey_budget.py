@@ -41,6 +41,7 @@ from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import load_map
 from companion.localize import groundtruth, map_detector
 from companion.markers.layout import MarkerLayout
+from companion.survey import adjust
 from companion.survey.observations import Footage, collect
 from companion.survey.survey import SurveyOptions, survey_footage
 
@@ -113,22 +114,42 @@ def errors(footage: Footage, camera: CameraModel, anchor_map, truth, anchors) ->
             float(np.median(rigid)))
 
 
-def error_sizes(footage: Footage, projected) -> tuple[dict[str, float], list[tuple[int, float]]]:
-    """RMS at the corners of each part (px) over the square-path sightings; and per frame gap (GAPS) the number
-    of same-marker sighting pairs and the correlation of their sigma-normalised corner errors (shift removed)."""
+def mode_vectors(corners_px: np.ndarray) -> np.ndarray:
+    """(6, 8) unit vectors over four corners' (x, y) errors: shift x, shift y, then the PARTS' matrices
+    applied to the corners (``adjust._AspectModes`` uses the aspect one)."""
+    centred = corners_px - corners_px.mean(axis=0)
+    x, y = centred[:, 0], centred[:, 1]
+    vectors = [np.tile([1.0, 0.0], 4), np.tile([0.0, 1.0], 4), np.column_stack([x, y]).ravel(),
+               np.column_stack([-y, x]).ravel(), np.column_stack([x, -y]).ravel(), np.column_stack([y, x]).ravel()]
+    return np.array([v / np.linalg.norm(v) for v in vectors])
+
+
+def error_sizes(footage: Footage, projected) -> tuple[dict[str, float], dict[str, float], list[tuple[int, float]]]:
+    """Over the square-path sightings: each part's RMS at the corners (px); each part's variance in units of
+    its sighting's stated noise (the corners' error along the part's unit mode over sigma, squared: 1 where
+    the stated noise is right and alike for every mode); and per frame gap (GAPS) the number of same-marker
+    sighting pairs and the correlation of their sigma-normalised corner errors (shift removed)."""
     moved = {part: [] for part in PARTS}
+    along = {part: [] for part in PARTS}
     shapes: dict[int, list[tuple[int, np.ndarray]]] = {}
     for frame, true_frame in zip(footage.frames, projected):
         for s, true_px in zip(frame.sightings, true_frame):
-            if s.path != "square":
+            if s.path != "square" or not s.sigma_px:
                 continue
             error = s.points_px - true_px
             parts = affine_parts(true_px, error)
             for part in PARTS:
                 moved[part].append(part_px(parts[part], true_px[:4]))
-            shape = (error[:4] - parts["shift"]).ravel() / (s.sigma_px or 0.02)
+            in_sd = error[:4].ravel() / s.sigma_px
+            # the two shift modes together count for "shift" (variance per mode)
+            projections = mode_vectors(s.points_px[:4]) @ in_sd
+            along["shift"].extend(projections[:2])
+            for part, value in zip(PARTS[1:], projections[2:]):
+                along[part].append(value)
+            shape = (error[:4] - parts["shift"]).ravel() / s.sigma_px
             shapes.setdefault(s.marker_id, []).append((frame.index, shape))
     sizes = {part: float(np.sqrt(np.mean(np.square(moved[part])))) for part in PARTS}
+    variances = {part: float(np.mean(np.square(along[part]))) for part in PARTS}
     correlations = []
     for low, high in GAPS:
         first, second = [], []
@@ -143,7 +164,7 @@ def error_sizes(footage: Footage, projected) -> tuple[dict[str, float], list[tup
         a, b = np.array(first), np.array(second)
         correlation = float(np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b))) if len(a) else np.nan
         correlations.append((len(a), correlation))
-    return sizes, correlations
+    return sizes, variances, correlations
 
 
 def main() -> int:
@@ -184,9 +205,12 @@ def main() -> int:
             spread = f"  (draws {min(medians) * 1000:.2f}-{max(medians) * 1000:.2f})" if len(draws) > 1 else ""
             print(f"{label:<34} {median * 1000:>10.2f} {worst * 1000:>10.2f} {angle_median:>11.3f} "
                   f"{angle_max:>11.3f} {rigid * 1000:>12.2f} {median / reference:>11.2f}{spread}", flush=True)
-        sizes, correlations = error_sizes(footage, projected)
+        sizes, variances, correlations = error_sizes(footage, projected)
         print("\nthe detector's corner error, square-path sightings, by part (RMS at the corners, px): "
               + ", ".join(f"{part} {sizes[part]:.4f}" for part in PARTS))
+        print("its variance along each part's mode in units of the stated noise (ASPECT_VARIANCE_FACTOR "
+              f"{adjust.ASPECT_VARIANCE_FACTOR:g} is the aspect's): "
+              + ", ".join(f"{part} {variances[part]:.2f}" for part in PARTS))
         print("alike in two sightings of one marker (correlation of the sigma-normalised corner errors, shift "
               "removed), by frames apart: "
               + ", ".join(f"{low}{'+' if high > 10 ** 5 else f'-{high - 1}'}: {c:.2f} ({n} pairs)"

@@ -15,7 +15,10 @@ Residuals, all in standard deviations:
   sighting relative to the kind's median (``Sighting.sigma_px``: a large,
   sharp marker seen face-on weighs more than a small, blurred or oblique
   one), under a Huber loss at ``HUBER_SIGMAS`` so that a few bad points
-  cannot pull the map;
+  cannot pull the map; the four corners of a square-path sighting share one
+  more error, along their aspect (the quadrilateral's width read long against
+  its height), ``ASPECT_VARIANCE_FACTOR`` times as large as their noise says:
+  those residuals are whitened with it (``_AspectModes``);
 * "hangs on a vertical wall" priors: the horizontal part of the marker's
   y axis (map x, y) / ``wall_sd_rad`` (zero when the y axis is vertical);
 * soft anchors (to test how well several anchors agree): the position
@@ -63,6 +66,15 @@ MAX_DAMPING = 1e10
 # px of it); the larger is taken since part of it has one sign on every marker (0.007 px: blurred markers read
 # short, docs/survey.md), which adds up along a chain where independent offsets would partly cancel.
 SYSTEMATIC_POINT_PX = 0.02
+# A square-path sighting's aspect: its four corners' error along the mode that reads the quadrilateral wider and
+# shorter (x away from its centre, y towards it, image axes). Measured on bench_survey's 640x480 walk against the
+# renderer's true corners (benchmarks/bench_survey_budget.py; docs/survey.md, "A sighting's aspect"): in units of
+# each sighting's stated noise its variance is 2.5, the other modes' 0.3-2.0; 3 is taken, since it is not noise: it
+# repeats from frame to frame (a motion smear stretches a marker along it, a small marker's pattern biases it) and
+# much of it has one sign (the walk's markers read wider than tall). A marker on a wall turns only about the
+# vertical, which a view from the side sees as aspect: weighed as noise, these errors turned the 640x480 one-anchor
+# map (6.1 mm median; 3.6 mm with this factor).
+ASPECT_VARIANCE_FACTOR = 3.0
 
 
 @dataclass(frozen=True)
@@ -102,6 +114,8 @@ class Adjustment:
     point_errors_px: (P, 2) projected minus detected pixels of every point, sighting by sighting;
     point_kinds: (P,) index into POINT_KINDS; sighting_starts: (S + 1,) each sighting's first point;
     point_factors: (P,) each point's noise over its kind's (its sighting's stated sigma over the kind's median).
+    aspect_px2: (S,) each square-path sighting's corner errors along its aspect mode, squared (px^2; 0 for the
+        others), the part its chi-square counts ``1 / ASPECT_VARIANCE_FACTOR`` of.
     """
 
     markers: dict[int, np.ndarray]
@@ -118,13 +132,17 @@ class Adjustment:
     point_kinds: np.ndarray
     sighting_starts: np.ndarray
     point_factors: np.ndarray
+    aspect_px2: np.ndarray
     cost: float = math.nan
     variance: float = math.nan
 
     def sighting_chi2(self, noise_px: dict[str, float]) -> np.ndarray:
-        """(S,) each sighting's squared point errors in units of its points' noise (chi-square, 2 K dof)."""
+        """(S,) each sighting's squared point errors in units of its points' noise (chi-square, 2 K dof), the
+        aspect of its corners at its larger variance."""
         noise = np.array([noise_px[kind] for kind in POINT_KINDS])[self.point_kinds] * self.point_factors
-        return np.add.reduceat(np.sum(self.point_errors_px ** 2, axis=1) / noise ** 2, self.sighting_starts[:-1])
+        first = self.sighting_starts[:-1]
+        chi2 = np.add.reduceat(np.sum(self.point_errors_px ** 2, axis=1) / noise ** 2, first)
+        return chi2 - (1.0 - 1.0 / ASPECT_VARIANCE_FACTOR) * self.aspect_px2 / noise[first] ** 2
 
 
 @dataclass
@@ -167,6 +185,51 @@ class _Jacobians:
     pixels_per_m: np.ndarray
     J_camera: np.ndarray
     J_marker: np.ndarray
+
+
+@dataclass(frozen=True)
+class _AspectModes:
+    """The aspect mode of every square-path sighting's four corners, and the whitening of its residuals.
+
+    points: (S, 4) the corners' point indices; modes: (S, 8) unit vectors over their (x, y) errors, each corner
+    (x, -y) from the corners' centre (image axes, from the detected corners); sightings: (S,) their indices.
+    A residual r of those corners, in units of their noise, has covariance I + (F - 1) u u^T (F =
+    ``ASPECT_VARIANCE_FACTOR``): whitened, r - (1 - 1 / sqrt(F)) u (u . r), and its squared norm loses
+    (1 - 1 / F) (u . r)^2.
+    """
+
+    points: np.ndarray
+    modes: np.ndarray
+    sightings: np.ndarray
+
+    @classmethod
+    def of(cls, points_px: np.ndarray, point_kind: np.ndarray, sighting_starts: np.ndarray) -> "_AspectModes":
+        first = sighting_starts[:-1]
+        square = np.flatnonzero((np.diff(sighting_starts) >= 4) & (point_kind[first] == POINT_KINDS.index("corner")))
+        points = first[square, None] + np.arange(4)
+        corners = points_px[points] - points_px[points].mean(axis=1, keepdims=True)
+        modes = (corners * [1.0, -1.0]).reshape(len(square), 8)
+        modes /= np.maximum(np.linalg.norm(modes, axis=1, keepdims=True), 1e-12)
+        return cls(points, modes, square)
+
+    def along(self, r: np.ndarray) -> np.ndarray:
+        """(S,) each sighting's residual along its mode, r (P, 2)."""
+        return np.einsum("sk,sk->s", self.modes, r[self.points].reshape(len(self.points), 8))
+
+    def whitened(self, r: np.ndarray) -> np.ndarray:
+        """r (P, 2) or a Jacobian (P, 2, n) with each sighting's mode scaled by 1 / sqrt(F)."""
+        if len(self.points) == 0:
+            return r
+        shrink = 1.0 - 1.0 / math.sqrt(ASPECT_VARIANCE_FACTOR)
+        blocks = r[self.points].reshape(len(self.points), 8, -1)
+        blocks = blocks - shrink * self.modes[:, :, None] * np.einsum("sk,skj->sj", self.modes, blocks)[:, None, :]
+        out = r.copy()
+        out[self.points] = blocks.reshape(r[self.points].shape)
+        return out
+
+    def lost(self, r: np.ndarray) -> float:
+        """Half of what the squared norm of residuals r (P, 2) loses by the whitening."""
+        return 0.5 * (1.0 - 1.0 / ASPECT_VARIANCE_FACTOR) * float(np.sum(self.along(r) ** 2))
 
 
 class BundleAdjustment:
@@ -230,6 +293,7 @@ class BundleAdjustment:
                  for a in self._free_sightings_of(k) for b in self._free_sightings_of(k)]
         self.pairs = np.array(pairs, dtype=int).reshape(-1, 2)
         self.frame_starts = np.concatenate([[0], np.cumsum(np.bincount(self.point_frame, minlength=len(self.frames)))])
+        self.aspect = _AspectModes.of(self.points_px, self.point_kind, self.sighting_starts)
         self.wall_ids = [m for m in self.free_ids if m in self.priors.on_wall]
         self.anchor_ids = [m for m in self.free_ids if m in self.priors.soft_anchors]
 
@@ -304,7 +368,9 @@ class BundleAdjustment:
 
     def cost(self, poses: _Poses) -> float:
         """Half the sum of squared residuals (Huber on the points)."""
-        _, point_cost = self._robust(self.point_errors_px(poses))
+        errors = self.point_errors_px(poses)
+        weights, point_cost = self._robust(errors)
+        point_cost -= self.aspect.lost(errors * (np.sqrt(weights) / self.point_noise_px)[:, None])
         return point_cost + 0.5 * sum(float(r @ r) for _, r, _ in self._prior_residuals(poses))
 
     def _jacobians(self, poses: _Poses) -> _Jacobians:
@@ -321,7 +387,9 @@ class BundleAdjustment:
         # marker: dX_camera = R_camera (dp - [R_marker X]x dtheta)
         P_map = P @ poses.R_camera[self.point_frame]
         J_marker = np.concatenate([P_map, -P_map @ _skews(rotated_marker)], axis=2)
-        return _Jacobians(errors * scale[:, None], point_cost, scale, pixels_per_m, J_camera, J_marker)
+        r = errors * scale[:, None]
+        return _Jacobians(self.aspect.whitened(r), point_cost - self.aspect.lost(r), scale, pixels_per_m,
+                          self.aspect.whitened(J_camera), self.aspect.whitened(J_marker))
 
     def _normal(self, poses: _Poses) -> _Normal:
         """The normal equations at ``poses``, points weighted by their noise and the Huber loss."""
@@ -428,7 +496,10 @@ class BundleAdjustment:
         n_residuals = 2 * len(errors)
         dof = max(n_residuals - self.n_params, 1)
         # the residuals' variance in standard deviations: (sum of squared point errors / noise^2) / dof
-        variance = float(np.sum(squared / self.point_noise_px ** 2)) / dof
+        in_sd = errors / self.point_noise_px[:, None]
+        variance = (float(np.sum(in_sd ** 2)) - 2.0 * self.aspect.lost(in_sd)) / dof
+        aspect_px2 = np.zeros(len(self.sightings))
+        aspect_px2[self.aspect.sightings] = self.aspect.along(errors) ** 2
         # each kind's noise: its RMS (each point's error over its factor), scaled up for the parameters fitted
         relative = squared / self.point_factor ** 2
         noise = {kind: math.sqrt(float(np.mean(relative[self.point_kind == k])) / 2 * n_residuals / dof)
@@ -437,7 +508,8 @@ class BundleAdjustment:
         covariance = self._marker_covariance(poses, normal, variance)
         return Adjustment(markers, cameras, covariance, self.sightings, sighting_rms,
                           math.sqrt(float(np.sum(squared)) / n_residuals), noise, counts_of_kind, steps, converged,
-                          errors, self.point_kind, self.sighting_starts, self.point_factor, normal.cost, variance)
+                          errors, self.point_kind, self.sighting_starts, self.point_factor, aspect_px2, normal.cost,
+                          variance)
 
     def _marker_covariance(self, poses: _Poses, normal: _Normal, variance: float) -> dict[int, np.ndarray]:
         """Free marker id -> (6, 6) covariance: the noise's, s^2 S^-1 (S the cameras' Schur complement), plus
@@ -480,7 +552,7 @@ class BundleAdjustment:
             direction = np.einsum("pij,pj->pi", jacobians.pixels_per_m, R[:, :, axis])
             # the point moved 1 px along it, whitened like its residual
             moved = direction / np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
-            moved *= jacobians.scale[:, None]
+            moved = self.aspect.whitened(moved * jacobians.scale[:, None])
             g_camera = np.einsum("pki,pk->pi", jacobians.J_camera, moved)   # (P, 6)
             g_marker = np.einsum("pki,pk->pi", jacobians.J_marker, moved)
             column = 2 * self.point_key + axis
