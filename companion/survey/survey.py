@@ -328,8 +328,9 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
     if _tied_chi2(agreement) > limit and len(references) < len(fixed):
         agreement = _anchors_moved(shared, camera, fixed, fixed, tied, anchors, symbols, options, noise_px)
     if _tied_chi2(agreement) > limit:
-        worst = max((a for a in agreement if a.tied), key=lambda a: a.chi2)
-        detail = ", ".join(f"{a.symbol} {a.position_m * 1000:.0f} mm {a.angle_deg:.1f} deg" for a in agreement)
+        tested = [a for a in agreement if a.tied]
+        worst = max(tested, key=lambda a: a.chi2)
+        detail = ", ".join(f"{a.symbol} {a.position_m * 1000:.0f} mm {a.angle_deg:.1f} deg" for a in tested)
         raise SurveyError(f"the anchors of {anchors.path} disagree beyond their stated uncertainty "
                           f"({hints.anchor_sd_m * 1000:g} mm, {hints.anchor_sd_deg:g} deg): the images move them by "
                           f"{detail}; measure {worst.symbol} again (or state a larger survey.anchor_sd_m/anchor_sd_deg)")
