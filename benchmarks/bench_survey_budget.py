@@ -116,11 +116,12 @@ def errors(footage: Footage, camera: CameraModel, anchor_map, truth, anchors) ->
 
 def mode_vectors(corners_px: np.ndarray) -> np.ndarray:
     """(6, 8) unit vectors over four corners' (x, y) errors: shift x, shift y, then the PARTS' matrices
-    applied to the corners (``adjust._AspectModes`` uses the aspect one)."""
+    applied to the corners, the aspect's the adjustment's own (``adjust.aspect_modes``)."""
     centred = corners_px - corners_px.mean(axis=0)
     x, y = centred[:, 0], centred[:, 1]
     vectors = [np.tile([1.0, 0.0], 4), np.tile([0.0, 1.0], 4), np.column_stack([x, y]).ravel(),
-               np.column_stack([-y, x]).ravel(), np.column_stack([x, -y]).ravel(), np.column_stack([y, x]).ravel()]
+               np.column_stack([-y, x]).ravel(), adjust.aspect_modes(corners_px[None])[0],
+               np.column_stack([y, x]).ravel()]
     return np.array([v / np.linalg.norm(v) for v in vectors])
 
 

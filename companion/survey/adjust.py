@@ -66,14 +66,13 @@ MAX_DAMPING = 1e10
 # px of it); the larger is taken since part of it has one sign on every marker (0.007 px: blurred markers read
 # short, docs/survey.md), which adds up along a chain where independent offsets would partly cancel.
 SYSTEMATIC_POINT_PX = 0.02
-# A square-path sighting's aspect: its four corners' error along the mode that reads the quadrilateral wider and
-# shorter (x away from its centre, y towards it, image axes). Measured on bench_survey's 640x480 walk against the
-# renderer's true corners (benchmarks/bench_survey_budget.py; docs/survey.md, "A sighting's aspect"): in units of
-# each sighting's stated noise its variance is 2.5, the other modes' 0.3-2.0; 3 is taken, since it is not noise: it
-# repeats from frame to frame (a motion smear stretches a marker along it, a small marker's pattern biases it) and
-# much of it has one sign (the walk's markers read wider than tall). A marker on a wall turns only about the
-# vertical, which a view from the side sees as aspect: weighed as noise, these errors turned the 640x480 one-anchor
-# map (6.1 mm median; 3.6 mm with this factor).
+# A square-path sighting's aspect: its four corners' error along ``aspect_modes``. Measured on bench_survey's
+# 640x480 walk against the renderer's true corners (benchmarks/bench_survey_budget.py; docs/survey.md, "A
+# sighting's aspect"): in units of each sighting's stated noise its variance is 2.5, the other modes' 0.3-2.0; 3 is
+# taken, since it is not noise: it repeats from frame to frame (a motion smear stretches a marker along it, a small
+# marker's pattern biases it) and much of it has one sign (the walk's markers read wider than tall). A marker on a
+# wall turns only about the vertical, which a view from the side sees as aspect: weighed as noise, these errors
+# turned the 640x480 one-anchor map (6.1 mm median; 3.6 mm with this factor).
 ASPECT_VARIANCE_FACTOR = 3.0
 
 
@@ -187,12 +186,20 @@ class _Jacobians:
     J_marker: np.ndarray
 
 
+def aspect_modes(corners_px: np.ndarray) -> np.ndarray:
+    """(S, 8) unit vectors over the (x, y) errors of S quadrilaterals' corners (S, 4, 2) that read each one wider
+    and shorter: every corner (x, -y) from the corners' centre, image axes."""
+    centred = corners_px - corners_px.mean(axis=1, keepdims=True)
+    modes = (centred * [1.0, -1.0]).reshape(len(corners_px), 8)
+    return modes / np.maximum(np.linalg.norm(modes, axis=1, keepdims=True), 1e-12)
+
+
 @dataclass(frozen=True)
 class _AspectModes:
     """The aspect mode of every square-path sighting's four corners, and the whitening of its residuals.
 
-    points: (S, 4) the corners' point indices; modes: (S, 8) unit vectors over their (x, y) errors, each corner
-    (x, -y) from the corners' centre (image axes, from the detected corners); sightings: (S,) their indices.
+    points: (S, 4) the corners' point indices; modes: (S, 8) their ``aspect_modes`` (from the detected corners);
+    sightings: (S,) their indices.
     A residual r of those corners, in units of their noise, has covariance I + (F - 1) u u^T (F =
     ``ASPECT_VARIANCE_FACTOR``): whitened, r - (1 - 1 / sqrt(F)) u (u . r), and its squared norm loses
     (1 - 1 / F) (u . r)^2.
@@ -207,10 +214,7 @@ class _AspectModes:
         first = sighting_starts[:-1]
         square = np.flatnonzero((np.diff(sighting_starts) >= 4) & (point_kind[first] == POINT_KINDS.index("corner")))
         points = first[square, None] + np.arange(4)
-        corners = points_px[points] - points_px[points].mean(axis=1, keepdims=True)
-        modes = (corners * [1.0, -1.0]).reshape(len(square), 8)
-        modes /= np.maximum(np.linalg.norm(modes, axis=1, keepdims=True), 1e-12)
-        return cls(points, modes, square)
+        return cls(points, aspect_modes(points_px[points]), square)
 
     def along(self, r: np.ndarray) -> np.ndarray:
         """(S,) each sighting's residual along its mode, r (P, 2)."""

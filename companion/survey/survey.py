@@ -325,10 +325,10 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
     # an anchor is tied to the others where a group of markers seen together holds another anchor too
     tied = {m for group in groups if len(group & set(fixed)) >= 2 for m in group & set(fixed)}
     agreement = _anchors_moved(shared, camera, fixed, references, tied, anchors, symbols, options, noise_px)
-    if _tied_chi2(agreement) > limit and len(references) < len(fixed):
+    if sum(a.chi2 for a in _judged(agreement)) > limit and len(references) < len(fixed):
         agreement = _anchors_moved(shared, camera, fixed, fixed, tied, anchors, symbols, options, noise_px)
-    if _tied_chi2(agreement) > limit:
-        tested = [a for a in agreement if a.tied]
+    tested = _judged(agreement)
+    if sum(a.chi2 for a in tested) > limit:
         worst = max(tested, key=lambda a: a.chi2)
         detail = ", ".join(f"{a.symbol} {a.position_m * 1000:.0f} mm {a.angle_deg:.1f} deg" for a in tested)
         raise SurveyError(f"the anchors of {anchors.path} disagree beyond their stated uncertainty "
@@ -337,10 +337,10 @@ def _anchor_agreement(shared, camera, fixed: dict[int, np.ndarray], groups, coun
     return agreement
 
 
-def _tied_chi2(agreement: list[AnchorAgreement]) -> float:
-    """The test's chi-square: over the anchors the images tie to another (an anchor alone in its group of
-    markers is checked by nothing; where its group is barely tied together the adjustment may still move it)."""
-    return sum(a.chi2 for a in agreement if a.tied)
+def _judged(agreement: list[AnchorAgreement]) -> list[AnchorAgreement]:
+    """The anchors the test judges: those the images tie to another (an anchor alone in its group of markers is
+    checked by nothing; where its group is barely tied together the adjustment may still move it)."""
+    return [a for a in agreement if a.tied]
 
 
 def _anchors_moved(shared, camera, fixed: dict[int, np.ndarray], references: dict[int, np.ndarray], tied: set[int],
