@@ -15,6 +15,11 @@ and the median left after the best rigid fit):
   removed (from every point of the sighting), the others kept;
 * ``true + shift only``: every part but the shift removed.
 
+Each map is also flown: bench_survey's aisle flight localized on it (``aisle_mm``, median position error), the
+pose stage told each marker's ``sd`` as the survey wrote it (as bench_survey does), and told the map is exact
+(``aisle_exact_mm``: every ``sd`` 0). Above the table, the aisle on the true map, and on the true map told the
+detected survey's ``sd``: what the weighing alone costs. (``--quick``: the aisle for the ``detected`` row only.)
+
 A part whose removal shrinks the error most is what limits the map. The table after it gives each part's size
 (RMS over the sightings, px at the corners) and how alike it is in two sightings of one marker some frames
 apart (correlation of the sigma-normalised corner errors, shift removed): errors that repeat from frame to
@@ -33,12 +38,12 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from bench_survey import (ANCHORS, MAP_PATH, QUICK_ANCHORS, aligned_errors, anchors_map, hall_walk, marker_errors,
-                          quick_walk, render_walk)
+from bench_survey import (ANCHORS, FLIGHTS, MAP_PATH, QUICK_ANCHORS, aligned_errors, anchors_map, hall_walk,
+                          localization_median_m, marker_errors, quick_walk, render_walk)
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
-from companion.geometry.facility_map import load_map
+from companion.geometry.facility_map import FacilityMap, load_map
 from companion.localize import groundtruth, map_detector
 from companion.markers.layout import MarkerLayout
 from companion.survey import adjust
@@ -104,14 +109,29 @@ def variant(footage: Footage, projected, how: str, rng: np.random.Generator) -> 
     return replace(footage, frames=tuple(out))
 
 
-def errors(footage: Footage, camera: CameraModel, anchor_map, truth, anchors) -> tuple[float, ...]:
+def errors(footage: Footage, camera: CameraModel, anchor_map, truth, anchors) -> tuple:
     """The footage surveyed against the true map: position median, max (m), angle median, max (deg), median
-    position error after the best rigid fit (m)."""
+    position error after the best rigid fit (m), and the surveyed map."""
     result = survey_footage(footage, camera, anchor_map, SurveyOptions())
     position, angle, _ = marker_errors(result.facility_map, truth, anchors)
     rigid = aligned_errors(result.facility_map, truth, anchors)["rigid"]
     return (float(np.median(position)), float(position.max()), float(np.median(angle)), float(angle.max()),
-            float(np.median(rigid)))
+            float(np.median(rigid)), result.facility_map)
+
+
+def with_sd(facility_map: FacilityMap, sd_of) -> FacilityMap:
+    """The map with each marker's ``sd`` (position m, angle deg) replaced by ``sd_of(marker)``."""
+    markers = {}
+    for marker_id, marker in facility_map.markers.items():
+        sd_position_m, sd_angle_deg = sd_of(marker)
+        markers[marker_id] = replace(marker, sd_position_m=sd_position_m, sd_angle_deg=sd_angle_deg)
+    return replace(facility_map, markers=markers)
+
+
+def aisle_mm(facility_map: FacilityMap) -> float:
+    """Median position error (mm) of the aisle flight localized on the map, each marker weighed by its ``sd``
+    (a marker without one: exact)."""
+    return localization_median_m(FLIGHTS["aisle"], facility_map, 0.0, 0.0)[0] * 1000
 
 
 def mode_vectors(corners_px: np.ndarray) -> np.ndarray:
@@ -192,20 +212,31 @@ def main() -> int:
         projected = true_points(footage, walk, truth, camera)
         print(f"\nwalk {walk.name}, anchors {','.join(anchors)}: {footage.frame_count} frames, "
               f"{sum(len(f.sightings) for f in footage.frames)} sightings")
+        true_aisle = aisle_mm(truth)
         print(f"\n{'points surveyed':<34} {'pos_med_mm':>10} {'pos_max_mm':>10} {'ang_med_deg':>11} "
-              f"{'ang_max_deg':>11} {'rigid_med_mm':>12} {'vs_detected':>11}")
+              f"{'ang_max_deg':>11} {'rigid_med_mm':>12} {'vs_detected':>11} {'aisle_mm':>8} {'aisle_exact_mm':>14}")
         rows = [("detected", "detected"), ("noise", "true + noise of the stated sigma")]
         rows += [(part, f"detected, {part} taken out") for part in PARTS] + [("shift only", "true + shift only")]
-        reference = None
+        reference = detected_map = None
         for how, label in rows:
             draws = [errors(variant(footage, projected, how, np.random.default_rng(seed)), camera, anchor_map,
                             truth, anchors) for seed in range(NOISE_DRAWS if how == "noise" else 1)]
             medians = [d[0] for d in draws]
-            median, worst, angle_median, angle_max, rigid = sorted(draws)[len(draws) // 2]
+            median, worst, angle_median, angle_max, rigid, surveyed = sorted(draws, key=lambda d: d[0])[len(draws) // 2]
             reference = reference or median
+            if detected_map is None:
+                detected_map = surveyed
+            flown = how == "detected" or not args.quick
+            aisle = f"{aisle_mm(surveyed):>8.2f} {aisle_mm(with_sd(surveyed, lambda m: (0.0, 0.0))):>14.2f}" \
+                if flown else f"{'-':>8} {'-':>14}"
             spread = f"  (draws {min(medians) * 1000:.2f}-{max(medians) * 1000:.2f})" if len(draws) > 1 else ""
             print(f"{label:<34} {median * 1000:>10.2f} {worst * 1000:>10.2f} {angle_median:>11.3f} "
-                  f"{angle_max:>11.3f} {rigid * 1000:>12.2f} {median / reference:>11.2f}{spread}", flush=True)
+                  f"{angle_max:>11.3f} {rigid * 1000:>12.2f} {median / reference:>11.2f} {aisle}{spread}", flush=True)
+        told = aisle_mm(with_sd(truth, lambda m: (detected_map.markers[m.id].sd_position_m,
+                                                   detected_map.markers[m.id].sd_angle_deg)
+                                if m.id in detected_map.markers else (None, None)))
+        print(f"\naisle flight on the true map: {true_aisle:.2f} mm told it is exact; {told:.2f} mm told the "
+              f"detected survey's sd of each marker it maps (the weighing alone)")
         sizes, variances, correlations = error_sizes(footage, projected)
         print("\nthe detector's corner error, square-path sightings, by part (RMS at the corners, px): "
               + ", ".join(f"{part} {sizes[part]:.4f}" for part in PARTS))
