@@ -66,14 +66,18 @@ MAX_DAMPING = 1e10
 # px of it); the larger is taken since part of it has one sign on every marker (0.007 px: blurred markers read
 # short, docs/survey.md), which adds up along a chain where independent offsets would partly cancel.
 SYSTEMATIC_POINT_PX = 0.02
-# A square-path sighting's aspect: its four corners' error along ``aspect_modes``. Measured on bench_survey's
-# 640x480 walk against the renderer's true corners (benchmarks/bench_survey_budget.py; docs/survey.md, "A
-# sighting's aspect"): in units of each sighting's stated noise its variance is 2.5, the other modes' 0.3-2.0; 3 is
-# taken, since it is not noise: it repeats from frame to frame (a motion smear stretches a marker along it, a small
-# marker's pattern biases it) and much of it has one sign (the walk's markers read wider than tall). A marker on a
-# wall turns only about the vertical, which a view from the side sees as aspect: weighed as noise, these errors
-# turned the 640x480 one-anchor map (6.1 mm median; 3.6 mm with this factor).
-ASPECT_VARIANCE_FACTOR = 3.0
+# A square-path sighting's aspect: its four corners' error along ``aspect_modes``. Measured against the renderer's
+# true corners (benchmarks/bench_survey_budget.py; docs/survey.md, "A sighting's aspect"): in units of each
+# sighting's stated noise its variance is 2.5 on bench_survey's 640x480 walk and 6.2 on its 1280x720 walk (larger
+# markers: the stated noise shrinks, the aspect's share of the marker does not), the other modes' 0.3-2.3 but the
+# scale's (2.0, 5.7; weighed the same way the scale made the map worse). It is not noise: it repeats from frame to
+# frame (a motion smear stretches a marker along it, a small marker's pattern biases it) and much of it has one
+# sign (the walk's markers read wider than tall). A marker on a wall turns only about the vertical, which a view
+# from the side sees as aspect: weighed as noise, these errors turned the 640x480 one-anchor map (6.1 mm median).
+# 6 is taken, the larger walk's: against 3, bench_survey's maps went 3.6 -> 3.5 and 1.7 -> 1.7 mm median (640x480,
+# one and three anchors), 2.3 -> 2.5 and 0.9 -> 0.7 mm (1280x720), and a rendering of the 640x480 walk with other
+# seeds, which played no part in choosing it, 3.9 -> 2.5 mm (one anchor) and 2.4 -> 1.8 mm (three).
+ASPECT_VARIANCE_FACTOR = 6.0
 
 
 @dataclass(frozen=True)
