@@ -69,8 +69,8 @@ SYSTEMATIC_POINT_PX = 0.02
 # A square-path sighting's aspect: its four corners' error along ``aspect_modes``. Measured against the renderer's
 # true corners (benchmarks/bench_survey_budget.py; docs/survey.md, "A sighting's aspect"): in units of each
 # sighting's stated noise its variance is 2.5 on bench_survey's 640x480 walk and 6.2 on its 1280x720 walk (larger
-# markers: the stated noise shrinks, the aspect's share of the marker does not), the other modes' 0.3-2.3 but the
-# scale's (2.0, 5.7; weighed the same way the scale made the map worse). It is not noise: it repeats from frame to
+# markers, median corner spread 40 -> 72 px: the aspect error grows with them, the stated noise hardly, 0.015 ->
+# 0.018 px), the other modes' 0.3-2.3 but the scale's (2.0, 5.7; weighed like the aspect, it made the map worse). It is not noise: it repeats from frame to
 # frame (a motion smear stretches a marker along it, a small marker's pattern biases it) and much of it has one
 # sign (the walk's markers read wider than tall). A marker on a wall turns only about the vertical, which a view
 # from the side sees as aspect: weighed as noise, these errors turned the 640x480 one-anchor map (6.1 mm median).
