@@ -667,7 +667,7 @@ def test_a_sightings_aspect_counts_what_its_larger_variance_says():
     np.testing.assert_array_equal(circles_path.whitened(stretched), stretched)
 
 
-def test_a_marker_read_with_a_repeating_aspect_error_is_placed_by_the_rest_of_its_shape():
+def test_a_marker_read_with_a_repeating_aspect_error_is_placed_by_the_rest_of_its_shape(monkeypatch):
     """Two markers seen in 40 views, every sighting read 0.2 % wider and shorter (two views in three; the
     third the other way), as a smear along the rows does: the free marker turns by less, and lands closer,
     with the aspect weighed at its measured variance than as plain noise; the adjustment's cost is the same
@@ -699,10 +699,7 @@ def test_a_marker_read_with_a_repeating_aspect_error_is_placed_by_the_rest_of_it
         return pose_errors(problem.solve(20).markers[n.id], n.T_map_marker)
 
     measured = errors()
-    original = adjust.ASPECT_VARIANCE_FACTOR
-    try:
-        adjust.ASPECT_VARIANCE_FACTOR = 1.0
+    with monkeypatch.context() as patch:
+        patch.setattr(adjust, "ASPECT_VARIANCE_FACTOR", 1.0)
         as_noise = errors()
-    finally:
-        adjust.ASPECT_VARIANCE_FACTOR = original
     assert measured[0] < 0.8 * as_noise[0] and measured[1] < 0.8 * as_noise[1], (measured, as_noise)

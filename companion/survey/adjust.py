@@ -70,10 +70,11 @@ SYSTEMATIC_POINT_PX = 0.02
 # true corners (benchmarks/bench_survey_budget.py; docs/survey.md, "A sighting's aspect"): in units of each
 # sighting's stated noise its variance is 2.5 on bench_survey's 640x480 walk and 6.2 on its 1280x720 walk (larger
 # markers, median corner spread 40 -> 72 px: the aspect error grows with them, the stated noise hardly, 0.015 ->
-# 0.018 px), the other modes' 0.3-2.3 but the scale's (2.0, 5.7; weighed like the aspect, it made the map worse). It is not noise: it repeats from frame to
-# frame (a motion smear stretches a marker along it, a small marker's pattern biases it) and much of it has one
-# sign (the walk's markers read wider than tall). A marker on a wall turns only about the vertical, which a view
-# from the side sees as aspect: weighed as noise, these errors turned the 640x480 one-anchor map (6.1 mm median).
+# 0.018 px), the other modes' 0.3-2.3 but the scale's (2.0, 5.7; weighed like the aspect, it made the map worse).
+# It is not noise: it repeats from frame to frame (a motion smear stretches a marker along it, a small marker's
+# pattern biases it) and much of it has one sign (the walk's markers read wider than tall). A marker on a wall
+# turns only about the vertical, which a view from the side sees as aspect: weighed as noise, these errors turned
+# the 640x480 one-anchor map (6.1 mm median).
 # 6 is taken, the larger walk's: against 3, bench_survey's maps went 3.6 -> 3.5 and 1.7 -> 1.7 mm median (640x480,
 # one and three anchors), 2.3 -> 2.5 and 0.9 -> 0.7 mm (1280x720), and a rendering of the 640x480 walk with other
 # seeds, which played no part in choosing it, 3.9 -> 2.5 mm (one anchor) and 2.4 -> 1.8 mm (three).
@@ -145,7 +146,7 @@ class Adjustment:
         noise = np.array([noise_px[kind] for kind in POINT_KINDS])[self.point_kinds] * self.point_factors
         first = self.sighting_starts[:-1]
         chi2 = np.add.reduceat(np.sum(self.point_errors_px ** 2, axis=1) / noise ** 2, first)
-        return chi2 - (1.0 - 1.0 / ASPECT_VARIANCE_FACTOR) * self.aspect_px2 / noise[first] ** 2
+        return chi2 - _aspect_share_lost() * self.aspect_px2 / noise[first] ** 2
 
 
 @dataclass
@@ -188,6 +189,12 @@ class _Jacobians:
     pixels_per_m: np.ndarray
     J_camera: np.ndarray
     J_marker: np.ndarray
+
+
+def _aspect_share_lost() -> float:
+    """The share of a residual's squared part along its aspect mode that the aspect's variance discounts:
+    1 - 1 / ``ASPECT_VARIANCE_FACTOR`` (read at each call: tests set the factor)."""
+    return 1.0 - 1.0 / ASPECT_VARIANCE_FACTOR
 
 
 def aspect_modes(corners_px: np.ndarray) -> np.ndarray:
@@ -237,7 +244,7 @@ class _AspectModes:
 
     def lost(self, r: np.ndarray) -> float:
         """Half of what the squared norm of residuals r (P, 2) loses by the whitening."""
-        return 0.5 * (1.0 - 1.0 / ASPECT_VARIANCE_FACTOR) * float(np.sum(self.along(r) ** 2))
+        return 0.5 * _aspect_share_lost() * float(np.sum(self.along(r) ** 2))
 
 
 class BundleAdjustment:
