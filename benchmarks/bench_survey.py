@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from common import REPO
+from common import REPO, work_folder
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -395,7 +395,7 @@ def check_runs(walk: Path, truth: FacilityMap, trials: int, seed: int = 5) -> tu
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="CI smoke run: a short walk, about a minute")
-    parser.add_argument("--work", help="folder for the rendered walks (default: a temporary one)")
+    parser.add_argument("--work", type=work_folder, help="folder for the rendered walks (default: a temporary one)")
     parser.add_argument("--configs", help="comma-separated walk/anchors runs of the full benchmark, e.g. "
                         "640x480/one (default: all)")
     args = parser.parse_args()

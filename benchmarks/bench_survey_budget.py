@@ -40,6 +40,7 @@ import numpy as np
 import yaml
 from bench_survey import (ANCHORS, FLIGHTS, MAP_PATH, QUICK_ANCHORS, aligned_errors, anchors_map, hall_walk,
                           localization_median_m, marker_errors, quick_walk, render_walk)
+from common import work_folder
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -191,7 +192,8 @@ def error_sizes(footage: Footage, projected) -> tuple[dict[str, float], dict[str
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="CI smoke run: bench_survey's short walk, a minute")
-    parser.add_argument("--work", help="folder of bench_survey's rendered walks, reused (default: a temporary one)")
+    parser.add_argument("--work", type=work_folder,
+                        help="folder of bench_survey's rendered walks, reused (default: a temporary one)")
     parser.add_argument("--size", default="640x480", choices=("640x480", "1280x720"), help="which walk")
     parser.add_argument("--anchors", default="one", choices=sorted(ANCHORS), help="bench_survey's anchor set")
     args = parser.parse_args()

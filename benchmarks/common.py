@@ -6,6 +6,8 @@ path too, so the working tree's ``companion`` is the one measured.
 """
 from __future__ import annotations
 
+import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -16,6 +18,19 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
+
+
+def work_folder(path: str) -> Path:
+    """An argparse ``type`` for a ``--work DIR`` option: the folder, made if missing; a clear usage error (not a
+    traceback) when it cannot be made or written."""
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise argparse.ArgumentTypeError(f"cannot make {path}: {error.strerror}") from None
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"cannot write to {path}")
+    return folder
 
 
 def aruco_detector(dictionary: cv2.aruco.Dictionary, corner_refinement: int | None = cv2.aruco.CORNER_REFINE_SUBPIX,
