@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -396,7 +397,7 @@ def clean_and_strip_scene(layout):
 @pytest.fixture(params=[1, 2], ids=["one_thread", "two_threads"])
 def opencv_threads(request):
     """OpenCV on one thread (the blob search runs after the square path, at half resolution once it found a
-    marker) or two (it runs at full resolution on a second thread beside ArUco)."""
+    marker) or two (it runs at full resolution while ArUco runs on a second thread)."""
     before = cv2.getNumThreads()
     cv2.setNumThreads(request.param)
     yield request.param
@@ -416,6 +417,34 @@ def test_occluded_marker_beside_a_clean_one_is_found_by_default(layout, opencv_t
     assert [(d.id, d.path) for d in Detector(DetectorParams(circles=CircleParams(run="when_square_empty")))
             .detect(strip_only)] == [(40, "circles")]
     assert Detector(DetectorParams(circles=CircleParams(run="never"))).detect(strip_only) == []
+
+
+def test_aruco_runs_on_the_calling_thread_when_its_own_has_not_started_it(layout):
+    # two threads: ArUco goes to the detector's second thread while the blob search runs here; on a
+    # loaded machine that thread may not have started it by the time the search is done, and then it
+    # runs here instead: the same markers either way; close() ends the thread
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        image = clean_and_strip_scene(layout)[0]
+        detector = Detector()
+        both = {(3, "square"), (40, "circles")}
+        assert {(d.id, d.path) for d in detector.detect(image)} == both
+        release = threading.Event()
+        busy = detector._aruco_worker.submit(release.wait, 30)  # the thread is held up elsewhere
+        try:
+            assert {(d.id, d.path) for d in detector.detect(image)} == both
+            assert not busy.done()  # the frame did not wait for the thread
+        finally:
+            release.set()
+        assert busy.result() is True
+        assert any(t.name.startswith("detector-aruco") for t in threading.enumerate())
+        detector.close()
+        assert not any(t.name.startswith("detector-aruco") for t in threading.enumerate())
+        assert {(d.id, d.path) for d in detector.detect(image)} == both  # a new thread after close
+        detector.close()
+    finally:
+        cv2.setNumThreads(before)
 
 
 def test_a_small_occluded_marker_alone_is_found_on_one_thread_and_on_two(layout, opencv_threads):

@@ -78,9 +78,9 @@ class CircleParams:
         the cost (a 28 px oblique marker beside a clean one was still found
         there); the daemon, which passes expected places, searches its
         windows at ``min_side_px``.
-    search_beside_aruco: with OpenCV on two threads or more, start the
-        frame-wide search (at ``min_side_px``) on a second thread while ArUco
-        runs, before it is known whether the square path finds a marker.
+    search_beside_aruco: with OpenCV on two threads or more, run the
+        frame-wide search (at ``min_side_px``) while ArUco runs on a second
+        thread, before it is known whether the square path finds a marker.
     threshold_block_px, threshold_offset_gray, threshold_ratio: a pixel is
         dark when below both mean - offset and mean x ratio over the window.
     pre_blur: 3 x 3 box blur before thresholding (fewer noise specks, but

@@ -27,8 +27,8 @@ Stages (one module each in ``companion.detect``, run in this order):
    markers whose quads the usual window loses.
 6. ``circles`` (the occluded path): in every frame (``circles.run``), where
    the markers found by the square path do not explain them, corner circles
-   (found at a pyramid level, on a second thread beside ArUco when OpenCV
-   may use two) are grouped into grids, read again in the frame, fitted,
+   (found at a pyramid level; while ArUco runs on a second thread when
+   OpenCV may use two) are grouped into grids, read again in the frame, fitted,
    refined on the visible edges, sampled with occluded and out-of-image
    cells as erasures, and decoded the same way.
 
@@ -134,8 +134,9 @@ class Detector:
 
     camera: optional ``companion.geometry.camera.CameraModel``; with it the
     square-path corners are aligned through its lens model (``refine``).
-    With OpenCV on more than one thread, the circles path's blob search runs
-    on a thread of its own (started at the first frame, stopped by ``close``
+    With OpenCV on more than one thread, the square path's ArUco call runs on
+    a thread of its own while the circles path's blob search runs on the
+    caller's (the thread is started at the first frame, stopped by ``close``
     or when the detector is dropped).
     """
 
@@ -156,7 +157,7 @@ class Detector:
         self._hidden_by_corners = {corners: missing_corner_cells(self.layout, np.array(corners, int))
                                    for k in range(5) for corners in itertools.combinations(range(4), k)}
         self.last_stage_ms: dict[str, float] = {}
-        self._blob_worker: ThreadPoolExecutor | None = None
+        self._aruco_worker: ThreadPoolExecutor | None = None
 
     def detect(self, gray: np.ndarray, expected_px: np.ndarray | None = None) -> list[Detection]:
         """All RS markers in an (H, W) uint8 frame, each once.
@@ -173,9 +174,17 @@ class Detector:
         gray = _as_gray(gray)
         clock = _StageClock()
         run = self.params.circles.run
-        blobs_pending = self._blob_search_beside(gray) if run == "always" and expected_px is None else None
         dim = self.square.is_dim(gray)
-        candidates = self.square.find(gray, dim=dim)
+        aruco_pending = self._aruco_beside(gray, dim) if run == "always" and expected_px is None else None
+        blobs_beside = None
+        if aruco_pending is not None:
+            # the frame-wide blob search needs nothing from the square path: this thread does it while ArUco runs
+            blobs_beside = find_frame_blobs(gray, self.params.circles)
+            # on a loaded machine the thread may not have started ArUco yet: then it runs here
+            quads = self.square.aruco_quads(gray, None, dim) if aruco_pending.cancel() else aruco_pending.result()
+            candidates = self.square.candidates(gray, *quads)
+        else:
+            candidates = self.square.find(gray, dim=dim)
         clock.lap("square")
         detections = self._decode_quads(gray, candidates.corners_px, candidates.from_aruco)
         clock.lap("square_decode")
@@ -194,36 +203,34 @@ class Detector:
             # (M, 3, 3) grid -> frame of the markers found so far: the circles path looks only outside them
             found_H = self._grids_of(detections) if detections else None
             circles = self.params.circles
-            if blobs_pending is not None and not blobs_pending.cancel():
-                blobs = blobs_pending.result()  # started beside the square path (not yet started: run here)
+            if blobs_beside is not None:
+                blobs = blobs_beside
             elif expected_px is not None and detections:
                 windows = self._windows_of_missing(expected_px, found_H, gray.shape, circles.min_side_px)
                 blobs = find_window_blobs(gray, windows, circles) if len(windows) else None
             else:
-                # the same search whether or not the thread got to it: only where none was handed over does
-                # the square path's outcome choose the resolution
-                beside_found = bool(detections) and blobs_pending is None
-                blobs = find_frame_blobs(gray, circles, circles.min_side_beside_found_px if beside_found else None)
+                blobs = find_frame_blobs(gray, circles, circles.min_side_beside_found_px if detections else None)
             if blobs is not None:
                 detections += self._circles_path(gray, blobs, found_H, clock)
         self.last_stage_ms = clock.stages_ms
         return detections
 
     def close(self) -> None:
-        """Stop the blob-search thread, if one was started (it also stops when the detector is dropped)."""
-        if self._blob_worker is not None:
-            self._blob_worker.shutdown()
-            self._blob_worker = None
+        """Stop the ArUco thread, if one was started (it also stops when the detector is dropped)."""
+        if self._aruco_worker is not None:
+            self._aruco_worker.shutdown()
+            self._aruco_worker = None
 
-    def _blob_search_beside(self, gray: np.ndarray) -> Future | None:
-        """The circles path's blob search started on a second thread, to run while ArUco runs on this one,
-        when OpenCV may use more than one thread (``cv2.setNumThreads``); None otherwise. It needs nothing
-        from the square path (blobs inside the markers it finds are dropped after)."""
+    def _aruco_beside(self, gray: np.ndarray, dim: bool) -> Future | None:
+        """The square path's ArUco call started on a second thread, for the circles path's blob search to run
+        on this one meanwhile, when OpenCV may use more than one thread (``cv2.setNumThreads``) and
+        ``circles.search_beside_aruco``; None otherwise. ArUco is one OpenCV call, which leaves the
+        interpreter: the blob search's Python steps do not wait for it, as they would for the square path's."""
         if cv2.getNumThreads() < 2 or not self.params.circles.search_beside_aruco:
             return None
-        if self._blob_worker is None:
-            self._blob_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-blobs")
-        return self._blob_worker.submit(find_frame_blobs, gray, self.params.circles)
+        if self._aruco_worker is None:
+            self._aruco_worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detector-aruco")
+        return self._aruco_worker.submit(self.square.aruco_quads, gray, None, dim)
 
     def _grids_of(self, found: list[Detection]) -> np.ndarray:
         """(M, 3, 3) homographies grid cells -> frame of M found markers (M >= 1)."""

@@ -188,12 +188,22 @@ class SquareFinder:
         """Candidate inner squares; window_px: one ArUco threshold window of this size instead of
         ``aruco_threshold_windows_px`` (``small_window_px``: the detector's second pass); dim: whether the
         frame is dim (``is_dim``), when already known."""
+        return self.candidates(gray, *self.aruco_quads(gray, window_px, dim))
+
+    def aruco_quads(self, gray: np.ndarray, window_px: int | None = None,
+                    dim: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """ArUco's own step of ``find`` (one OpenCV call, which leaves the interpreter to other threads):
+        (A, 4, 2) identified and (R, 4, 2) rejected quads, float64."""
         dim = self.is_dim(gray) if dim is None else dim
         constant = self.params.dim_threshold_constant_gray if dim else self.params.aruco_threshold_constant_gray
         windows = self.params.aruco_threshold_windows_px if window_px is None else (window_px, window_px, 10)
         corners, _, rejected = self._aruco(max(gray.shape), constant, windows).detectMarkers(gray)
-        accepted = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
-        others = np.array(rejected, dtype=np.float64).reshape(-1, 4, 2)
+        return (np.array(corners, dtype=np.float64).reshape(-1, 4, 2),
+                np.array(rejected, dtype=np.float64).reshape(-1, 4, 2))
+
+    def candidates(self, gray: np.ndarray, accepted: np.ndarray, rejected: np.ndarray) -> SquareCandidates:
+        """The rest of ``find``: ArUco's identified quads, and its rejected ones that read like a marker."""
+        others = rejected
         if self.params.decode_rejected and len(others):
             others = others[(homography.mean_side_px(others) >= self.params.min_side_px) & ~self._within(others, accepted)]
             others = others[self.marker_like(gray, others)] if len(others) else others
