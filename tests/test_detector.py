@@ -427,9 +427,11 @@ def test_aruco_runs_on_the_calling_thread_when_its_own_has_not_started_it(layout
     cv2.setNumThreads(2)
     try:
         image = clean_and_strip_scene(layout)[0]
+        threads_before = set(threading.enumerate())
         detector = Detector()
         both = {(3, "square"), (40, "circles")}
         assert {(d.id, d.path) for d in detector.detect(image)} == both
+        (thread,) = [t for t in set(threading.enumerate()) - threads_before if t.name.startswith("detector-aruco")]
         release = threading.Event()
         busy = detector._aruco_worker.submit(release.wait, 30)  # the thread is held up elsewhere
         try:
@@ -438,9 +440,9 @@ def test_aruco_runs_on_the_calling_thread_when_its_own_has_not_started_it(layout
         finally:
             release.set()
         assert busy.result() is True
-        assert any(t.name.startswith("detector-aruco") for t in threading.enumerate())
+        assert thread.is_alive()
         detector.close()
-        assert not any(t.name.startswith("detector-aruco") for t in threading.enumerate())
+        assert not thread.is_alive()
         assert {(d.id, d.path) for d in detector.detect(image)} == both  # a new thread after close
         detector.close()
     finally:

@@ -178,6 +178,7 @@ class Daemon:
         self.notifier.stopping()
         if self._pipeline_thread.is_alive():
             self._pipeline_thread.join(timeout=5.0)
+        self.pipeline.detector.close()
         self.source.close()
         for observer in (self.recorder, self.live_view):
             if observer is not None:
