@@ -742,3 +742,33 @@ def test_a_marker_with_a_large_sd_in_the_map_is_weighed_less(tmp_path):
     unstated = solve((None, None), (None, None))
     assert stated < 0.002, stated
     assert unstated > 0.005 and unstated > 4 * stated, (stated, unstated)
+
+
+def test_surveyed_markers_err_together_so_their_common_shift_moves_the_pose_not_its_weights():
+    """A survey places markers through each other, so those seen together err alike. Surveyed markers of
+    one position sd (angle sd 0 here) are weighed as on an exact map: the pose is the exact map's to the
+    digit, and the shift they share is in the covariance, moving the body as much as the markers (the exact
+    map's position covariance + sd^2 on each axis). With an anchor in view (sd 0: the shift is measured
+    against it) every marker is weighed by its whole sd, as markers without a stated sd are by PoseParams'
+    (a tape map's, each marker's error its own; another test above)."""
+    detections = detections_for(AISLE_VIEW, noise_px=0.3, rng=np.random.default_rng(7))
+    seen = [d.id for d in detections]
+    assert len(seen) >= 3
+    exact = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve(detections, t_ns=0)
+    sd_m = 0.004
+
+    def solve(anchor_ids, stated=True):
+        markers = {i: replace(m, sd_position_m=0.0 if i in anchor_ids else (sd_m if stated else None),
+                              sd_angle_deg=0.0) for i, m in FACILITY.markers.items()}
+        params = replace(EXACT_MAP, map_sd_m=sd_m)
+        return PoseSolver(replace(FACILITY, markers=markers), CAMERA, params).solve(detections, t_ns=0)
+
+    no_anchor = solve(())
+    np.testing.assert_allclose(no_anchor.T_map_body, exact.T_map_body, atol=1e-9)
+    np.testing.assert_allclose(no_anchor.covariance_ned[:3, :3], exact.covariance_ned[:3, :3] + sd_m ** 2 * np.eye(3),
+                               rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(no_anchor.covariance_ned[3:, 3:], exact.covariance_ned[3:, 3:], rtol=1e-6, atol=1e-15)
+    with_anchor, unstated = solve((seen[-1],)), solve((seen[-1],), stated=False)
+    np.testing.assert_allclose(with_anchor.T_map_body, unstated.T_map_body, atol=1e-9)
+    np.testing.assert_allclose(with_anchor.covariance_ned, unstated.covariance_ned, rtol=1e-6, atol=1e-15)
+    assert np.linalg.norm(with_anchor.T_map_body[:3, 3] - exact.T_map_body[:3, 3]) > 1e-5

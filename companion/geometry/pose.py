@@ -14,7 +14,15 @@ the reason in ``status``). The steps:
    from one alignment, their errors correlated); the map's own error (the marker's ``sd`` in the map, else
    ``map_sd_m``, ``map_sd_deg``) moves all of a marker's points together, so a marker's errors are weighed by the
    inverse of their joint covariance. Every squared error below is in those
-   units (chi-square).
+   units (chi-square). Markers whose map entry states its own position sd (a
+   survey writes one for each) were placed through each other and err
+   together: with no exactly known marker (an anchor) in view to measure it
+   against, the smallest of their position variances in the frame is a
+   shift they share, which moves them and the camera alike; the pose is
+   solved without it in the weights (with it, a marker surveyed a little
+   less well than another counts for much less, and the pose leans on the
+   best one alone), the chi-square tests keep it, and the covariance
+   counts it (step 6).
 2. Attitude: the flight controller's roll and pitch at the capture time
    (``companion.geometry.attitude``), when given, join every fit as a prior
    of standard deviation ``attitude_sd_deg``: two more residuals, so a
@@ -49,7 +57,8 @@ the reason in ``status``). The steps:
 6. Covariance: ``(J^T W J + A^T W_a A)^-1``, J the Jacobian of the
    reprojection residuals with respect to the body pose, W the points'
    inverse covariance (their noise and the map's error), A and W_a the
-   attitude prior's: it includes the attitude's uncertainty. Rotated into
+   attitude prior's: it includes the attitude's uncertainty; plus the
+   surveyed markers' shared shift, through the pose it moves. Rotated into
    NED. Nothing consistent is withheld for being uncertain: the covariance
    says how good the pose is.
 
@@ -59,7 +68,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import cv2
@@ -187,7 +196,9 @@ class _Points:
     (M, 3) the markers' centres in the map; corner_cov_px2: per observation,
     its corners' (8, 8) covariance with the model's noise added, or None;
     map_var: (M, 6) the variances of each marker's mapped pose, [position m^2 (3),
-    orientation rad^2 (3)] (``PoseSolver._map_variances``).
+    orientation rad^2 (3)] (``PoseSolver._map_variances``); surveyed: (M,) bool, the marker's map entry
+    states its own position sd above 0 (``companion survey`` writes one for every marker it placed):
+    such markers err together (see ``common_shift_var``).
     """
 
     map: np.ndarray
@@ -200,6 +211,7 @@ class _Points:
     centres: np.ndarray
     corner_cov_px2: tuple[np.ndarray | None, ...] = ()
     map_var: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    surveyed: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     @classmethod
     def of(cls, observations: list[MarkerObservation], params: PoseParams,
@@ -215,7 +227,8 @@ class _Points:
                    np.repeat(np.arange(len(observations)), counts), np.cumsum(counts) - counts, counts,
                    np.array([o.marker.id for o in observations]), sigma_px,
                    np.array([o.marker.T_map_marker[:3, 3] for o in observations]), corner_cov_px2,
-                   np.array([map_var[o.marker.id] for o in observations]))
+                   np.array([map_var[o.marker.id] for o in observations]),
+                   np.array([bool(o.marker.sd_position_m) for o in observations]))
 
     def of_markers(self, members: np.ndarray) -> _Points:
         """The points of the observations ``members`` (indices, ascending)."""
@@ -225,7 +238,28 @@ class _Points:
         counts = self.counts[members]
         return _Points(self.map[keep], self.px[keep], np.repeat(np.arange(len(members)), counts),
                        np.cumsum(counts) - counts, counts, self.marker_ids[members], self.sigma_px[members],
-                       self.centres[members], tuple(self.corner_cov_px2[m] for m in members), self.map_var[members])
+                       self.centres[members], tuple(self.corner_cov_px2[m] for m in members), self.map_var[members],
+                       self.surveyed[members])
+
+    @property
+    def common_shift_var(self) -> float:
+        """The variance (m^2, each axis) of the shift the surveyed markers among these share: the smallest of
+        their position variances (0 without any, and 0 with a marker known exactly among these: an anchor,
+        against which the shift is measured). A survey places markers through each other, so those seen
+        together err alike (bench_survey's aisle: six surveyed markers all 2.5-5.3 mm off the same way);
+        their errors' common part moves them and the camera together."""
+        if not self.surveyed.any() or (self.map_var[:, :3] == 0.0).all(axis=1).any():
+            return 0.0
+        return float(self.map_var[self.surveyed, :3].min())
+
+    def without_common_shift(self) -> _Points:
+        """These points with the surveyed markers' position variances less ``common_shift_var``."""
+        common = self.common_shift_var
+        if common == 0.0:
+            return self
+        map_var = self.map_var.copy()
+        map_var[self.surveyed, :3] -= common
+        return replace(self, map_var=map_var)
 
     @property
     def correlated(self) -> bool:
@@ -580,11 +614,11 @@ class PoseSolver:
         sse_m = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
         members = np.flatnonzero(sse_m < points.counts * self.params.hypothesis_gate_px ** 2)
         # the weights at the start: the map error's share changes little while the pose is refined
-        weights = self._weights(T_camera_map, points)
+        weights, solving = self._weights_tested_and_solved(T_camera_map, points)
         for _ in range(3):
             if len(members) == 0:
                 return None
-            refined = self._refine(T_camera_map, weights.of_markers(members), gravity)
+            refined = self._refine(T_camera_map, solving.of_markers(members), gravity)
             if refined is None:
                 return None
             T_camera_map = refined
@@ -593,7 +627,7 @@ class PoseSolver:
             if np.array_equal(agreeing, members):
                 break
             members = agreeing if np.isin(members, agreeing).all() or len(members) < 3 else \
-                self._consensus(T_camera_map, weights, members, gravity)
+                self._consensus(T_camera_map, weights, solving, members, gravity)
         if len(members) == 0:
             return None
         attitude_chi2 = 0.0
@@ -602,7 +636,7 @@ class PoseSolver:
         return Fit(T_camera_map, tuple(int(i) for i in members), chi2_m, float(chi2_m[members].sum()), attitude_chi2,
                    float(sse_m[members].sum()), int(points.counts[members].sum()), gravity is not None)
 
-    def _consensus(self, T_camera_map: np.ndarray, weights: _Weights, members: np.ndarray,
+    def _consensus(self, T_camera_map: np.ndarray, weights: _Weights, solving: _Weights, members: np.ndarray,
                    gravity: _Gravity | None) -> np.ndarray:
         """The markers of ``members`` (indices, ascending) that agree on one pose, when a fit to all of them
         leaves some of them out: leave-one-out by chi-square, a consensus over markers as RANSAC's.
@@ -617,7 +651,7 @@ class PoseSolver:
             best = None
             for left_out in range(len(members)):
                 rest = np.delete(members, left_out)
-                T_rest = self._refine(T_camera_map, weights.of_markers(rest), gravity)
+                T_rest = self._refine(T_camera_map, solving.of_markers(rest), gravity)
                 if T_rest is None:
                     continue
                 chi2_rest = self._marker_errors(T_rest, weights.points, weights)[0][rest]
@@ -687,6 +721,17 @@ class PoseSolver:
         sse = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
         chi2_m = weights.marker_chi2(errors)
         return np.where(np.isfinite(chi2_m), chi2_m, np.inf), np.where(np.isfinite(sse), sse, np.inf)
+
+    def _weights_tested_and_solved(self, T_camera_map: np.ndarray, points: _Points) -> tuple[_Weights, _Weights]:
+        """The weights the chi-square tests use (every marker's whole map error) and those the pose is
+        solved with (the surveyed markers' common shift left out, ``_Points.common_shift_var``): weighed
+        by it, a marker surveyed a little less well than another counts for much less, and the pose leans
+        on the best one alone (an anchor, sd 0); on bench_survey's aisle, the true map given the survey's
+        sd flew 1.18 -> 2.02-2.81 mm so. The covariance counts the shift (``_covariance_map``)."""
+        weights = self._weights(T_camera_map, points)
+        if points.common_shift_var == 0.0:
+            return weights, weights
+        return weights, self._weights(T_camera_map, points.without_common_shift())
 
     def _weights(self, T_camera_map: np.ndarray, points: _Points) -> _Weights:
         """The points' weights at a camera pose (see ``_Weights``)."""
@@ -791,16 +836,27 @@ class PoseSolver:
         """(6, 6) covariance of [body position (3), small rotation (3)], both on map axes.
 
         C = (J^T W J + A^T A)^-1: J = d(pixels)/d(pose), W the points' inverse
-        covariance (``_Weights``: their noise and the map's error), A =
-        d(whitened roll, pitch)/d(pose) when the attitude was used.
+        covariance (``_Weights``: their noise and the map's error, as the pose was solved: without the
+        surveyed markers' common shift), A = d(whitened roll, pitch)/d(pose) when the attitude was used;
+        plus that shift's own share: it moves the surveyed markers' points by G dX (G = d(pixels)/dX_map,
+        on their points only) and the pose by K dX, K = C J^T W G, so C += s^2 K K^T (s^2: the shift's
+        variance on each axis).
         """
-        weights = self._weights(self._T_camera_map(T_map_body), points)
-        J = weights.whiten(self._pose_jacobian(T_map_body, points.map).reshape(-1, 2, 6)).reshape(-1, 6)
+        common = points.common_shift_var
+        weights = self._weights(self._T_camera_map(T_map_body), points.without_common_shift())
+        jacobian = self._pose_jacobian(T_map_body, points.map).reshape(-1, 2, 6)
+        J = weights.whiten(jacobian).reshape(-1, 6)
         information = J.T @ J
         if gravity is not None:
             A = np.hstack([np.zeros((2, 3)), gravity.residual(T_map_body[:3, :3])[1]])
             information += A.T @ A
-        return np.linalg.pinv(information)
+        C = np.linalg.pinv(information)
+        if common > 0.0:
+            # a map point moved by dX moves as the body moved by -dX: G = -d(pixels)/d(position)
+            G = -jacobian[..., :3] * np.repeat(points.surveyed, points.counts)[:, None, None]
+            K = C @ J.T @ weights.whiten(G).reshape(-1, 3)
+            C = C + common * K @ K.T
+        return C
 
     def _pose_jacobian(self, T_map_body: np.ndarray, points_map: np.ndarray) -> np.ndarray:
         """(2K, 6) derivative of the projected pixels by [dp_map (3), dtheta_map (3)].
