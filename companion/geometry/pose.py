@@ -726,8 +726,9 @@ class PoseSolver:
         """The weights the chi-square tests use (every marker's whole map error) and those the pose is
         solved with (the surveyed markers' common shift left out, ``_Points.common_shift_var``): weighed
         by it, a marker surveyed a little less well than another counts for much less, and the pose leans
-        on the best one alone (an anchor, sd 0); on bench_survey's aisle, the true map given the survey's
-        sd flew 1.18 -> 2.02-2.81 mm so. The covariance counts the shift (``_covariance_map``)."""
+        on the best one alone (on bench_survey's aisle the true map, told the survey's sd, flew at
+        2.02-2.81 mm against its 1.18 mm told it is exact). The covariance counts the shift
+        (``_covariance_map``)."""
         weights = self._weights(T_camera_map, points)
         if points.common_shift_var == 0.0:
             return weights, weights
