@@ -241,7 +241,7 @@ class _Points:
                        self.centres[members], tuple(self.corner_cov_px2[m] for m in members), self.map_var[members],
                        self.surveyed[members])
 
-    @property
+    @functools.cached_property
     def common_shift_var(self) -> float:
         """The variance (m^2, each axis) of the shift the surveyed markers among these share: the smallest of
         their position variances (0 without any, and 0 with a marker known exactly among these: an anchor,
