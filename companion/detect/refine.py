@@ -56,6 +56,7 @@ detections only.
 """
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -304,6 +305,9 @@ class MarkerRefiner:
         self._corners_grid = layout.inner_corners_cells
         self._circles_grid = np.asarray(layout.circles, dtype=float)[:, :2]
         self._corners_and_circles_grid = np.concatenate([self._corners_grid, self._circles_grid])
+        # where the model corners sit in the template's normalised coordinates, and how a step dp moves them
+        self._corners_norm = homography.project(self.N_norm_grid, self._corners_grid)
+        self._corners_dW_dp = _warp_jacobian(self._corners_norm)
         # the grid's outline one cell out (the template reaches half a cell into the quiet zone)
         side = np.linspace(-1.0, n + 1.0, 5)
         ends = np.full(5, -1.0), np.full(5, n + 1.0)
@@ -324,7 +328,7 @@ class MarkerRefiner:
         if np.isnan(H0[2, 2]):
             return self._fit(gray, initial, None, "degenerate")
         cell_px = _cell_px(initial_ideal, self.layout.inner_cells)
-        px_per_cell = int(np.clip(round(cell_px), self.params.min_px_per_cell, self.params.max_px_per_cell))
+        px_per_cell = min(max(round(cell_px), self.params.min_px_per_cell), self.params.max_px_per_cell)
         view = self._view(gray, H0)
         if view is None:
             return self._fit(gray, initial, H0, "not_visible")
@@ -357,12 +361,8 @@ class MarkerRefiner:
         if lattice is None:
             lattice = self._lattices[template] = _Lattice.of(template)
         cov_p = _parameter_cov(template, lattice, last)
-        x, y = homography.project(self.N_norm_grid, self._corners_grid).T
-        zero, one = np.zeros_like(x), np.ones_like(x)
         # a step dp moves the model corner by -dW/dp dp (inverse composition), then M projects it
-        dW_dp = np.stack([np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1),
-                          np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1)], axis=1)  # (4, 2, 8)
-        J = _projection_jacobian(M, np.column_stack([x, y])) @ dW_dp  # (4, 2, 8) ideal pixels per dp
+        J = _projection_jacobian(M, self._corners_norm) @ self._corners_dW_dp  # (4, 2, 8) ideal pixels per dp
         if self.camera is not None:
             J = self._lens_jacobian(corners_px) @ J
         J = J.reshape(8, 8)
@@ -493,10 +493,9 @@ class MarkerRefiner:
             outline = ideal.to_frame(outline.astype(np.float32)[None])[0]
         height, width = gray.shape
         margin = 2
-        x0 = int(max(np.floor(outline[:, 0].min()) - margin, 0))
-        y0 = int(max(np.floor(outline[:, 1].min()) - margin, 0))
-        x1 = int(min(np.ceil(outline[:, 0].max()) + margin, width - 1))
-        y1 = int(min(np.ceil(outline[:, 1].max()) + margin, height - 1))
+        (low_x, low_y), (high_x, high_y) = outline.min(axis=0).tolist(), outline.max(axis=0).tolist()
+        x0, y0 = max(math.floor(low_x) - margin, 0), max(math.floor(low_y) - margin, 0)
+        x1, y1 = min(math.ceil(high_x) + margin, width - 1), min(math.ceil(high_y) + margin, height - 1)
         if x1 - x0 < 2 or y1 - y0 < 2:
             return None
         S = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
@@ -573,12 +572,8 @@ def edge_template(layout: MarkerLayout, marker_id: int, px_per_cell: int, N_norm
     # dT/d(normalised) = dT/d(template pixel) * template pixels per normalised unit
     scale = px_per_cell / N_norm_grid[0, 0]
     grad = np.column_stack([gx[rows, columns], gy[rows, columns]]).astype(np.float64) * scale
-    x, y = xy[:, 0], xy[:, 1]
-    zero, one = np.zeros_like(x), np.ones_like(x)
-    # dW/dp at p = 0 for W(x; p) = (I + D(p)) x, D = [[p0 p1 p2] [p3 p4 p5] [p6 p7 0]]
-    dW_dp_x = np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1)
-    dW_dp_y = np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1)
-    steepest = grad[:, :1] * dW_dp_x + grad[:, 1:] * dW_dp_y
+    dW_dp = _warp_jacobian(xy)
+    steepest = grad[:, :1] * dW_dp[:, 0] + grad[:, 1:] * dW_dp[:, 1]
     values = image[rows, columns].astype(np.float32)
     points = xy.astype(np.float32)
     return _Template(points=points[None], values=values,
@@ -717,6 +712,14 @@ def _least_squares(G: np.ndarray) -> np.ndarray | None:
     if len(G) < 20 or not np.linalg.det(gram) > 1e-6 * np.trace(gram) ** 2:
         return None
     return np.linalg.inv(gram) @ G.T
+
+
+def _warp_jacobian(xy: np.ndarray) -> np.ndarray:
+    """(K, 2, 8) dW/dp at p = 0 for W(x; p) = (I + D(p)) x, D = [[p0 p1 p2] [p3 p4 p5] [p6 p7 0]], at (K, 2) points."""
+    x, y = xy[:, 0], xy[:, 1]
+    zero, one = np.zeros_like(x), np.ones_like(x)
+    return np.stack([np.stack([x, y, one, zero, zero, zero, -x * x, -x * y], axis=1),
+                     np.stack([zero, zero, zero, x, y, one, -x * y, -y * y], axis=1)], axis=1)
 
 
 def _projection_jacobian(M: np.ndarray, xy: np.ndarray) -> np.ndarray:
