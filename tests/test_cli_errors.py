@@ -92,7 +92,7 @@ def test_bad_input_is_one_line_naming_what_is_wrong(place, capsys, args, status,
 def test_run_with_bad_input_logs_one_error_and_exits_2(place, capsys):
     for args, message in ((["--config", str(place)], f"{place}: cannot read config: Is a directory"),
                           (["--config", str(place / "a-file")], f"{place / 'a-file'}: must be a mapping (the config)"),
-                          (["--replay", str(place / "missing")], "source.path: ")):
+                          (["--replay", str(place / "missing")], f"--replay {place / 'missing'}: no such file or folder")):
         assert cli.main(["run", *args]) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and " ERROR companion: " in lines[0] and message in lines[0], lines

@@ -131,6 +131,8 @@ def load_config(path=None, replay=None) -> Config:
     path = Path(path) if path is not None else default_config_path()
     data = read_yaml(path, ConfigError, "config")
     if replay is not None:
+        if not Path(replay).exists():  # named as the user gave it, not as the config's source.path
+            raise ConfigError(f"--replay {replay}: no such file or folder")
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: the config must be a mapping of sections")
         data = {**data, "source": {"kind": "replay", "path": str(Path(replay).resolve()), "realtime": True}}
