@@ -19,6 +19,7 @@ import cv2
 
 from companion.capture.replay import image_files
 from companion.cli.output import cannot_write, output_dir, output_file
+from companion.files import write_whole
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
                                             CharucoBoard, calibrate, capture_live, write_calibration)
 from companion.markers.charuco import DEFAULT_DICTIONARY, CharucoError, CharucoSpec
@@ -144,8 +145,8 @@ def calibrate_device(args: argparse.Namespace, board) -> Calibration:
         source.close()
         signal.signal(signal.SIGINT, previous)
     if args.save_views is not None:
-        for name, image in images.items():
-            cv2.imwrite(str(args.save_views / f"{name}.png"), image)
+        for name, image in images.items():  # (a camera frame always encodes)
+            write_whole(args.save_views / f"{name}.png", cv2.imencode(".png", image)[1].tobytes())
     return calibration
 
 

@@ -2,18 +2,20 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
 from companion.cli.output import output_dir
+from companion.files import write_whole
 from companion.markers.charuco import DEFAULT_DICTIONARY as CHARUCO_DICTIONARY
 from companion.markers.charuco import CharucoError, CharucoSpec, charuco_pdf
 from companion.markers.dictionary import DictionaryError
 from companion.markers.layout import MarkerLayout
 from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_png_size,
-                                        check_size_mm, fits_one_page, largest_on_one_page_mm, marker_svg,
-                                        markers_pdf, num, resolve_marker_ids, sheet_geometry, tile_geometry,
-                                        write_marker_png)
+                                        check_size_mm, fits_one_page, largest_on_one_page_mm, marker_png,
+                                        marker_svg, markers_pdf, num, resolve_marker_ids, sheet_geometry,
+                                        tile_geometry)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -70,7 +72,7 @@ def write_charuco(args: argparse.Namespace) -> int:
     spec = CharucoSpec(*args.charuco, args.square_mm, args.marker_mm, args.aruco_dictionary)
     document = charuco_pdf(spec, args.page)
     path = output_dir(args.out, "--out") / f"{spec.file_stem()}-{args.page}.pdf"
-    path.write_bytes(document)
+    write_whole(path, document)
     print(f"{path}: {spec.describe()}, {spec.corners} corners; calibrate with: "
           f"companion calibrate IMAGES... {spec.calibrate_options()}")
     return 0
@@ -92,17 +94,20 @@ def generate(args: argparse.Namespace) -> int:
 
     if args.format == "pdf":
         path = out_dir / f"markers-p{layout.parity}-{args.dictionary}-{num(size_mm)}mm-{args.page}.pdf"
-        path.write_bytes(markers_pdf(markers, args.page))
+        write_whole(path, markers_pdf(markers, args.page))
         print(f"{path}: {describe_pdf(markers, args.page)}")
         return 0
     for marker in markers:
         if args.format == "svg":
             path = out_dir / f"{marker.file_stem()}.svg"
-            path.write_text(marker_svg(marker))
+            write_whole(path, marker_svg(marker))
             print(f"{path}: {marker.symbol} id {marker.marker_id}, {num(marker.outer_mm)} mm square, "
                   f"inner square {num(size_mm)} mm")
         else:
-            path, sidecar = write_marker_png(marker, args.dpi, out_dir)
+            png, sidecar = marker_png(marker, args.dpi)
+            path = out_dir / f"{marker.file_stem()}.png"
+            write_whole(path, png)
+            write_whole(path.with_suffix(".json"), json.dumps(sidecar, indent=2) + "\n")
             width, height = sidecar["image_px"]
             print(f"{path}: {marker.symbol} id {marker.marker_id}, {width}x{height} px, inner square "
                   f"{sidecar['inner_px']} px = {sidecar['size_mm']:.3f} mm at {sidecar['dpi']:.4f} dpi")

@@ -2,7 +2,8 @@
 
 A folder is created if needed and a file is written and removed in it (the
 only honest test of "may I write here": permissions, read-only mounts,
-``/proc``); a file's folder must exist and take a file the same way.
+``/proc``); a file's folder must exist and take a file the same way. A file
+is then written whole or not at all (``companion.files.write_whole``).
 """
 from __future__ import annotations
 

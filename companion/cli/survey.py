@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
-import tempfile
 from pathlib import Path
 
 from companion.capture.source import SourceError
@@ -52,7 +50,7 @@ def main(args) -> int:
             output_dir(Path(args.report), "--report")
         options = SurveyOptions(size_m=args.size_m, fps=args.fps, progress=progress)
         result = survey([Path(s) for s in args.sequences], camera, anchors, options, extend=args.existing is not None)
-        _write_atomically(result, args)
+        _write_map(result, args)
         if args.report:
             from companion.survey.report import write_report
 
@@ -69,21 +67,12 @@ def main(args) -> int:
     return 0
 
 
-def _write_atomically(result: SurveyResult, args) -> None:
-    """The map appears whole or not at all."""
-    out = Path(args.out)
+def _write_map(result: SurveyResult, args) -> None:
     header = (f"Surveyed by companion survey from {', '.join(args.sequences)}\n"
               f"with {'the map ' + args.existing if args.existing else 'the anchors ' + args.anchors}: "
               f"{sum(not s.anchor for s in result.markers)} markers surveyed.\n"
               "Each surveyed marker's note: one standard deviation of its position and angle, frames seen in.")
-    handle, temporary = tempfile.mkstemp(dir=out.parent if str(out.parent) else ".", prefix=f".{out.name}.")
-    os.close(handle)
-    try:
-        write_map(result.facility_map, temporary, header)
-        os.replace(temporary, out)
-    finally:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
+    write_map(result.facility_map, args.out, header)  # whole or not at all
 
 
 def _length(metres: float) -> str:

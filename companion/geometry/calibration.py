@@ -22,6 +22,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from companion.files import write_whole
 from companion.markers.charuco import CharucoSpec
 
 MIN_VIEWS = 5
@@ -249,7 +250,8 @@ def _fit(found: dict, size: tuple[int, int]):
 
 
 def write_calibration(path: Path, calibration: Calibration) -> None:
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    """OpenCV's calibration YAML, written whole or not at all."""
+    storage = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     try:
         storage.write("image_width", calibration.width)
         storage.write("image_height", calibration.height)
@@ -263,7 +265,8 @@ def write_calibration(path: Path, calibration: Calibration) -> None:
                           np.array([calibration.std[p] for p in PARAMETERS]).reshape(1, -1))
         storage.write("image_coverage", calibration.coverage)
     finally:
-        storage.release()
+        text = storage.releaseAndGetString()
+    write_whole(path, text)
 
 
 # ------------------------------------------------------------ live capture

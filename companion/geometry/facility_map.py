@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 
 from companion.geometry import frames
+from companion.files import write_whole
 from companion.yaml_input import REQUIRED, Where, read_yaml
 
 TOP_KEYS = {"name", "frame", "dictionary", "parity", "default_size_m", "markers", "survey"}
@@ -377,14 +378,14 @@ EXACT_AXIS = 1e-9       # an axis this close to map up/down is exactly vertical 
 
 
 def write_map(facility_map: FacilityMap, path, header: str = "") -> None:
-    """Write ``facility_map`` as a map file that ``load_map`` reads back to the same poses.
+    """Write ``facility_map`` as a map file that ``load_map`` reads back to the same poses, whole or not at all.
 
     ``header``: comment lines put above the map (without the ``#``).
     """
     comments = "".join(f"# {line}".rstrip() + "\n" for line in header.splitlines())
     text = yaml.safe_dump(map_to_dict(facility_map), sort_keys=False, default_flow_style=None, width=120,
                           allow_unicode=True)
-    Path(path).write_text(comments + text)
+    write_whole(path, comments + text)
 
 
 def map_to_dict(facility_map: FacilityMap) -> dict:

@@ -26,11 +26,9 @@ Sizes: ``--size-mm`` is the printed side of the inner black square (the
 from __future__ import annotations
 
 import io
-import json
 import struct
 import zlib
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -205,8 +203,9 @@ def png_sidecar(marker: MarkerPrint, px_per_cell: float, px_per_m: int, image_sh
     }
 
 
-def write_marker_png(marker: MarkerPrint, dpi: float, out_dir: Path) -> tuple[Path, dict]:
-    """Write ``<stem>.png`` and ``<stem>.json`` into ``out_dir``; return the PNG path and sidecar."""
+def marker_png(marker: MarkerPrint, dpi: float) -> tuple[bytes, dict]:
+    """The PNG file of one marker at ``dpi`` (its resolution in the file's pHYs chunk), and its sidecar
+    (``png_sidecar``, written beside it as ``<stem>.json``)."""
     check_png_size(marker, dpi)
     px_per_m = png_px_per_m(dpi)
     px_per_cell = png_px_per_cell(marker, px_per_m)
@@ -214,11 +213,7 @@ def write_marker_png(marker: MarkerPrint, dpi: float, out_dir: Path) -> tuple[Pa
     ok, encoded = cv2.imencode(".png", image)
     if not ok:
         raise PrintingError(f"OpenCV could not encode the PNG of {marker.symbol}")
-    path = out_dir / f"{marker.file_stem()}.png"
-    path.write_bytes(png_with_phys(encoded.tobytes(), px_per_m))
-    sidecar = png_sidecar(marker, px_per_cell, px_per_m, image.shape)
-    path.with_suffix(".json").write_text(json.dumps(sidecar, indent=2) + "\n")
-    return path, sidecar
+    return png_with_phys(encoded.tobytes(), px_per_m), png_sidecar(marker, px_per_cell, px_per_m, image.shape)
 
 
 # --------------------------------------------------------------------- SVG

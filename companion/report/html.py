@@ -20,6 +20,7 @@ matplotlib.use("Agg")   # files only, no display
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from companion.files import write_whole  # noqa: E402
 from companion.geometry.facility_map import FacilityMap  # noqa: E402
 from companion.plan import MapPlane, markers_plan  # noqa: E402
 from companion.report.flight_log import FlightLog  # noqa: E402
@@ -52,9 +53,9 @@ def write_report(log: FlightLog, facility_map: FacilityMap | None, out: Path | N
         sections.append(("Error against the ground truth", _image(error_figure(log)) + error_table(log)))
     title = f"Flight report: {log.folder.name}"
     body = "\n".join(f"<section><h2>{html.escape(name)}</h2>\n{content}</section>" for name, content in sections)
-    out.write_text(f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}"
-                   f"</title><style>{STYLE}</style></head>\n<body><h1>{html.escape(title)}</h1>\n{body}\n"
-                   "</body></html>\n")
+    write_whole(out, f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}"
+                f"</title><style>{STYLE}</style></head>\n<body><h1>{html.escape(title)}</h1>\n{body}\n"
+                "</body></html>\n")
     return out
 
 

@@ -469,13 +469,20 @@ def prepare_folder(out: Path) -> None:
         if not earlier:
             raise SimulationError(f"{out}: not empty and not a sequence written by {GENERATOR}: give a new or "
                                   "empty folder")
-        for name in GENERATED_FILES:
-            (out / name).unlink(missing_ok=True)
-        frames_dir = out / "frames"
-        if frames_dir.is_dir():
-            for frame in frames_dir.glob("[0-9]*.png"):
-                frame.unlink()
+        remove_generated(out)
     out.mkdir(parents=True, exist_ok=True)
+
+
+def remove_generated(out: Path) -> None:
+    """Delete what ``write_sequence`` writes in ``out`` (its files, its frames and their folder once empty)."""
+    for name in GENERATED_FILES:
+        (out / name).unlink(missing_ok=True)
+    frames_dir = out / "frames"
+    if frames_dir.is_dir():
+        for frame in frames_dir.glob("[0-9]*.png"):
+            frame.unlink()
+        if not any(frames_dir.iterdir()):
+            frames_dir.rmdir()
 
 
 VIDEO_CODECS = {"mp4v": "small, lossy (MPEG-4 part 2)", "ffv1": "lossless, large"}
@@ -489,10 +496,24 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     video: one ``video.avi`` in ``codec`` ("mp4v" or "ffv1") instead of PNG frames.
     progress: a progress bar on stderr (None: for more than ``PROGRESS_MIN_FRAMES`` frames).
     attitude: how attitude.csv departs from the truth; None writes no attitude.csv.
+    A sequence that cannot be finished (a full disk, Ctrl-C) is removed, not left half written: an
+    OSError then names the file (or the folder) that could not be written.
     """
     out = Path(out_dir)
-    times = frame_times_ns(simulator.trajectory.duration_s, fps)
     prepare_folder(out)
+    try:
+        _write_sequence(out, simulator, fps, map_path, video, progress, extra_info, codec, attitude)
+    except BaseException as error:
+        remove_generated(out)
+        if isinstance(error, OSError):  # a full disk's write error names no file; a copy's names both
+            raise OSError(error.errno, error.strerror, str(error.filename2 or error.filename or out)) from error
+        raise
+    return out
+
+
+def _write_sequence(out: Path, simulator: Simulator, fps: float, map_path: str, video: bool,
+                    progress: bool | None, extra_info: dict | None, codec: str, attitude: AttitudeNoise | None) -> None:
+    times = frame_times_ns(simulator.trajectory.duration_s, fps)
     shutil.copyfile(map_path, out / MAP_COPY)
     cam = simulator.camera
     writer = None
@@ -519,7 +540,7 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
                 file = ""
             else:
                 file = f"frames/{index:06d}.png"
-                cv2.imwrite(str(out / file), frame.image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+                _write_png(out / file, frame.image)
             ts.writerow((index, t_ns, file))
             gt.writerow((index, t_ns, *groundtruth_values(frame.T_map_body, T_ned_map)))
             for truth in frame.truths:
@@ -552,7 +573,18 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     }
     info.update(extra_info or {})
     (out / "sequence.yaml").write_text(yaml.safe_dump(_plain(info), sort_keys=False))
-    return out
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    """One frame as PNG; an OSError (a full disk) names the file. (Encoded, then written by Python:
+    ``cv2.imwrite`` only returns False, after libpng prints its own line on stderr.)"""
+    ok, png = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if not ok:
+        raise SimulationError(f"{path}: OpenCV could not encode the frame as PNG")
+    try:
+        path.write_bytes(png)
+    except OSError as error:
+        raise OSError(error.errno, error.strerror, str(path)) from error
 
 
 def groundtruth_values(T_map_body: np.ndarray, T_ned_map: np.ndarray) -> list[str]:

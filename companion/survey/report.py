@@ -9,12 +9,14 @@ with "?") gets a dashed circle of 3 sd at true size: its sd covers a rival place
 """
 from __future__ import annotations
 
+import io
 import json
 import math
 from pathlib import Path
 
 import numpy as np
 
+from companion.files import write_whole
 from companion.survey.survey import SurveyResult
 
 ELLIPSE_SIGMAS = 3.0
@@ -26,7 +28,7 @@ def write_report(result: SurveyResult, out_dir) -> tuple[Path, Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     json_path, png_path = out / "survey.json", out / "survey.png"
-    json_path.write_text(json.dumps(report_json(result), indent=2) + "\n")
+    write_whole(json_path, json.dumps(report_json(result), indent=2) + "\n")
     plot(result, png_path)
     return json_path, png_path
 
@@ -110,8 +112,10 @@ def plot(result: SurveyResult, path) -> None:
                    f"ellipses {ELLIPSE_SIGMAS:g} sd, drawn x{scale:g}", fontsize=9)
     axes.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     figure.tight_layout()
-    figure.savefig(path)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
     plt.close(figure)
+    write_whole(path, buffer.getvalue())
 
 
 def _enlargement(radius_m: float, shown_m: float = 0.25) -> float:

@@ -1,0 +1,52 @@
+"""A disk that fills up while a command writes: one line naming the file, exit 1, and no truncated file
+or half-written sequence left behind (a rerun with room starts clean).
+
+The disk is filled for real by the kernel: the command runs in a child process whose file size limit
+(RLIMIT_FSIZE) makes a write past it fail with EFBIG, as a full disk's fails with ENOSPC."""
+from __future__ import annotations
+
+import resource
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+MAP = REPO / "maps" / "warehouse.yaml"
+
+
+def run_with_file_limit(args: list[str], limit_bytes: int | None) -> subprocess.CompletedProcess:
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of the process being killed
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    return subprocess.run([sys.executable, "-m", "companion", *args], capture_output=True, text=True,
+                          preexec_fn=limit if limit_bytes else None, timeout=300)
+
+
+def test_markers_that_do_not_fit_leave_no_truncated_file(tmp_path):
+    out = tmp_path / "markers"
+    # the first PNG is about 2.6 kB and its sidecar about 1 kB: the PNG cannot be written whole
+    result = run_with_file_limit(["markers", "--symbols", "A,B", "--out", str(out)], 2000)
+    assert result.returncode == 1, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"companion markers: {out / 'marker-A-p2.png'}: "), lines
+    assert list(out.iterdir()) == []
+    assert run_with_file_limit(["markers", "--symbols", "A,B", "--out", str(out)], None).returncode == 0
+    assert sorted(p.name for p in out.iterdir()) == ["marker-A-p2.json", "marker-A-p2.png",
+                                                     "marker-B-p2.json", "marker-B-p2.png"]
+
+
+def test_a_simulation_that_does_not_fit_is_removed_and_can_be_run_again(tmp_path):
+    out = tmp_path / "seq"
+    args = ["simulate", str(out), "--map", str(MAP), "--fps", "10", "--duration", "0.5", "--no-progress"]
+    # the map copy (about 9 kB) and the CSVs fit, a 640x480 PNG frame does not
+    assert MAP.stat().st_size < 30_000
+    result = run_with_file_limit(args, 30_000)
+    assert result.returncode == 1, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"companion simulate: {out / 'frames' / '000000.png'}: "), lines
+    assert list(out.iterdir()) == []
+    again = run_with_file_limit(args, None)
+    assert again.returncode == 0, again.stderr
+    assert len(list((out / "frames").glob("*.png"))) == 6 and (out / "sequence.yaml").is_file()
