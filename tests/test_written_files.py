@@ -1,15 +1,19 @@
-"""A disk that fills up while a command writes: one line naming the file, exit 1, and no truncated file
-or half-written sequence left behind (a rerun with room starts clean).
+"""Files the commands write: whole or not at all, with the permissions any file would get.
 
-The disk is filled for real by the kernel: the command runs in a child process whose file size limit
-(RLIMIT_FSIZE) makes a write past it fail with EFBIG, as a full disk's fails with ENOSPC."""
+A disk that fills up while a command writes: one line naming the file, exit 1, and no truncated file
+or half-written sequence left behind (a rerun with room starts clean). The disk is filled for real by
+the kernel: the command runs in a child process whose file size limit (RLIMIT_FSIZE) makes a write
+past it fail with EFBIG, as a full disk's fails with ENOSPC."""
 from __future__ import annotations
 
+import os
 import resource
 import signal
 import subprocess
 import sys
 from pathlib import Path
+
+from companion.files import write_whole
 
 REPO = Path(__file__).resolve().parent.parent
 MAP = REPO / "maps" / "warehouse.yaml"
@@ -50,3 +54,21 @@ def test_a_simulation_that_does_not_fit_is_removed_and_can_be_run_again(tmp_path
     again = run_with_file_limit(args, None)
     assert again.returncode == 0, again.stderr
     assert len(list((out / "frames").glob("*.png"))) == 6 and (out / "sequence.yaml").is_file()
+
+
+def test_a_file_written_whole_gets_the_permissions_open_gives_and_keeps_a_replaced_files(tmp_path):
+    """A temporary file is private (0600) by default: renamed over a map, it would lock the service's
+    user out of a map that root surveyed."""
+    plain, whole = tmp_path / "plain.yaml", tmp_path / "whole.yaml"
+    previous = os.umask(0o022)
+    try:
+        plain.write_text("a: 1\n")
+        write_whole(whole, "a: 1\n")
+    finally:
+        os.umask(previous)
+    assert whole.read_text() == "a: 1\n"
+    assert whole.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777 == 0o644
+    whole.chmod(0o640)
+    write_whole(whole, b"a: 2\n")
+    assert whole.read_bytes() == b"a: 2\n" and whole.stat().st_mode & 0o777 == 0o640
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plain.yaml", "whole.yaml"]
