@@ -378,7 +378,7 @@ def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
 
 def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, camera, capsys):
     def shown(total, progress):
-        with simulate.progress_bar(total, progress) as bar:
+        with simulate.frames_progress_bar(total, progress) as bar:
             return not bar.disable
     limit = simulate.PROGRESS_MIN_FRAMES
     assert shown(limit + 1, None) and not shown(limit, None) and not shown(limit + 1, False)

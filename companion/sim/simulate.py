@@ -25,14 +25,12 @@ from __future__ import annotations
 import csv
 import math
 import shutil
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
-from tqdm import tqdm
 
 from companion.capture.attitude_csv import ATTITUDE_FILE, write_attitude_csv
 from companion.capture.replay import sequence_map_path
@@ -40,6 +38,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
 from companion.markers.layout import MarkerLayout
+from companion.progress import progress_bar
 from companion.sim import occluders
 from companion.sim import raster
 from companion.sim import trajectory as trajectories
@@ -405,11 +404,10 @@ class Simulator:
 
 # ------------------------------------------------------------------ output
 
-def progress_bar(total: int, progress: bool | None) -> tqdm:
+def frames_progress_bar(total: int, progress: bool | None):
     """A progress bar of ``total`` frames on stderr; ``progress`` None: only for more than
     ``PROGRESS_MIN_FRAMES`` frames."""
-    enabled = total > PROGRESS_MIN_FRAMES if progress is None else progress
-    return tqdm(total=total, unit="frame", disable=not enabled, file=sys.stderr)
+    return progress_bar(total, "frame", total > PROGRESS_MIN_FRAMES if progress is None else progress)
 
 
 def frame_times_ns(duration_s: float, fps: float) -> list[int]:
@@ -528,7 +526,7 @@ def _write_sequence(out: Path, simulator: Simulator, fps: float, map_path: str, 
         (out / "frames").mkdir(exist_ok=True)
     T_ned_map = simulator.world.T_ned_map
     with open(out / "timestamps.csv", "w", newline="") as ft, open(out / "groundtruth.csv", "w", newline="") as fg, \
-            open(out / "markers.csv", "w", newline="") as fm, progress_bar(len(times), progress) as bar:
+            open(out / "markers.csv", "w", newline="") as fm, frames_progress_bar(len(times), progress) as bar:
         ts, gt, mk = csv.writer(ft), csv.writer(fg), csv.writer(fm)
         ts.writerow(("frame", "t_ns", "file"))
         gt.writerow(GROUNDTRUTH_COLUMNS)

@@ -43,15 +43,14 @@ reduced gradient of each such offset.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from tqdm import tqdm
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
+from companion.progress import progress_bar
 from companion.survey.observations import POINT_KINDS, SurveyFrame
 
 HUBER_SIGMAS = 3.0        # a point's error beyond this many standard deviations counts linearly
@@ -482,7 +481,7 @@ class BundleAdjustment:
         """Levenberg-Marquardt from the start poses until a step no longer lowers the cost."""
         poses, damping, converged, steps = self.start, 1e-4, False, 0
         normal = self._normal(poses)
-        with tqdm(total=max_iterations, unit="step", desc=description, disable=not progress, file=sys.stderr) as bar:
+        with progress_bar(max_iterations, "step", progress, description) as bar:
             while steps < max_iterations and not converged:
                 steps += 1
                 bar.update(1)

@@ -18,18 +18,17 @@ until no new marker is moved.
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from tqdm import tqdm
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
 from companion.markers.layout import MarkerLayout
+from companion.progress import progress_bar
 from companion.survey import graph
 from companion.survey.adjust import BundleAdjustment, Priors
 from companion.survey.observations import SurveyError, SurveyFrame, collect, keyframes
@@ -206,7 +205,6 @@ def check_map(sequences: list[Path], facility_map: FacilityMap, camera: CameraMo
     footage = collect(sequences, camera, detector, size_m, layout, fps, progress)
     if not footage.frames:
         raise SurveyError(f"no marker of {facility_map.path} in the footage ({footage.frame_count} frames read)")
-    with tqdm(total=len(facility_map.markers), unit="marker", desc="checking", disable=not progress,
-              file=sys.stderr) as bar:
+    with progress_bar(len(facility_map.markers), "marker", progress, "checking") as bar:
         return check_markers(keyframes(footage.frames, min_motion_px), facility_map, camera, footage.frames_seen(),
                              params, on_checked=lambda: bar.update(1))

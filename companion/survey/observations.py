@@ -10,19 +10,18 @@ so they would cost time and make the uncertainty look smaller than it is.
 """
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from tqdm import tqdm
 
 from companion.capture.replay import ReplaySource, open_recording
 from companion.capture.source import SourceError
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.markers.layout import MarkerLayout
+from companion.progress import progress_bar
 from companion.types import Detection
 
 # the kinds of point a sighting gives, each with its own noise: the square path's corners (aligned on the whole
@@ -118,8 +117,7 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
         recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
         source = ReplaySource(recording, realtime=False)
         source.start()
-        bar = tqdm(total=len(recording.frames), unit="frame", desc=f"detecting {Path(sequence).name}",
-                   disable=not progress, file=sys.stderr)
+        bar = progress_bar(len(recording.frames), "frame", progress, f"detecting {Path(sequence).name}")
         first = True
         try:
             for frame in source.frames():
