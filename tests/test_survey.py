@@ -283,6 +283,43 @@ def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):
           words="--size-m must be a positive number")
 
 
+def test_a_marker_of_another_size_than_stated_stops_the_survey_with_no_map(tmp_path, north_walk):
+    """UP is 0.20 m like the rest of the wall; taken at 0.18 m it bends the map around it. The images cannot fit
+    one map then (the corners off by tens of times their stated noise): an error, not a bent map whose every
+    sd still says millimetres."""
+    out = tmp_path / "site.yaml"
+    wrong = anchors_file(tmp_path / "wrong.yaml", {"O"}, survey={"sizes_m": {"UP": 0.18}})
+    result = run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"), "--anchors", str(wrong),
+                 "--out", str(out))
+    assert result.returncode == 2 and not out.exists(), result.stderr
+    assert "the images do not fit one map" in result.stderr and "survey.sizes_m" in result.stderr
+    assert "UP (" in result.stderr.split("fit worst")[1]
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+
+
+def test_a_tilted_sign_taken_to_hang_on_a_vertical_wall_stops_the_survey_and_is_named_first(tmp_path):
+    """Sign 4 at the dock end of aisle 1 looks 15 degrees down; T and ENTRY hang upright beside it."""
+    dock = render(tmp_path / "dock", [(5.0, 4.2, 1.5, 180.0), (4.0, 5.0, 1.5, 180.0), (5.0, 5.8, 1.5, 180.0)],
+                  camera={**CAMERA, "mount": {"facing": "forward", "tilt_down_deg": 0.0}})
+    out = tmp_path / "site.yaml"
+
+    def survey_with(walls):
+        anchors = anchors_file(tmp_path / "anchors.yaml", {"ENTRY"}, survey={"on_vertical_wall": walls})
+        return run("survey", str(dock), "--camera", str(dock / "camera.yaml"), "--anchors", str(anchors),
+                   "--out", str(out))
+
+    result = survey_with("all")
+    assert result.returncode == 2 and not out.exists(), result.stderr
+    assert "survey.on_vertical_wall" in result.stderr
+    assert result.stderr.split("fit worst (RMS point error): ")[1].startswith("4 (") and "on a vertical wall" in result.stderr
+    result = survey_with(["ENTRY", "T"])
+    assert result.returncode == 0, result.stderr
+    truth, surveyed = load_map(MAP), load_map(out)
+    assert {m.symbol for m in surveyed.markers.values()} == {"ENTRY", "T", "4"}
+    position_m, angle_deg = pose_errors(surveyed.marker_by_symbol("4").T_map_marker, truth.marker_by_symbol("4").T_map_marker)
+    assert position_m < 0.01 and angle_deg < 1.0, (position_m, angle_deg)
+
+
 def test_markers_never_seen_together_are_named_with_the_markers_that_need_a_shared_view(tmp_path, north_walk):
     # a second walk in aisle 0, facing rack R1's south face: no view links it to the north wall
     aisle0 = render(tmp_path / "aisle0", [(5.0, 1.0, 1.3, 90.0), (8.0, 1.0, 1.3, 90.0)], seed=6)

@@ -44,6 +44,12 @@ RIVAL_CHI2 = 25.0          # a rival placement whose adjustment fits worse by le
 MAX_RIVALS = 6             # rival placements adjusted (each costs an adjustment)
 # a surveyed marker placed no better than this is no better than a tape: named for another look
 LOOSE_SD_M = 0.05
+# The images fit one map to about the noise the detector states for its square-path corners when the anchors
+# file is right: 0.8-1.0 times it on bench_survey's walks and on the walks of docs/survey.md ("When the images do
+# not fit"). A marker of another size than stated, or one taken to hang on a vertical wall that tilts, bends the
+# map to fit it (tens of centimetres at 10 m, each marker's sd still saying millimetres) and leaves 6-10 times it.
+MAX_CORNER_MISFIT = 3.0
+WORST_NAMED = 4            # the markers that fit worst, named when the images do not fit one map
 
 
 @dataclass(frozen=True)
@@ -200,6 +206,7 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
     if len(fixed) >= 2 and not extend:
         agreement = _anchor_agreement(shared, camera, fixed, groups, counts, anchors, symbols, options,
                                       _noise(adjustment, options))
+    _check_fit(adjustment, posed_frames, priors.on_wall, anchors, symbols)
     markers = _result_markers(adjustment, posed_frames, fixed, anchors, counts, sizes, priors.on_wall, weak, extend)
     facility_map = replace(anchors, path="", markers={s.marker.id: s.marker for s in markers})
     if extend:  # the existing map's markers not seen this time stay as they were
@@ -438,6 +445,31 @@ def _adjust_again(adjustment: Adjustment, posed_frames, camera, free_ids, priors
     problem = BundleAdjustment(frames_left, camera, start, np.array(cameras_left),
                                [m for m in free_ids if m in markers_left], priors, noise)
     return problem.solve(options.max_iterations, options.progress, "adjusting again"), frames_left
+
+
+def corner_misfit(adjustment: Adjustment, posed_frames) -> float:
+    """How many times the noise the detector states for its square-path corners (the median sighting's) the
+    adjusted map leaves them off by (NaN with too few of them to tell)."""
+    stated = [s.sigma_px for f in posed_frames for s in f.sightings if s.path == "square" and s.sigma_px]
+    if adjustment.points_of_kind.get("corner", 0) < MIN_POINTS_FOR_NOISE or not stated:
+        return math.nan
+    return adjustment.noise_px["corner"] / float(np.median(stated))
+
+
+def _check_fit(adjustment: Adjustment, posed_frames, on_wall: frozenset[int], anchors: FacilityMap, symbols) -> None:
+    """SurveyError when the images do not fit one map (``MAX_CORNER_MISFIT``): something in the anchors file is not
+    as stated, and the map would be bent with every marker's sd still small. Names the markers that fit worst."""
+    misfit = corner_misfit(adjustment, posed_frames)
+    if not misfit > MAX_CORNER_MISFIT:
+        return
+    worst = sorted(_marker_rms(adjustment).items(), key=lambda item: -item[1])[:WORST_NAMED]
+    named = ", ".join(f"{symbols[m]} ({rms:.2f} px{', on a vertical wall' if m in on_wall else ''})" for m, rms in worst)
+    raise SurveyError(
+        f"the images do not fit one map: the corners are off by {misfit:.0f} times the noise the detector states "
+        f"for them (at most {MAX_CORNER_MISFIT:g} when {anchors.path} is right); no map written. Something there is "
+        f"not as stated: a marker of another size (survey.sizes_m: state every size that differs), a marker taken "
+        f"to hang on a vertical wall that tilts (survey.on_vertical_wall), or an anchor that moved. The markers that "
+        f"fit worst (RMS point error): {named}")
 
 
 def _noise(adjustment: Adjustment, options: SurveyOptions) -> dict[str, float]:
