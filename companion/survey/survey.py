@@ -47,7 +47,7 @@ LOOSE_SD_M = 0.05
 # The images fit one map to about the noise the detector states for its square-path corners when the anchors
 # file is right: 0.8-1.0 times it on bench_survey's walks and on the walks of docs/survey.md ("When the images do
 # not fit"). A marker of another size than stated, or one taken to hang on a vertical wall that tilts, bends the
-# map to fit it (tens of centimetres at 10 m, each marker's sd still saying millimetres) and leaves 6-10 times it.
+# map to fit it (tens of centimetres at 10 m, each marker's sd still saying millimetres) and leaves 3.9-45 times it.
 MAX_CORNER_MISFIT = 3.0
 WORST_NAMED = 4            # the markers that fit worst, named when the images do not fit one map
 
@@ -465,7 +465,7 @@ def _check_fit(adjustment: Adjustment, posed_frames, on_wall: frozenset[int], an
     worst = sorted(_marker_rms(adjustment).items(), key=lambda item: -item[1])[:WORST_NAMED]
     named = ", ".join(f"{symbols[m]} ({rms:.2f} px{', on a vertical wall' if m in on_wall else ''})" for m, rms in worst)
     raise SurveyError(
-        f"the images do not fit one map: the corners are off by {misfit:.0f} times the noise the detector states "
+        f"the images do not fit one map: the corners are off by {misfit:.1f} times the noise the detector states "
         f"for them (at most {MAX_CORNER_MISFIT:g} when {anchors.path} is right); no map written. Something there is "
         f"not as stated: a marker of another size (survey.sizes_m: state every size that differs), a marker taken "
         f"to hang on a vertical wall that tilts (survey.on_vertical_wall), or an anchor that moved. The markers that "
