@@ -283,21 +283,32 @@ def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):
           words="--size-m must be a positive number")
 
 
-def test_a_marker_of_another_size_than_stated_stops_the_survey_with_no_map(tmp_path, north_walk):
+def test_a_marker_of_another_size_than_stated_is_reported_the_images_do_not_fit_one_map(tmp_path, north_walk):
     """UP is 0.20 m like the rest of the wall; taken at 0.18 m it bends the map around it. The images cannot fit
-    one map then (the corners off by tens of times their stated noise): an error, not a bent map whose every
-    sd still says millimetres."""
+    one map then (the corners off by tens of times their stated noise), and the survey says so rather than
+    leave a bent map whose every sd still says millimetres. (A map is written all the same: a camera calibration
+    a little off does the same to the corners, and its map is fine.)"""
     out = tmp_path / "site.yaml"
-    wrong = anchors_file(tmp_path / "wrong.yaml", {"O"}, survey={"sizes_m": {"UP": 0.18}})
-    result = run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"), "--anchors", str(wrong),
-                 "--out", str(out))
-    assert result.returncode == 2 and not out.exists(), result.stderr
-    assert "the images do not fit one map" in result.stderr and "survey.sizes_m" in result.stderr
-    assert "UP (" in result.stderr.split("fit worst")[1]
-    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+
+    def survey_with(sizes):
+        anchors = anchors_file(tmp_path / "anchors.yaml", {"O"}, survey={"sizes_m": sizes})
+        return run("survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"), "--anchors", str(anchors),
+                   "--out", str(out), "--report", str(tmp_path / "report"))
+
+    result = survey_with({"UP": 0.18})
+    assert result.returncode == 0 and out.exists(), result.stderr
+    warning = [line for line in result.stderr.splitlines() if "the images do not fit one map" in line]
+    assert len(warning) == 1 and "survey.sizes_m" in warning[0] and "camera calibration" in warning[0]
+    assert "UP (" in warning[0].split("fit worst")[1]
+    report = json.loads((tmp_path / "report" / "survey.json").read_text())
+    assert report["images_fit_one_map"] is False and report["corner_misfit"] > 3
+    result = survey_with({})
+    assert result.returncode == 0 and "do not fit" not in result.stderr, result.stderr
+    report = json.loads((tmp_path / "report" / "survey.json").read_text())
+    assert report["images_fit_one_map"] is True and report["corner_misfit"] < 3
 
 
-def test_a_tilted_sign_taken_to_hang_on_a_vertical_wall_stops_the_survey_and_is_named_first(tmp_path):
+def test_a_tilted_sign_taken_to_hang_on_a_vertical_wall_is_named_first_among_the_worst_fitting(tmp_path):
     """Sign 4 at the dock end of aisle 1 looks 15 degrees down; T and ENTRY hang upright beside it."""
     dock = render(tmp_path / "dock", [(5.0, 4.2, 1.5, 180.0), (4.0, 5.0, 1.5, 180.0), (5.0, 5.8, 1.5, 180.0)],
                   camera={**CAMERA, "mount": {"facing": "forward", "tilt_down_deg": 0.0}})
@@ -309,11 +320,12 @@ def test_a_tilted_sign_taken_to_hang_on_a_vertical_wall_stops_the_survey_and_is_
                    "--out", str(out))
 
     result = survey_with("all")
-    assert result.returncode == 2 and not out.exists(), result.stderr
-    assert "survey.on_vertical_wall" in result.stderr
-    assert result.stderr.split("fit worst (RMS point error): ")[1].startswith("4 (") and "on a vertical wall" in result.stderr
-    result = survey_with(["ENTRY", "T"])
     assert result.returncode == 0, result.stderr
+    assert "survey.on_vertical_wall" in result.stderr
+    worst = result.stderr.split("fit worst (RMS point error): ")[1]
+    assert worst.startswith("4 (") and "on a vertical wall" in worst.splitlines()[0]
+    result = survey_with(["ENTRY", "T"])
+    assert result.returncode == 0 and "do not fit" not in result.stderr, result.stderr
     truth, surveyed = load_map(MAP), load_map(out)
     assert {m.symbol for m in surveyed.markers.values()} == {"ENTRY", "T", "4"}
     position_m, angle_deg = pose_errors(surveyed.marker_by_symbol("4").T_map_marker, truth.marker_by_symbol("4").T_map_marker)

@@ -12,7 +12,7 @@ from companion.cli.output import OutputError, cannot_write, output_dir, output_f
 from companion.geometry.camera import CameraError, load_camera
 from companion.geometry.facility_map import MapError, load_map, write_map
 from companion.survey.observations import SurveyError
-from companion.survey.survey import LOOSE_SD_M, SurveyOptions, SurveyResult, survey
+from companion.survey.survey import LOOSE_SD_M, MAX_CORNER_MISFIT, SurveyOptions, SurveyResult, survey
 
 
 REFILM = "film them again together with mapped markers, from more than one place and closer"
@@ -118,6 +118,15 @@ def _notes(result: SurveyResult) -> None:
         names = ", ".join(f"{s.marker.symbol} ({_length(s.sd_position_m)})" for s in loose)
         print(f"companion survey: placed loosely (sd over {LOOSE_SD_M * 100:g} cm), need another look: {names} (the "
               f"images barely tie them to the rest; {REFILM})", file=sys.stderr)
+    if result.misfit:
+        named = ", ".join(f"{symbol} ({rms:.2f} px{', on a vertical wall' if wall else ''})"
+                          for symbol, rms, wall in result.worst_fitting)
+        print(f"companion survey: the images do not fit one map: the corners are off by {result.corner_misfit:.1f} "
+              f"times the noise the detector states for them (at most {MAX_CORNER_MISFIT:g} when all is as stated); "
+              f"the map may be bent by tens of centimetres with every sd still small. Check a marker of another size "
+              f"(survey.sizes_m: state every size that differs), a marker taken to hang on a vertical wall that tilts "
+              f"(survey.on_vertical_wall), an anchor that moved, and the camera calibration. The markers that fit "
+              f"worst (RMS point error): {named}", file=sys.stderr)
     for check in result.moved:
         print(f"companion survey: marker {check.symbol} disagrees with the map by {check.position_error_m * 100:.1f} cm, "
               f"{check.angle_error_deg:.1f} deg: surveyed again", file=sys.stderr)

@@ -53,6 +53,8 @@ def report_json(result: SurveyResult) -> dict:
         "frames_skipped": result.frames_skipped,
         "frames_adjusted": result.frames_adjusted,
         "point_noise_px": number(result.sigma_px, 4),
+        "corner_misfit": number(result.corner_misfit, 2),
+        "images_fit_one_map": not result.misfit,
         "anchors": [{"symbol": a.symbol, "moved_by_images_m": number(a.position_m, 5),
                      "turned_by_images_deg": number(a.angle_deg, 4), "tied_to_other_anchors": a.tied}
                     for a in result.anchors],
