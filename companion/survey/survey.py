@@ -48,8 +48,8 @@ LOOSE_SD_M = 0.05
 # file and the camera are right: 0.66-0.96 times it on bench_survey's walks and on the walks of docs/survey.md
 # ("When the images do not fit"). A marker of another size than stated, or one taken to hang on a vertical wall
 # that tilts, bends the map to fit it (tens of centimetres at 10 m, each marker's sd still saying millimetres) and
-# leaves 3.9-45 times it; so does a camera calibration a little off (k1 off by 0.02: 6.7 times), whose map is
-# fine: hence a warning, with the map written.
+# leaves 3.9-45 times it. So does a camera calibration that is off (k1 off by 0.02: 6.7 times, the map 8 cm off),
+# which the anchors file cannot fix: hence a warning naming every cause, with the map written.
 MAX_CORNER_MISFIT = 3.0
 WORST_NAMED = 4            # the markers that fit worst, named when the images do not fit one map
 
