@@ -34,6 +34,7 @@ import yaml
 
 from companion.capture.attitude_csv import ATTITUDE_FILE, write_attitude_csv
 from companion.capture.replay import sequence_map_path
+from companion.files import write_whole
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap
@@ -574,15 +575,12 @@ def _write_sequence(out: Path, simulator: Simulator, fps: float, map_path: str, 
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
-    """One frame as PNG; an OSError (a full disk) names the file. (Encoded, then written by Python:
+    """One frame as PNG; an OSError (a full disk) names the file. (Encoded, then written by ``write_whole``:
     ``cv2.imwrite`` only returns False, after libpng prints its own line on stderr.)"""
     ok, png = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     if not ok:
         raise SimulationError(f"{path}: OpenCV could not encode the frame as PNG")
-    try:
-        path.write_bytes(png)
-    except OSError as error:
-        raise OSError(error.errno, error.strerror, str(path)) from error
+    write_whole(path, png.tobytes())
 
 
 def groundtruth_values(T_map_body: np.ndarray, T_ned_map: np.ndarray) -> list[str]:

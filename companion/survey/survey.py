@@ -227,7 +227,7 @@ def survey_footage(footage: Footage, camera: CameraModel, anchors: FacilityMap, 
                         {symbols[m]: n for m, n in sorted(dropped.items())}, agreement, moved, camera_path,
                         footage.frame_count, footage.skipped, len(posed_frames), adjustment.sigma_px,
                         _noise(adjustment, options), corner_misfit(adjustment, posed_frames),
-                        _worst_fitting(adjustment, priors.on_wall, symbols))
+                        _worst_fitting(markers, priors.on_wall))
 
 
 # ------------------------------------------------------------------ sizes
@@ -466,10 +466,11 @@ def corner_misfit(adjustment: Adjustment, posed_frames) -> float:
     return adjustment.noise_px["corner"] / float(np.median(stated))
 
 
-def _worst_fitting(adjustment: Adjustment, on_wall: frozenset[int], symbols) -> tuple[tuple[str, float, bool], ...]:
+def _worst_fitting(markers: list[SurveyedMarker], on_wall: frozenset[int]) -> tuple[tuple[str, float, bool], ...]:
     """The ``WORST_NAMED`` markers with the largest RMS point error: (symbol, px, taken to hang on a vertical wall)."""
-    worst = sorted(_marker_rms(adjustment).items(), key=lambda item: -item[1])[:WORST_NAMED]
-    return tuple((symbols[m], rms, m in on_wall) for m, rms in worst)
+    fitted = [s for s in markers if math.isfinite(s.rms_px)]
+    worst = sorted(fitted, key=lambda s: -s.rms_px)[:WORST_NAMED]
+    return tuple((s.marker.symbol, s.rms_px, s.marker.id in on_wall) for s in worst)
 
 
 def _noise(adjustment: Adjustment, options: SurveyOptions) -> dict[str, float]:
