@@ -374,7 +374,7 @@ class Detector:
             quads[again] = self._edge_corners(gray, start)
             for i, result in zip(again, self._decode_grids(gray, quads[again])):
                 results[i] = result
-        detections = [Detection(symbol=r.symbol, id=r.id, corners_px=np.roll(q, -r.rotation, axis=0), path="square",
+        detections = [Detection(symbol=r.symbol, id=r.id, corners_px=q[homography.CORNERS_FROM[r.rotation]], path="square",
                                 corrected=r.corrected, quality=r.quality)
                       for r, q in zip(results, quads) if r is not None]
         return _unique(detections, self.params.duplicate_offset_fraction)
@@ -465,7 +465,7 @@ class Detector:
             corner, slot = divmod(candidate.circle_ids, 3)
             sigma_px = circles_corner_sigma_px(fits[good[i]].rms_cells, _cell_px(inner, self.layout.inner_cells))
             detections.append(Detection(
-                symbol=result.symbol, id=result.id, corners_px=np.roll(inner, -k, axis=0), path="circles",
+                symbol=result.symbol, id=result.id, corners_px=inner[homography.CORNERS_FROM[k]], path="circles",
                 corrected=result.corrected, quality=result.quality, circles_px=candidate.circles_px.copy(),
                 circle_ids=3 * ((corner - k) % 4) + slot, corner_sigma_px=sigma_px))
         return detections
@@ -517,6 +517,8 @@ def _cell_px(corners_px: np.ndarray, inner_cells: int) -> float:
 
 def _unique(detections: list[Detection], offset_fraction: float) -> list[Detection]:
     """Drop repeats of one marker (same id, centres closer than ``offset_fraction`` of a side), keeping the best."""
+    if len(detections) < 2:
+        return list(detections)
     kept: list[Detection] = []
     for d in sorted(detections, key=lambda d: -d.quality):
         centre = d.corners_px.mean(axis=0)

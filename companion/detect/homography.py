@@ -30,6 +30,7 @@ import numpy as np
 
 PREVIOUS_CORNER = [3, 0, 1, 2]  # of each corner of a quad (np.roll by one, without its cost)
 NEXT_CORNER = [1, 2, 3, 0]
+CORNERS_FROM = np.array([[(corner + k) % 4 for corner in range(4)] for k in range(4)])  # row k: corner k first
 FEW_HOMOGRAPHIES = 4  # up to this many, batched solves and projections go one homography at a time through OpenCV
 MIN_DETERMINANT = 1e-12  # below it a 4-point system is degenerate (three corners on a line)
 

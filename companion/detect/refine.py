@@ -591,6 +591,9 @@ class _Lattice:
         all four; grad_template: (N, 2) float64 the template's central
         differences there (x, y); transfer: (2, N) float64 (G^T G)^-1 G^T, G = grad_template (None if G
         has not both directions).
+    transfer_of_residual: (4, P) float64, where every point was read: A^T - I (flattened) = this @ the
+        misfit at the P template points (``_gradient_transfer``: transfer @ the misfit's central
+        differences, both linear in it, folded into one matrix); None with ``transfer``.
     cross: (2, 2, 8, 8) float64 sum_i s_i g_a,i dW_b,i^T over all points (s the steepest descent, g_a the
         template's gradient component a, dW_b the warp's row b): J^T J_image = sum_ab A_ba cross_ab.
     normal: (8, 8) float64 J^T J over all points.
@@ -600,6 +603,7 @@ class _Lattice:
     neighbours: np.ndarray
     grad_template: np.ndarray
     transfer: np.ndarray | None
+    transfer_of_residual: np.ndarray | None
     cross: np.ndarray
     normal: np.ndarray
 
@@ -634,8 +638,21 @@ class _Lattice:
         values = template.values.astype(np.float64)
         grad_template = np.column_stack([values[neighbours[0]] - values[neighbours[1]],
                                          values[neighbours[2]] - values[neighbours[3]]])
-        return cls(np.concatenate(pairs), neighbours, grad_template, _least_squares(grad_template),
+        transfer = _least_squares(grad_template)
+        return cls(np.concatenate(pairs), neighbours, grad_template, transfer,
+                   None if transfer is None else _transfer_of_residual(transfer, neighbours, len(xy)),
                    _cross(steepest, gradient, xy), steepest.T @ steepest)
+
+
+def _transfer_of_residual(transfer: np.ndarray, neighbours: np.ndarray, points: int) -> np.ndarray:
+    """(4, P) T with (transfer @ misfit).ravel() = T @ residual, misfit (N, 2) the residual's central
+    differences (right - left, lower - upper) at the ``neighbours`` (4, N) of (2, N) ``transfer``."""
+    folded = np.zeros((2, 2, points))
+    for a in range(2):
+        for b, (plus, minus) in enumerate((neighbours[0:2], neighbours[2:4])):
+            np.add.at(folded[a, b], plus, transfer[a])
+            np.add.at(folded[a, b], minus, -transfer[a])
+    return folded.reshape(4, points)
 
 
 def _cross(steepest: np.ndarray, gradient: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -674,7 +691,8 @@ def _parameter_cov(template: _Template, lattice: _Lattice, last: _Sample) -> np.
     variance = noise + TEMPLATE_MISMATCH ** 2 + (SMEAR_MISMATCH * (smear - 1.0)) ** 2
     # dp = (J^T J_image)^-1 J^T r: Cov(p) = sigma^2 B (J^T J) B^T, B = (J^T J_image)^-1, J^T J_image = sum A_ba cross_ab
     try:
-        B = np.linalg.inv(np.einsum("ba,abij->ij", A, cross))
+        # sum_ab A_ba cross_ab: A^T flattened against cross's (a, b) pairs, one product
+        B = np.linalg.inv((A.T.reshape(4) @ cross.reshape(4, 64)).reshape(8, 8))
     except np.linalg.LinAlgError:
         B = np.linalg.pinv(normal)
     return variance * B @ normal @ B.T
@@ -686,6 +704,8 @@ def _gradient_transfer(lattice: _Lattice, residual: np.ndarray) -> tuple[np.ndar
     identity and 1 where A cannot be fitted."""
     # the image at the template points in template units (levels fitted) is the template + the misfit, so
     # its central differences are the template's + the misfit's: A^T = I + (G^T G)^-1 G^T dR
+    if lattice.transfer_of_residual is not None and np.isfinite(residual).all():
+        return _singular_ratio((np.eye(2) + (lattice.transfer_of_residual @ residual).reshape(2, 2)).T)
     r = residual[lattice.neighbours]  # (4, N)
     misfit = np.column_stack([r[0] - r[1], r[2] - r[3]])
     transfer = lattice.transfer
@@ -695,7 +715,11 @@ def _gradient_transfer(lattice: _Lattice, residual: np.ndarray) -> tuple[np.ndar
         misfit = misfit[keep]
     if transfer is None:
         return np.eye(2), 1.0
-    A = (np.eye(2) + transfer @ misfit).T
+    return _singular_ratio((np.eye(2) + transfer @ misfit).T)
+
+
+def _singular_ratio(A: np.ndarray) -> tuple[np.ndarray, float]:
+    """(A, s_max / s_min of the (2, 2) A); the identity and 1 where A is about singular."""
     # A's singular values: s^2 = (t +- sqrt(t^2 - 4 det^2)) / 2, t = sum of A's squares
     t, det = float(np.sum(A * A)), abs(float(A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]))
     root = np.sqrt(max(t * t - 4.0 * det * det, 0.0))
