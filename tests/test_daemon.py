@@ -667,3 +667,29 @@ def test_log_level_chooses_what_is_logged(tmp_path):
     assert quiet.count("is unreadable") == 1 and rows[10]["file"] in quiet
     assert chatty.count("is unreadable") == 2 and f"DEBUG companion.capture.replay: replay: {sequence / rows[11]['file']}" in chatty
     assert "stage total" in chatty
+
+
+def test_a_missing_camera_is_reported_once_by_the_daemon_not_by_opencv_at_every_reopen(tmp_path):
+    """A V4L2 device that is not there: the log says why (the missing node) and 'camera lost', the daemon
+    keeps retrying and stops on SIGTERM; OpenCV's own warning, repeated at every reopen without the cause,
+    is left out unless the log level is debug."""
+    config = tmp_path / "camera.yaml"
+    config.write_text(yaml.safe_dump({
+        "source": {"kind": "v4l2", "device": "/dev/video97", "stall_timeout_s": 0.5},
+        "map": str(MAP), "camera": {"calibration_file": str(REPO / "config" / "calibration.yaml")},
+        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}"}}))
+
+    def run(*level: str) -> str:
+        process = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config), *level],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(4.0)  # the first open and the reopens after 1 and 2 s
+        process.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(process)
+        assert code == 0, stderr
+        return stderr
+
+    info, debug = run(), run("--log-level", "debug")
+    assert "/dev/video97 does not exist" in info and info.count("ERROR companion: camera lost") == 1
+    assert int(re.search(r"camera reopens (\d+)", info).group(1)) >= 1, info  # retried, not given up
+    assert "[ WARN" not in info, info
+    assert "[ WARN" in debug and "VIDEOIO(V4L2)" in debug  # OpenCV does warn here: the test above means something

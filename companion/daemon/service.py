@@ -36,6 +36,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from companion.geometry import frames
@@ -397,3 +398,7 @@ def setup_logging(level: str = "info") -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(getattr(logging, level.upper()))
+    # OpenCV's own warnings (e.g. "can't be used to capture by name" at every reopen of a missing camera)
+    # repeat, without the cause, what the daemon reports itself: kept for --log-level debug
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_WARNING if level == "debug"
+                                  else cv2.utils.logging.LOG_LEVEL_ERROR)
