@@ -73,6 +73,13 @@ CASES = [
     (["survey", str(HOVER), "--camera", str(REPO / "config" / "camera-example.yaml"), "--map", str(MAP),
       "--out", "{tmp}/map.yaml", "--report", "{tmp}/a-file", "--no-progress"], 2,
      "companion survey: --report {tmp}/a-file: exists and is not a folder"),
+    # the option the command takes, not the daemon config's source.fps
+    (["survey", "{tmp}/images", "--camera", str(REPO / "config" / "camera-example.yaml"), "--map", str(MAP),
+      "--out", "{tmp}/map.yaml", "--no-progress"], 2,
+     "companion survey: {tmp}/images: an image folder without timestamps.csv needs --fps"),
+    (["map", "check", "{tmp}/images", "--camera", str(REPO / "config" / "camera-example.yaml"), "--map", str(MAP),
+      "--no-progress"], 2,
+     "companion map check: {tmp}/images: an image folder without timestamps.csv needs --fps"),
     (["check-fc", "serial0"], 2, "companion check-fc: connection 'serial0': want udpout:HOST:PORT"),
     (["check-fc", "udpout:127.0.0.1:9", "--config", "{tmp}/missing.yaml"], 2,
      "companion check-fc: {tmp}/missing.yaml: cannot read config"),

@@ -111,7 +111,7 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
     frame_count = skipped = 0
     for walk, sequence in enumerate(sequences):
         try:
-            recording = open_recording(sequence, fps)
+            recording = open_recording(sequence, fps, "--fps")
         except SourceError as error:
             raise SurveyError(str(error)) from None
         recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
