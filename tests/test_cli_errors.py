@@ -99,7 +99,14 @@ def test_bad_input_is_one_line_naming_what_is_wrong(place, capsys, args, status,
 def test_run_with_bad_input_logs_one_error_and_exits_2(place, capsys):
     for args, message in ((["--config", str(place)], f"{place}: cannot read config: Is a directory"),
                           (["--config", str(place / "a-file")], f"{place / 'a-file'}: must be a mapping (the config)"),
-                          (["--replay", str(place / "missing")], f"--replay {place / 'missing'}: no such file or folder")):
+                          (["--replay", str(place / "missing")], f"--replay {place / 'missing'}: no such file or folder"),
+                          # the option that sets it with --replay (the config's source section is not used)
+                          # the default config takes its camera from a sequence's sequence.yaml
+                          (["--replay", str(place / "images")], f"--replay {place / 'images'}: which camera took it?"),
+                          (["--config", str(REPO / "config" / "example-raspberrypi.yaml"), "--replay", str(place / "images")],
+                           f"{place / 'images'}: an image folder without timestamps.csv needs --fps"),
+                          (["--replay", str(place / "images"), "--fps", "-1"], "--fps must be positive, not -1.0"),
+                          (["--fps", "10"], "--fps is the frame rate of a --replay: give --replay PATH too")):
         assert cli.main(["run", *args]) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and " ERROR companion: " in lines[0] and message in lines[0], lines

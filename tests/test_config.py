@@ -76,6 +76,19 @@ def test_replayed_sequence_supplies_camera_and_map(site):
     assert Path(config.facility_map.path).resolve() == (site / "maps" / "warehouse.yaml").resolve()
 
 
+def test_replay_option_replaces_the_source_and_takes_its_frame_rate(site):
+    """``--replay`` over a V4L2 config: a real-time replay of the folder, at ``--fps`` where given (an image
+    folder without timestamps.csv needs it), named ``--fps`` in the errors of the replay."""
+    data = base_config()
+    data["source"] = {"kind": "v4l2", "device": "/dev/video0", "fps": 30}
+    images = site / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "a.png"), np.zeros((480, 640), np.uint8))
+    config = load_config(write(site, data), replay=images, replay_fps=12.5)
+    assert config.source == ReplayConfig(path=images.resolve(), realtime=True, loop=False, fps=12.5, fps_option="--fps")
+    assert load_config(write(site, data), replay=images).source.fps is None  # not the camera's 30
+
+
 def test_explicit_origin_overrides_the_map(site):
     data = base_config()
     data["mavlink"]["origin"] = {"latitude_deg": -33.5, "longitude_deg": 151.25, "altitude_m": 12.0}

@@ -334,6 +334,7 @@ def read_gray(path: Path) -> np.ndarray | None:
     return to_gray(cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)) if data.size else None
 
 
-def replay_source(path, realtime: bool = True, loop: bool = False, fps: float | None = None) -> ReplaySource:
+def replay_source(path, realtime: bool = True, loop: bool = False, fps: float | None = None,
+                  fps_option: str = "source.fps") -> ReplaySource:
     """A replay of a sequence folder, video file or image folder (see ``open_recording``)."""
-    return ReplaySource(open_recording(path, fps), realtime=realtime, loop=loop)
+    return ReplaySource(open_recording(path, fps, fps_option), realtime=realtime, loop=loop)

@@ -1,4 +1,4 @@
-"""``companion run [--config FILE] [--replay PATH] [--log-level LEVEL] [--record DIR] [--http HOST:PORT]``:
+"""``companion run [--config FILE] [--replay PATH [--fps FPS]] [--log-level LEVEL] [--record DIR] [--http HOST:PORT]``:
 start the positioning daemon (``companion.daemon``)."""
 from __future__ import annotations
 
@@ -23,6 +23,9 @@ def configure_parser(parser) -> None:
     parser.add_argument("--replay", metavar="PATH", default=None,
                         help="replay this sequence folder, video or image folder in real time instead of the "
                              "config's source (the rest of the config as it is)")
+    parser.add_argument("--fps", type=float, default=None,
+                        help="frame rate of a --replay image folder without timestamps.csv (or a video that "
+                             "states none)")
     parser.add_argument("--log-level", choices=LOG_LEVELS, default="info",
                         help="least important messages logged (default info; debug adds every skipped frame "
                              "and retry)")
@@ -37,7 +40,7 @@ def configure_parser(parser) -> None:
 def main(args) -> int:
     setup_logging(args.log_level)
     try:
-        config = with_options(load_config(args.config, replay=args.replay), args)
+        config = with_options(load_config(args.config, replay=args.replay, replay_fps=args.fps), args)
         daemon = Daemon(config, status_stream=sys.stdout)
     except (ConfigError, ValueError) as error:
         log.error("%s", error)

@@ -52,10 +52,14 @@ class ConfigError(ValueError):
 
 @dataclass(frozen=True)
 class ReplayConfig:
+    """fps_option: where the user gives ``fps`` (named in errors): the config's key, or ``--fps`` of
+    ``companion run --replay``."""
+
     path: Path
     realtime: bool = True
     loop: bool = False
     fps: float | None = None
+    fps_option: str = "source.fps"
 
 
 @dataclass(frozen=True)
@@ -122,21 +126,31 @@ def default_config_path() -> Path:
     return Path(str(importlib.resources.files("companion"))) / "data" / DEFAULT_CONFIG
 
 
-def load_config(path=None, replay=None) -> Config:
+def load_config(path=None, replay=None, replay_fps: float | None = None) -> Config:
     """Read, resolve and validate a config file (the default one when ``path`` is None).
 
     replay: a sequence folder, video or image folder to replay in real time instead of the
-    config's source (the rest of the config as it is: try a site's config on a recording).
+    config's source (the rest of the config as it is: try a site's config on a recording);
+    replay_fps: its frame rate where it states none (an image folder without timestamps).
     """
     path = Path(path) if path is not None else default_config_path()
     data = read_yaml(path, ConfigError, "config")
-    if replay is not None:
-        if not Path(replay).exists():  # named as the user gave it, not as the config's source.path
-            raise ConfigError(f"--replay {replay}: no such file or folder")
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: the config must be a mapping of sections")
-        data = {**data, "source": {"kind": "replay", "path": str(Path(replay).resolve()), "realtime": True}}
-    return config_from_dict(data, path)
+    if replay is None:
+        if replay_fps is not None:
+            raise ConfigError("--fps is the frame rate of a --replay: give --replay PATH too")
+        return config_from_dict(data, path)
+    if not Path(replay).exists():  # named as the user gave it, not as the config's source.path
+        raise ConfigError(f"--replay {replay}: no such file or folder")
+    if replay_fps is not None and not replay_fps > 0:
+        raise ConfigError(f"--fps must be positive, not {replay_fps}")
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the config must be a mapping of sections")
+    if "camera" not in data and "camera" not in _replay_info(Path(replay)):
+        raise ConfigError(f"--replay {replay}: which camera took it? {path} has no camera section, and the replay "
+                          f"no {SEQUENCE_FILE} naming one (as companion run --record and simulate write): give "
+                          "--config FILE with your camera's calibration (camera: calibration_file: ...)")
+    config = config_from_dict({**data, "source": {"kind": "replay", "path": str(Path(replay).resolve())}}, path)
+    return dataclasses.replace(config, source=ReplayConfig(path=config.source.path, fps=replay_fps, fps_option="--fps"))
 
 
 def config_from_dict(data, path) -> Config:
@@ -296,6 +310,14 @@ def _degradations(section, where: Where) -> Degradations:
         return Degradations(**values)
     except DegradationError as error:
         raise where.error(str(error).removeprefix("degradations: ")) from None
+
+
+def _replay_info(replay: Path) -> dict:
+    """The parsed sequence.yaml of a ``--replay`` sequence folder ({} for a video or a folder without one)."""
+    try:
+        return read_sequence_info(replay) if replay.is_dir() else {}
+    except ValueError as error:
+        raise ConfigError(f"--replay {replay}: {error}") from None
 
 
 def _sequence_info(source, where: Where) -> tuple[dict, Path] | None:

@@ -361,7 +361,8 @@ def attitude_source(config: Config, source: FrameSource
 def make_source(config: Config) -> FrameSource:
     source = config.source
     if isinstance(source, ReplayConfig):
-        return replay_source(source.path, realtime=source.realtime, loop=source.loop, fps=source.fps)
+        return replay_source(source.path, realtime=source.realtime, loop=source.loop, fps=source.fps,
+                             fps_option=source.fps_option)
     if isinstance(source, SimulatedCameraConfig):
         return SimulatedCamera(config.facility_map, config.camera, source.params)
     return v4l2_source(source.device, source.width, source.height, source.fps, source.pixel_format,
