@@ -249,3 +249,40 @@ def test_live_capture_with_too_few_views_is_an_error(tmp_path):
     finally:
         source.close()
     shutil.rmtree(tmp_path / "live")
+
+
+def test_cli_calibrates_from_a_video_and_a_sequence_folder_taking_the_still_views(tmp_path):
+    """A recording of the board held still at 16 poses, moved between: as a sequence folder (PNG frames) and
+    as a video (MJPG), each calibrates through the command, one view per still pose (none of a moving
+    frame), the views named after the recording and saved with --save-views."""
+    poses = [T for T in view_poses(LENS_70, 40, seed=1)
+             if not isinstance(CharucoBoard(SPEC).find(render(LENS_70, T)), str)][:16]
+    write_live_sequence(tmp_path / "walk", LENS_70, poses)
+    video = tmp_path / "board.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30, (640, 480), isColor=False)
+    for path in sorted((tmp_path / "walk" / "frames").glob("*.png")):
+        writer.write(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE))
+    writer.release()
+    for recording in (tmp_path / "walk", video):
+        out, views = tmp_path / f"{recording.name}.yaml", tmp_path / f"{recording.name}-views"
+        run = subprocess.run([sys.executable, "-m", "companion", "calibrate", str(recording), "--out", str(out),
+                              "--save-views", str(views)], capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        taken = [line for line in run.stdout.splitlines() if line.startswith(f"{recording.name}: view")]
+        assert 12 <= len(taken) <= len(poses), run.stdout
+        assert len(list(views.glob(f"{recording.name}-view*.png"))) == len(taken)
+        camera = load_camera(out)
+        K, truth = camera.K, LENS_70[0]
+        tolerance = 0.005 if recording.is_dir() else 0.01  # JPEG-compressed frames: a little looser
+        np.testing.assert_allclose([K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+                                   [truth[0, 0], truth[1, 1], truth[0, 2], truth[1, 2]], rtol=tolerance)
+
+
+def test_cli_views_from_a_video_need_a_charuco_board(tmp_path):
+    video = tmp_path / "board.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30, (640, 480), isColor=False)
+    writer.write(np.full((480, 640), 128, np.uint8))
+    writer.release()
+    run = subprocess.run([sys.executable, "-m", "companion", "calibrate", str(video), "--board", "9x6",
+                          "--out", str(tmp_path / "c.yaml")], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and run.stderr == f"companion calibrate: {video}: views from a video need a ChArUco board, not --board\n"

@@ -2,6 +2,7 @@
 
     companion calibrate IMAGES... --charuco 8x11 --square-mm 22 --marker-mm 16 --out camera.yaml
     companion calibrate --device /dev/video0 --charuco --save-views views/ --out camera.yaml
+    companion calibrate board.mp4 --charuco --out camera.yaml        # the still views of a video, as --device
     companion calibrate IMAGES... --board 9x6 --square-mm 25 --out camera.yaml      # plain chessboard
 
 Every view left out is named with its reason; the result gives the RMS
@@ -16,8 +17,10 @@ import threading
 from pathlib import Path
 
 import cv2
+import numpy as np
 
-from companion.capture.replay import image_files
+from companion.capture.replay import TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files, open_recording
+from companion.capture.source import SourceError
 from companion.cli.output import cannot_write, output_dir, output_file
 from companion.files import write_whole
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
@@ -25,16 +28,20 @@ from companion.geometry.calibration import (PARAMETERS, Board, Calibration, Cali
 from companion.markers.charuco import DEFAULT_DICTIONARY, CharucoError, CharucoSpec
 
 
-def image_paths(inputs: list[str]) -> list[Path]:
-    paths = []
+def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
+    """(image files, recordings): the images given and those in the folders given; videos and sequence
+    folders (``timestamps.csv``), whose still views are picked as live capture picks them."""
+    images, recordings = [], []
     for item in map(Path, inputs):
-        if item.is_dir():
-            paths += image_files(item)
+        if (item.is_dir() and (item / TIMESTAMPS_FILE).exists()) or (item.is_file() and item.suffix.lower() in VIDEO_SUFFIXES):
+            recordings.append(item)
+        elif item.is_dir():
+            images += image_files(item)
         elif item.is_file():
-            paths.append(item)
+            images.append(item)
         else:
             raise CalibrationError(f"{item}: no such file or directory")
-    return paths
+    return images, recordings
 
 
 def parse_grid(text: str) -> tuple[int, int]:
@@ -48,7 +55,9 @@ def parse_grid(text: str) -> tuple[int, int]:
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", nargs="*", help="images of the board, or folders of them (or --device)")
+    parser.add_argument("images", nargs="*",
+                        help="images of the board, folders of them, or videos (and sequence folders) from which a "
+                             "view is taken each time the board rests still somewhere new, as with --device")
     parser.add_argument("--device", default=None,
                         help="calibrate live from this V4L2 camera (/dev/video0): a view is taken each time the "
                              "board is held still somewhere new; stops when the goal is met (Ctrl-C: stop now)")
@@ -68,7 +77,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="output calibration YAML (default camera.yaml)")
     live = parser.add_argument_group("live capture (--device)")
     live.add_argument("--save-views", type=Path, default=None, metavar="DIR",
-                      help="save the views taken as PNGs (to calibrate again from the folder)")
+                      help="save the views taken (live or from videos) as PNGs (to calibrate again from the folder)")
     live.add_argument("--min-views", type=int, default=CaptureGoal.min_views,
                       help=f"views before stopping (default {CaptureGoal.min_views})")
     live.add_argument("--coverage", type=float, default=CaptureGoal.coverage,
@@ -91,14 +100,16 @@ def main(args: argparse.Namespace) -> int:
             paths_count = None
         else:
             if not args.images:
-                raise CalibrationError("give images (files or folders), or --device for a live camera")
-            paths = image_paths(args.images)
+                raise CalibrationError("give images or videos (files or folders), or --device for a live camera")
+            paths, recordings = split_inputs(args.images)
             images = {str(p): cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths}
             unreadable = [name for name, image in images.items() if image is None]
             if unreadable:
                 raise CalibrationError(f"cannot read image(s): {', '.join(unreadable)}")
+            for recording in recordings:
+                images.update(views_of_recording(recording, board, args))
             calibration = calibrate(images, board)
-            paths_count = len(paths)
+            paths_count = len(images)
         write_calibration(args.out, calibration)
     except (CalibrationError, CharucoError) as error:
         print(f"companion calibrate: {error}", file=sys.stderr)
@@ -144,10 +155,41 @@ def calibrate_device(args: argparse.Namespace, board) -> Calibration:
     finally:
         source.close()
         signal.signal(signal.SIGINT, previous)
-    if args.save_views is not None:
-        for name, image in images.items():  # (a camera frame always encodes)
-            write_whole(args.save_views / f"{name}.png", cv2.imencode(".png", image)[1].tobytes())
+    save_views(images, args.save_views)
     return calibration
+
+
+def views_of_recording(path: Path, board, args: argparse.Namespace) -> dict[str, np.ndarray]:
+    """The still views of the board in a video or sequence folder, named '<file> view01', ... (saved with
+    ``--save-views``); progress on stdout."""
+    if not isinstance(board, CharucoBoard):
+        raise CalibrationError(f"{path}: views from a video need a ChArUco board, not --board")
+    try:
+        # the pace does not matter (every frame is read in turn): a video that states no rate reads at 30 fps
+        source = ReplaySource(open_recording(path, fps=None if path.is_dir() else 30.0), realtime=False)
+    except SourceError as error:
+        raise CalibrationError(str(error)) from None
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    source.start()
+    try:
+        _, views = capture_live(source, board, CaptureGoal(), stop,
+                                on_event=lambda e: print(f"{path.name}: {e.message}", flush=True)
+                                if e.kind == "view" else None, until_goal=False)
+    finally:
+        source.close()
+        signal.signal(signal.SIGINT, previous)
+    if source.counters.corrupt:
+        print(f"{path.name}: {source.counters.corrupt} unreadable frames skipped")
+    views = {f"{path.name} {name}": image for name, image in views.items()}
+    save_views(views, args.save_views)
+    return views
+
+
+def save_views(views: dict[str, np.ndarray], folder: Path | None) -> None:
+    if folder is not None:
+        for name, image in views.items():  # (a camera frame always encodes)
+            write_whole(folder / f"{name.replace(' ', '-')}.png", cv2.imencode(".png", image)[1].tobytes())
 
 
 def print_result(calibration: Calibration, images: int | None, out: Path) -> None:

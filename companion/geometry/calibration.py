@@ -376,10 +376,12 @@ class ViewPicker:
 
 
 def capture_live(source, board: CharucoBoard, goal: CaptureGoal = CaptureGoal(), stop=None,
-                 on_event=lambda event: None, frame_timeout_s: float = 5.0) -> tuple[Calibration, dict]:
+                 on_event=lambda event: None, frame_timeout_s: float = 5.0,
+                 until_goal: bool = True) -> tuple[Calibration, dict]:
     """Take views from a started FrameSource (a V4L2 camera, or a replay) until the goal is met,
     ``max_views`` is reached, ``stop`` (a threading.Event) is set or the source ends; returns
-    (the calibration, the images taken by name)."""
+    (the calibration, the images taken by name). until_goal False: not stopped (nor calibrated after
+    each view) at the goal: a recording gives all its views, up to ``max_views``."""
     picker = ViewPicker(board, goal)
     calibration = None
     while stop is None or not stop.is_set():
@@ -394,6 +396,10 @@ def capture_live(source, board: CharucoBoard, goal: CaptureGoal = CaptureGoal(),
         image_points, _ = picker.found[name]
         on_event(CaptureEvent("view", f"{name}: {len(image_points)} corners, image coverage "
                                       f"{100 * picker.coverage():.0f} %"))
+        if not until_goal:
+            if len(picker.found) >= goal.max_views:
+                break
+            continue
         met, calibration, missing = picker.verdict()
         if calibration is not None:
             on_event(CaptureEvent("calibration", f"{len(calibration.views)} views: RMS {calibration.rms_px:.3f} px, "
