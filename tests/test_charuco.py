@@ -278,11 +278,20 @@ def test_cli_calibrates_from_a_video_and_a_sequence_folder_taking_the_still_view
                                    [truth[0, 0], truth[1, 1], truth[0, 2], truth[1, 2]], rtol=tolerance)
 
 
-def test_cli_views_from_a_video_need_a_charuco_board(tmp_path):
+def test_cli_views_from_a_video_need_a_charuco_board_seen_still(tmp_path):
     video = tmp_path / "board.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30, (640, 480), isColor=False)
-    writer.write(np.full((480, 640), 128, np.uint8))
+    for _ in range(10):
+        writer.write(np.full((480, 640), 128, np.uint8))
     writer.release()
-    run = subprocess.run([sys.executable, "-m", "companion", "calibrate", str(video), "--board", "9x6",
-                          "--out", str(tmp_path / "c.yaml")], capture_output=True, text=True, timeout=60)
+
+    def calibrate(*options: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "companion", "calibrate", str(video), *options,
+                               "--out", str(tmp_path / "c.yaml")], capture_output=True, text=True, timeout=60)
+
+    run = calibrate("--board", "9x6")
     assert run.returncode == 2 and run.stderr == f"companion calibrate: {video}: views from a video need a ChArUco board, not --board\n"
+    run = calibrate()
+    assert run.returncode == 2 and run.stdout == "board.avi: 0 views in 10 frames\n"
+    assert run.stderr == f"companion calibrate: {video}: the board never rested in view (a view: its corners still for 4 frames, somewhere new)\n"
+    assert not (tmp_path / "c.yaml").exists()

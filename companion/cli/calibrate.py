@@ -24,7 +24,8 @@ from companion.capture.source import SourceError
 from companion.cli.output import cannot_write, output_dir, output_file
 from companion.files import write_whole
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
-                                            CharucoBoard, calibrate, capture_live, write_calibration)
+                                            CharucoBoard, calibrate, capture_live, recorded_views,
+                                            write_calibration)
 from companion.markers.charuco import DEFAULT_DICTIONARY, CharucoError, CharucoSpec
 
 
@@ -108,6 +109,9 @@ def main(args: argparse.Namespace) -> int:
                 raise CalibrationError(f"cannot read image(s): {', '.join(unreadable)}")
             for recording in recordings:
                 images.update(views_of_recording(recording, board, args))
+            if not images:
+                raise CalibrationError(f"{', '.join(map(str, recordings))}: the board never rested in view (a view: "
+                                       f"its corners still for {CaptureGoal.still_frames} frames, somewhere new)")
             calibration = calibrate(images, board)
             paths_count = len(images)
         write_calibration(args.out, calibration)
@@ -173,14 +177,13 @@ def views_of_recording(path: Path, board, args: argparse.Namespace) -> dict[str,
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     source.start()
     try:
-        _, views = capture_live(source, board, CaptureGoal(), stop,
-                                on_event=lambda e: print(f"{path.name}: {e.message}", flush=True)
-                                if e.kind == "view" else None, until_goal=False)
+        views = recorded_views(source, board, stop=stop,
+                               on_event=lambda event: print(f"{path.name}: {event.message}", flush=True))
     finally:
         source.close()
         signal.signal(signal.SIGINT, previous)
-    if source.counters.corrupt:
-        print(f"{path.name}: {source.counters.corrupt} unreadable frames skipped")
+    skipped = f", {source.counters.corrupt} unreadable skipped" if source.counters.corrupt else ""
+    print(f"{path.name}: {len(views)} views in {source.counters.captured} frames{skipped}")
     views = {f"{path.name} {name}": image for name, image in views.items()}
     save_views(views, args.save_views)
     return views

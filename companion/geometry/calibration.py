@@ -376,14 +376,30 @@ class ViewPicker:
 
 
 def capture_live(source, board: CharucoBoard, goal: CaptureGoal = CaptureGoal(), stop=None,
-                 on_event=lambda event: None, frame_timeout_s: float = 5.0,
-                 until_goal: bool = True) -> tuple[Calibration, dict]:
+                 on_event=lambda event: None, frame_timeout_s: float = 5.0) -> tuple[Calibration, dict]:
     """Take views from a started FrameSource (a V4L2 camera, or a replay) until the goal is met,
     ``max_views`` is reached, ``stop`` (a threading.Event) is set or the source ends; returns
-    (the calibration, the images taken by name). until_goal False: not stopped (nor calibrated after
-    each view) at the goal: a recording gives all its views, up to ``max_views``."""
-    picker = ViewPicker(board, goal)
-    calibration = None
+    (the calibration, the images taken by name)."""
+    picker, calibration = _take_views(source, ViewPicker(board, goal), stop, on_event, frame_timeout_s, until_goal=True)
+    if calibration is None or len(calibration.views) + len(calibration.rejected) != len(picker.found):
+        calibration = calibrate_points(dict(picker.found), picker.size or (0, 0), board)
+    on_event(CaptureEvent("done", f"{len(picker.found)} views taken", calibration))
+    return calibration, picker.images
+
+
+def recorded_views(source, board: CharucoBoard, goal: CaptureGoal = CaptureGoal(), stop=None,
+                   on_event=lambda event: None) -> dict[str, np.ndarray]:
+    """The views a started replay of a recording gives as live capture would take them, all of them up to
+    ``max_views`` (not stopped at the goal, nor calibrated on the way), by name."""
+    picker, _ = _take_views(source, ViewPicker(board, goal), stop, on_event, frame_timeout_s=5.0, until_goal=False)
+    return picker.images
+
+
+def _take_views(source, picker: ViewPicker, stop, on_event, frame_timeout_s: float,
+                until_goal: bool) -> tuple[ViewPicker, Calibration | None]:
+    """Offer the source's frames to the picker until it ends, ``stop`` is set, ``max_views`` views are taken or
+    (until_goal) the goal is met; (the picker, the calibration of the last verdict or None)."""
+    goal, calibration = picker.goal, None
     while stop is None or not stop.is_set():
         frame = source.get(timeout_s=frame_timeout_s)
         if frame is None:
@@ -396,20 +412,16 @@ def capture_live(source, board: CharucoBoard, goal: CaptureGoal = CaptureGoal(),
         image_points, _ = picker.found[name]
         on_event(CaptureEvent("view", f"{name}: {len(image_points)} corners, image coverage "
                                       f"{100 * picker.coverage():.0f} %"))
-        if not until_goal:
-            if len(picker.found) >= goal.max_views:
-                break
-            continue
-        met, calibration, missing = picker.verdict()
-        if calibration is not None:
-            on_event(CaptureEvent("calibration", f"{len(calibration.views)} views: RMS {calibration.rms_px:.3f} px, "
-                                                 f"{missing}", calibration))
-        if met or len(picker.found) >= goal.max_views:
+        if len(picker.found) >= goal.max_views:
             break
-    if calibration is None or len(calibration.views) + len(calibration.rejected) != len(picker.found):
-        calibration = calibrate_points(dict(picker.found), picker.size or (0, 0), board)
-    on_event(CaptureEvent("done", f"{len(picker.found)} views taken", calibration))
-    return calibration, picker.images
+        if until_goal:
+            met, calibration, missing = picker.verdict()
+            if calibration is not None:
+                on_event(CaptureEvent("calibration", f"{len(calibration.views)} views: RMS "
+                                                     f"{calibration.rms_px:.3f} px, {missing}", calibration))
+            if met:
+                break
+    return picker, calibration
 
 
 def _cells(points, width: int, height: int) -> list[tuple[int, int]]:
