@@ -34,7 +34,9 @@ def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
     folders (``timestamps.csv``), whose still views are picked as live capture picks them."""
     images, recordings = [], []
     for item in map(Path, inputs):
-        if (item.is_dir() and (item / TIMESTAMPS_FILE).exists()) or (item.is_file() and item.suffix.lower() in VIDEO_SUFFIXES):
+        is_sequence = item.is_dir() and (item / TIMESTAMPS_FILE).is_file()
+        is_video = item.is_file() and item.suffix.lower() in VIDEO_SUFFIXES
+        if is_sequence or is_video:
             recordings.append(item)
         elif item.is_dir():
             images += image_files(item)
@@ -109,7 +111,7 @@ def main(args: argparse.Namespace) -> int:
                 raise CalibrationError(f"cannot read image(s): {', '.join(unreadable)}")
             for recording in recordings:
                 images.update(views_of_recording(recording, board, args))
-            if not images:
+            if recordings and not images:
                 raise CalibrationError(f"{', '.join(map(str, recordings))}: the board never rested in view (a view: "
                                        f"its corners still for {CaptureGoal.still_frames} frames, somewhere new)")
             calibration = calibrate(images, board)
