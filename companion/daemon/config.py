@@ -146,8 +146,9 @@ def load_config(path=None, replay=None, replay_fps: float | None = None) -> Conf
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the config must be a mapping of sections")
     if "camera" not in data and "camera" not in _replay_info(Path(replay)):
-        raise ConfigError(f"--replay {replay}: which camera took it? {path} has no camera section, and the replay "
-                          f"no {SEQUENCE_FILE} naming one (as companion run --record and simulate write): give "
+        config_name = "the embedded default config" if path == default_config_path() else str(path)
+        raise ConfigError(f"--replay {replay}: which camera took it? {config_name} has no camera section, and the "
+                          f"replay no {SEQUENCE_FILE} naming one (as companion run --record and simulate write): give "
                           "--config FILE with your camera's calibration (camera: calibration_file: ...)")
     config = config_from_dict({**data, "source": {"kind": "replay", "path": str(Path(replay).resolve())}}, path)
     return dataclasses.replace(config, source=ReplayConfig(path=config.source.path, fps=replay_fps, fps_option="--fps"))
