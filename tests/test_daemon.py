@@ -693,3 +693,19 @@ def test_a_missing_camera_is_reported_once_by_the_daemon_not_by_opencv_at_every_
     assert int(re.search(r"camera reopens (\d+)", info).group(1)) >= 1, info  # retried, not given up
     assert "[ WARN" not in info, info
     assert "[ WARN" in debug and "VIDEOIO(V4L2)" in debug  # OpenCV does warn here: the test above means something
+
+
+def test_a_replay_as_fast_as_possible_is_filtered_as_in_real_time(tmp_path):
+    """realtime: false: the frames keep their recorded times, so the filter sees the flight's own motion
+    and gates none of its poses (stamped when read, time compressed several times, it rejected most of
+    them: 217 of 246 on this flight); the status line's rate is still the frames done per second."""
+    config = write_config(tmp_path, AISLE, free_port(), source={"realtime": False})
+    process = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    code, stdout, stderr = finish(process, timeout_s=60)
+    assert code == 0, stderr
+    frames = len(open_recording(AISLE).t_ns)
+    assert f"frames {frames}," in stderr
+    last = [line for line in stdout.splitlines() if " fps | " in line][-1]
+    assert "| tracking |" in last and "rejected 0 resets 0" in last, last
+    assert float(last.split()[0]) > 0, last

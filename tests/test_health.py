@@ -39,7 +39,7 @@ def record(t_ns: int, markers: int = 2, status: str | None = "ok", tracking: boo
         measurement = object() if status == "ok" else None
         solution = PoseSolution(measurement, status)
     est = None if tracking is None else estimate(t_ns, tracking, reset_counter)
-    return FrameRecord(index=0, t_ns=t_ns, stage_ns=(0, 0, 0, 0), latency_ns=None,
+    return FrameRecord(index=0, t_ns=t_ns, done_ns=t_ns, stage_ns=(0, 0, 0, 0), sent=False, latency_ns=None,
                        detections=tuple(detection() for _ in range(markers)), solution=solution, estimate=est)
 
 

@@ -192,7 +192,7 @@ def test_overlay_outlines_markers_by_their_part_in_the_pose():
                   Detection("B", 1, square + [250.0, 0.0], "circles", 2, 1.0),
                   Detection("STAR", 49, square + [0.0, 220.0], "square", 0, 1.0))
     solution = PoseSolution(None, "ambiguous", marker_ids=(0,), rejected_ids=(1,), unmapped_ids=(49,))
-    record = FrameRecord(7, 0, (0, 0, 0, 0), None, detections, solution, None)
+    record = FrameRecord(7, 0, 0, (0, 0, 0, 0), False, None, detections, solution, None)
     image = annotate(gray, record)
     # the pose was withheld: no mapped marker is "used"; the unmapped one is grey
     assert tuple(image[100, 150]) == REJECTED and tuple(image[100, 400]) == REJECTED

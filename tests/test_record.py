@@ -184,7 +184,7 @@ def test_a_slow_disk_drops_recorded_frames_counted_never_rows(tmp_path):
     images = [rng.integers(0, 256, (480, 640), dtype=np.uint8) for _ in range(4)]
     offered = 200
     for index in range(offered):
-        record = FrameRecord(index, 1_000_000 + index * 10_000_000, (0, 0, 0, 0), None, (), None, None)
+        record = FrameRecord(index, 1_000_000 + index * 10_000_000, 0, (0, 0, 0, 0), False, None, (), None, None)
         recorder(Frame(images[index % 4], record.t_ns, index), record)
     recorder.close()
     counters = recorder.counters
@@ -273,7 +273,7 @@ def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
     recorder.attitude(AttitudeSample(start_ns - 10_000_000, math.radians(9.0), math.radians(9.0)))
     for index in range(3):
         t_ns = start_ns + index * 33_000_000
-        record = FrameRecord(index, t_ns, (0, 0, 0, 0), None, (), None, None)
+        record = FrameRecord(index, t_ns, t_ns, (0, 0, 0, 0), False, None, (), None, None)
         recorder(Frame(np.zeros((480, 640), np.uint8), t_ns, index), record)
         recorder.attitude(AttitudeSample(t_ns + 5_000_000, math.radians(1.5 + index), math.radians(-2.25)))
         recorder.attitude(AttitudeSample(t_ns + 4_000_000, math.radians(7.0), math.radians(7.0)))

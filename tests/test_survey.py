@@ -570,7 +570,7 @@ def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
     def frame(index: int, rejected: tuple[str, ...]):
         used = tuple(ids[s] for s in ids if s not in rejected)
         solution = PoseSolution(None, "ok", marker_ids=used, rejected_ids=tuple(ids[s] for s in rejected))
-        watch(None, FrameRecord(index, index, (0, 0, 0, 0), None, (), solution, None))
+        watch(None, FrameRecord(index, index, index, (0, 0, 0, 0), False, None, (), solution, None))
 
     with caplog.at_level(logging.WARNING, logger="companion"):
         for index in range(40):

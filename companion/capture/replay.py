@@ -227,8 +227,8 @@ class ReplaySource(ThreadedSource):
         """The recording's attitude at each replayed frame's recorded capture time; None without attitude.csv.
 
         A frame's ``index`` (loops included) names its recorded time, so the
-        lookup is exact whatever the pace (real time, or as fast as possible,
-        when the frames are stamped as they are read).
+        lookup is exact whatever the pace (real time, or as fast as possible) and
+        however the loops shifted the frames' times.
         """
         rec = self.recording
         if rec.attitude is None:
@@ -268,11 +268,9 @@ class ReplaySource(ThreadedSource):
                 self._readable_again()
                 readable += 1
                 index = int(number) + loop_count * frames_per_loop
-                if self.realtime:
-                    self._publish(Frame(image=image, t_ns=t_ns, index=index))
-                else:
-                    self._publish(Frame(image=image, t_ns=time.monotonic_ns(), index=index),
-                                  wait_for_taker=True)
+                # as fast as possible, too, a frame keeps its recorded time (then ahead of the clock): the
+                # filter sees the flight's own motion, a --record of it the flight's own time line
+                self._publish(Frame(image=image, t_ns=t_ns, index=index), wait_for_taker=not self.realtime)
             if not self.loop:
                 return
             offset_ns += loop_length_ns

@@ -38,14 +38,20 @@ class FrameRecord:
     solution: the pose stage's decision (its ``status`` says why there is no
         pose); None when no marker was seen.
     estimate: what the filter gave to send (None while acquiring).
-    latency_ns: capture -> sent; None if nothing was sent.
+    t_ns: the frame's capture time; done_ns: when the pipeline finished it (both monotonic; a replay
+        faster than real time stamps its frames with their recorded times, ahead of the clock).
+    sent: the estimate went to the link.
+    latency_ns: capture -> sent; None if nothing was sent, or the capture time is not in the past
+        (a replay faster than real time).
     attitude: the flight controller's roll and pitch at the capture time
         (None: no attitude source, or it was stale or missing).
     """
 
     index: int
     t_ns: int
+    done_ns: int
     stage_ns: tuple[int, int, int, int]   # detect, pose, fuse, send
+    sent: bool
     latency_ns: int | None
     detections: tuple[Detection, ...]
     solution: PoseSolution | None
@@ -59,10 +65,6 @@ class FrameRecord:
     @property
     def measurement(self) -> PoseMeasurement | None:
         return None if self.solution is None else self.solution.measurement
-
-    @property
-    def sent(self) -> bool:
-        return self.latency_ns is not None
 
 
 FrameObserver = Callable[[Frame, FrameRecord], None]
@@ -79,15 +81,15 @@ class PipelineStats:
     def add(self, record: FrameRecord) -> None:
         self.records.append(record)
         self.frames += 1
-        self.sent += record.latency_ns is not None
+        self.sent += record.sent
 
     def recent(self, window_s: float, now_ns: int | None = None) -> list[FrameRecord]:
-        """The records captured in the ``window_s`` before ``now_ns`` (monotonic; default: the newest record's time)."""
+        """The records done in the ``window_s`` before ``now_ns`` (monotonic; default: when the newest was done)."""
         records = list(self.records)
         if not records:
             return []
-        newest = records[-1].t_ns if now_ns is None else now_ns
-        return [r for r in records if 0 <= newest - r.t_ns <= window_s * 1e9]
+        newest = records[-1].done_ns if now_ns is None else now_ns
+        return [r for r in records if 0 <= newest - r.done_ns <= window_s * 1e9]
 
     def stage_table(self) -> list[tuple[str, float, float]]:
         """(stage, median ms, p99 ms) for each stage, the total and the capture->send latency."""
@@ -137,8 +139,9 @@ class Pipeline:
         if estimate is not None and self.link is not None:
             sent = self.link.publish(estimate)
         t4 = time.perf_counter_ns()
-        latency_ns = time.monotonic_ns() - frame.t_ns if sent else None
-        record = FrameRecord(frame.index, frame.t_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), latency_ns,
+        done_ns = time.monotonic_ns()
+        latency_ns = done_ns - frame.t_ns if sent and done_ns >= frame.t_ns else None
+        record = FrameRecord(frame.index, frame.t_ns, done_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), sent, latency_ns,
                              tuple(detections), solution, estimate, attitude)
         self.stats.add(record)
         for observer in self.observers:
