@@ -31,7 +31,8 @@ class Frame:
     """One grayscale camera image and when it was captured.
 
     image: (H, W) uint8 grayscale.
-    t_ns: capture time on the monotonic clock, nanoseconds.
+    t_ns: capture time on the monotonic clock, nanoseconds (a replay shifts the recorded times onto it:
+        as fast as possible, they run ahead of the clock).
     index: sequence number from the source (0, 1, 2, ...).
     """
 
