@@ -183,8 +183,9 @@ class ReplaySource(ThreadedSource):
 
     ``Frame.index`` is the recording's frame number (plus the frame count of
     the recording for each completed loop), so skipped frames leave gaps.
-    ``clock_offset_ns``: in real time, ``Frame.t_ns = t_recorded + clock_offset_ns``
-    (set when the replay starts; the next loop adds the recording's length).
+    ``clock_offset_ns``: ``Frame.t_ns = t_recorded + clock_offset_ns`` at either pace
+    (set when the replay starts; the next loop adds the recording's length); as
+    fast as possible the frames are handed over ahead of their times.
 
     Unreadable frames are skipped and counted, and keep their place in time
     (a real-time replay whose files vanished waits for each frame's time as
