@@ -1,6 +1,8 @@
 """The daemon's health judged from frame records and the wall clock (a clock we step by hand)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -128,6 +130,10 @@ def test_the_status_line_says_the_state_with_its_reasons():
                           link_state="streaming", frames=40, sent=30, rejected=0, resets=0)
     assert status.line() == ("  0.0 fps | markers 0 | no pose | latency - | camera stalled 3.2 s: no frame for 3.2 s"
                              " | link streaming | sent 30 rejected 0 resets 0")
+    # a link that cannot open says why while it tries again (not once open: the reason is then old)
+    down = dataclasses.replace(status, link_state="connecting", link_down="cannot open: [Errno 111] Connection refused")
+    assert "| link connecting (cannot open: [Errno 111] Connection refused) | sent 30" in down.line()
+    assert "(cannot open" not in dataclasses.replace(down, link_state="handshake").line()
 
 
 # ---------------------------------------------------------------- parameters
@@ -207,8 +213,6 @@ def test_every_blocking_parameter_is_told_first_and_the_rest_counted_within_50_c
 def test_the_attitude_is_judged_beside_the_state_and_each_change_said_once():
     """Frames without attitude at first, then with, then a gap, then back: 'waiting', 'ok', 'stale', 'ok'
     in the health and the status line, one message per change; no attitude expected: nothing said or shown."""
-    import dataclasses
-
     from companion.mavlink.messages import SEVERITY_INFO, SEVERITY_WARNING
     from companion.types import AttitudeSample
 

@@ -225,14 +225,20 @@ def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):
                  reconnect_initial_s=0.1, reconnect_max_s=0.4)
     publisher = Publisher(link)
     first.wait_for("VISION_POSITION_ESTIMATE", count=5)
+    assert link.down_reason is None
     first.stop()
     deadline = time.monotonic() + 5
     while link.counters.transport_errors == 0 and time.monotonic() < deadline:
         time.sleep(0.05)
+    # lost, then refused while nothing listens: the reason the status line gives
+    while "refused" not in (link.down_reason or "") and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert link.down_reason.startswith("cannot open: ") and "refused" in link.down_reason, link.down_reason
     second = peers(port, "--tcp", name="second")
     second.wait_for("VISION_POSITION_ESTIMATE", count=5)
     publisher.stop()
     assert link.counters.transport_errors >= 1 and link.counters.connects >= 2
+    assert link.down_reason is None
 
 
 @pytest.mark.parametrize("text, expected", [

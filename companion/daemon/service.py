@@ -321,7 +321,7 @@ class Daemon:
                             critical=health.critical, track_state=self.pipeline.pose_filter.state.value,
                             link_state=self.link.state.value, frames=self.pipeline.stats.frames,
                             sent=self.pipeline.stats.sent, rejected=counters.rejected, resets=counters.resets,
-                            attitude=health.attitude,
+                            attitude=health.attitude, link_down=self.link.down_reason,
                             render_ms=self.source.render_ms() if isinstance(self.source, SimulatedCamera) else None)
 
     def status_line(self) -> str:

@@ -31,7 +31,8 @@ class DaemonStatus:
     has lasted; reasons: what it rests on ("reprojection 42", ...);
     critical: the HEARTBEAT says CRITICAL (camera stalled or lost);
     track_state: the filter's state; link_state: the MAVLink link's
-    ("connecting", "handshake", "streaming", "duplicate");
+    ("connecting", "handshake", "streaming", "duplicate"); link_down: why its
+    transport is down ("cannot open: ...", "lost: ..."; None while it is open);
     frames, sent: totals since start; rejected, resets: the filter's counters;
     attitude: the flight controller's attitude in the pose stage ("ok",
     "stale", "waiting"; "off" when none is expected, and then not shown);
@@ -55,6 +56,7 @@ class DaemonStatus:
     resets: int
     attitude: str = "off"
     render_ms: float | None = None
+    link_down: str | None = None
 
     def state_text(self) -> str:
         """``camera stalled 3.2 s: no frame for 3.2 s``; the bare state when all is well."""
@@ -72,8 +74,9 @@ class DaemonStatus:
         else:
             pose = "no pose"
         attitude = "" if self.attitude == "off" else f"attitude {self.attitude} | "
+        link = self.link_state + (f" ({self.link_down})" if self.link_down and self.link_state == "connecting" else "")
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
-                f"{self.state_text()} | {attitude}link {self.link_state} | "
+                f"{self.state_text()} | {attitude}link {link} | "
                 f"sent {self.sent} rejected {self.rejected} resets {self.resets}"
                 + (f" | render {self.render_ms:.1f} ms" if self.render_ms is not None else ""))
 

@@ -240,6 +240,8 @@ class MavlinkLink:
         self.attitude = attitude
         self.counters = LinkCounters()
         self.state = LinkState.CONNECTING
+        # why the transport is down (the last open failure, or how it was lost); None while it is open
+        self.down_reason: str | None = None
         self.fc_system_id: int | None = None
         self.fc_component_id: int | None = None
         self.fc_autopilot: int | None = None
@@ -431,11 +433,12 @@ class MavlinkLink:
                 log.log(logging.WARNING if str(error) != said else logging.DEBUG,
                         "link %s: cannot open (%s); retrying with backoff (%.1f s, up to %.0f s)",
                         self.params.connection, error, backoff_s, self.params.reconnect_max_s)
+                self.down_reason = f"cannot open: {error}"
                 said = str(error)
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
                 continue
-            said = None
+            said = self.down_reason = None
             with self._send_lock:
                 self._connection = connection
             self._connected_s = time.monotonic()
@@ -448,6 +451,7 @@ class MavlinkLink:
                 backoff_s = self.params.reconnect_initial_s
             except (OSError, _TransportLost) as error:
                 self.counters.transport_errors += 1
+                self.down_reason = f"lost: {error}"
                 log.warning("link %s: lost (%s); reconnecting in %.1f s", self.params.connection, error, backoff_s)
             finally:
                 self._close_connection()
