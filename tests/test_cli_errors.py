@@ -106,7 +106,9 @@ def test_run_with_bad_input_logs_one_error_and_exits_2(place, capsys):
                           (["--config", str(REPO / "config" / "example-raspberrypi.yaml"), "--replay", str(place / "images")],
                            f"{place / 'images'}: an image folder without timestamps.csv needs --fps"),
                           (["--replay", str(place / "images"), "--fps", "-1"], "--fps must be positive, not -1.0"),
-                          (["--fps", "10"], "--fps is the frame rate of a --replay: give --replay PATH too")):
+                          (["--fps", "10"], "--fps is the frame rate of a --replay: give --replay PATH too"),
+                          (["--replay", str(HOVER), "--fps", "10"],
+                           f"--fps: --replay {HOVER} has its timestamps.csv, which gives every frame's time")):
         assert cli.main(["run", *args]) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and " ERROR companion: " in lines[0] and message in lines[0], lines

@@ -24,8 +24,8 @@ def configure_parser(parser) -> None:
                         help="replay this sequence folder, video or image folder in real time instead of the "
                              "config's source (the rest of the config as it is)")
     parser.add_argument("--fps", type=float, default=None,
-                        help="frame rate of a --replay image folder without timestamps.csv (or a video that "
-                             "states none)")
+                        help="frame rate of a --replay image folder without timestamps.csv, or of a video "
+                             "instead of the rate it states")
     parser.add_argument("--log-level", choices=LOG_LEVELS, default="info",
                         help="least important messages logged (default info; debug adds every skipped frame "
                              "and retry)")

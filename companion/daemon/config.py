@@ -21,7 +21,7 @@ from companion.geometry.facility_map import FacilityMap, geodetic_origin, load_m
 from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
 from companion.mavlink.link import LinkParams, Origin
-from companion.capture.replay import SEQUENCE_FILE, read_sequence_info, sequence_map_path
+from companion.capture.replay import SEQUENCE_FILE, TIMESTAMPS_FILE, read_sequence_info, sequence_map_path
 from companion.capture.simulated import SimulatedCameraParams
 from companion.daemon.record import RecordParams
 from companion.sim.degrade import DegradationError, Degradations
@@ -131,7 +131,7 @@ def load_config(path=None, replay=None, replay_fps: float | None = None) -> Conf
 
     replay: a sequence folder, video or image folder to replay in real time instead of the
     config's source (the rest of the config as it is: try a site's config on a recording);
-    replay_fps: its frame rate where it states none (an image folder without timestamps).
+    replay_fps: its frame rate: an image folder's (without timestamps), or a video's instead of its own.
     """
     path = Path(path) if path is not None else default_config_path()
     data = read_yaml(path, ConfigError, "config")
@@ -143,6 +143,8 @@ def load_config(path=None, replay=None, replay_fps: float | None = None) -> Conf
         raise ConfigError(f"--replay {replay}: no such file or folder")
     if replay_fps is not None and not replay_fps > 0:
         raise ConfigError(f"--fps must be positive, not {replay_fps}")
+    if replay_fps is not None and (Path(replay) / TIMESTAMPS_FILE).is_file():
+        raise ConfigError(f"--fps: --replay {replay} has its {TIMESTAMPS_FILE}, which gives every frame's time")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the config must be a mapping of sections")
     if "camera" not in data and "camera" not in _replay_info(Path(replay)):
