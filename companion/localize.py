@@ -147,13 +147,12 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
     if detector is None:
         detector = map_detector(solver.facility_map, solver.camera)
     recording = open_recording(sequence, fps, fps_option)
-    recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
     attitude = history_of(recording.attitude, attitude_max_age_s) if use_attitude and recording.attitude else None
     source = ReplaySource(recording, realtime=False)
     source.start()
     try:
         for frame in source.frames():
-            t_ns = int(recorded_t_ns[frame.index])
+            t_ns = source.recorded_t_ns(frame)
             detections = detector.detect(frame.image)
             sample = attitude.at(t_ns) if attitude is not None else None
             solution = solver.solve_detailed(detections, t_ns, attitude=sample)

@@ -224,6 +224,11 @@ class ReplaySource(ThreadedSource):
             elif self.finished:
                 return
 
+    def recorded_t_ns(self, frame: Frame) -> int:
+        """The frame's time in the recording (``t_ns`` less ``clock_offset_ns``; a loop's frames run on after
+        the recording's end)."""
+        return frame.t_ns - self.clock_offset_ns
+
     def attitude_lookup(self, max_age_s: float = DEFAULT_MAX_AGE_S) -> AttitudeLookup | None:
         """The recording's attitude at each replayed frame's recorded capture time; None without attitude.csv.
 

@@ -11,6 +11,7 @@ reprojection error and each coefficient's standard deviation.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import signal
 import sys
 import threading
@@ -147,20 +148,14 @@ def calibrate_device(args: argparse.Namespace, board) -> Calibration:
         raise CalibrationError(f"{args.device}: no such camera device (ls /dev/video*)")
     from companion.capture.v4l2 import v4l2_source
     source = v4l2_source(args.device, args.width, args.height)
-    stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
-    source.start()
     goal = CaptureGoal(min_views=args.min_views, coverage=args.coverage)
     print(f"hold the {board.describe()} still in view; a view is taken each time it rests somewhere new "
           f"(goal: {goal.min_views} views, {100 * goal.coverage:.0f} % of the image covered; Ctrl-C to stop)")
-    try:
+    with running(source) as stop:
         if not source.connected.wait(timeout=5.0):
             raise CalibrationError(f"{args.device}: cannot open the camera")
         calibration, images = capture_live(source, board, goal, stop, on_event=lambda e: print(e.message,
                                                                                                  flush=True))
-    finally:
-        source.close()
-        signal.signal(signal.SIGINT, previous)
     save_views(images, args.save_views)
     return calibration
 
@@ -175,20 +170,27 @@ def views_of_recording(path: Path, board, args: argparse.Namespace) -> dict[str,
         source = ReplaySource(open_recording(path, fps=None if path.is_dir() else 30.0), realtime=False)
     except SourceError as error:
         raise CalibrationError(str(error)) from None
-    stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
-    source.start()
-    try:
+    with running(source) as stop:
         views = recorded_views(source, board, stop=stop,
                                on_event=lambda event: print(f"{path.name}: {event.message}", flush=True))
-    finally:
-        source.close()
-        signal.signal(signal.SIGINT, previous)
     skipped = f", {source.counters.corrupt} unreadable skipped" if source.counters.corrupt else ""
     print(f"{path.name}: {len(views)} views in {source.counters.captured} frames{skipped}")
     views = {f"{path.name} {name}": image for name, image in views.items()}
     save_views(views, args.save_views)
     return views
+
+
+@contextlib.contextmanager
+def running(source):
+    """The source started, and an event Ctrl-C sets (stop with the views so far); closed, the handler put back."""
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    source.start()
+    try:
+        yield stop
+    finally:
+        source.close()
+        signal.signal(signal.SIGINT, previous)
 
 
 def save_views(views: dict[str, np.ndarray], folder: Path | None) -> None:

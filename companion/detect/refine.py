@@ -704,12 +704,13 @@ def _gradient_transfer(lattice: _Lattice, residual: np.ndarray) -> tuple[np.ndar
     identity and 1 where A cannot be fitted."""
     # the image at the template points in template units (levels fitted) is the template + the misfit, so
     # its central differences are the template's + the misfit's: A^T = I + (G^T G)^-1 G^T dR
-    if lattice.transfer_of_residual is not None and np.isfinite(residual).all():
+    every_point_read = bool(np.isfinite(residual).all())
+    if every_point_read and lattice.transfer_of_residual is not None:
         return _singular_ratio((np.eye(2) + (lattice.transfer_of_residual @ residual).reshape(2, 2)).T)
     r = residual[lattice.neighbours]  # (4, N)
     misfit = np.column_stack([r[0] - r[1], r[2] - r[3]])
     transfer = lattice.transfer
-    if not np.isfinite(residual).all():  # the points whose four neighbours were read
+    if not every_point_read:  # the points whose four neighbours were read
         keep = np.all(np.isfinite(misfit), axis=1)
         transfer = _least_squares(lattice.grad_template[keep]) if np.count_nonzero(keep) >= 20 else None
         misfit = misfit[keep]

@@ -114,7 +114,6 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
             recording = open_recording(sequence, fps, "--fps")
         except SourceError as error:
             raise SurveyError(str(error)) from None
-        recorded_t_ns = dict(zip(recording.frames.tolist(), recording.t_ns.tolist()))
         source = ReplaySource(recording, realtime=False)
         source.start()
         bar = progress_bar(len(recording.frames), "frame", progress, f"detecting {Path(sequence).name}")
@@ -128,7 +127,7 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
                 bar.update(1)
                 sightings = sightings_of(detector.detect(frame.image), size_m, layout)
                 if sightings:
-                    found.append(SurveyFrame(walk, int(frame.index), int(recorded_t_ns[frame.index]), sightings))
+                    found.append(SurveyFrame(walk, int(frame.index), source.recorded_t_ns(frame), sightings))
         finally:
             bar.close()
             source.close()
