@@ -579,12 +579,20 @@ def test_check_fc_prints_the_table_and_exits_1_on_a_blocking_parameter(peers):
     assert "1 parameter(s) block vision fusion, 2 degrade it" in result.stdout
 
 
-def test_check_fc_with_nothing_listening_is_a_clear_error():
-    result = subprocess.run([sys.executable, "-m", "companion", "check-fc", f"udpout:127.0.0.1:{free_port()}",
-                             "--timeout-s", "1.5"], capture_output=True, text=True, timeout=60)
+@pytest.mark.parametrize("connection, why", [
+    ("udpout:127.0.0.1:{port}", None),  # datagrams to nobody: nothing to say but the silence
+    ("tcp:127.0.0.1:{port}", "(cannot open: [Errno 111] Connection refused)"),
+    ("/dev/ttyACM97,115200", "(cannot open: [Errno 2] could not open port /dev/ttyACM97"),
+])
+def test_check_fc_with_nothing_listening_is_a_clear_error_that_says_why(connection, why):
+    connection = connection.format(port=free_port())
+    result = subprocess.run([sys.executable, "-m", "companion", "check-fc", connection, "--timeout-s", "1.5"],
+                            capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
-    assert result.stderr.strip().startswith("companion check-fc: no flight controller answered on udpout:")
-    assert "Traceback" not in result.stderr
+    message = result.stderr.strip()
+    assert message.startswith(f"companion check-fc: no flight controller answered on {connection} within 1.5 s")
+    assert (why in message) if why else ("cannot open" not in message)
+    assert len(message.splitlines()) == 1 and "Traceback" not in result.stderr
 
 
 def test_a_second_daemon_on_the_same_vehicle_refuses_to_run(tmp_path):

@@ -19,7 +19,7 @@ COMMANDS = {
     "detect": ("companion.cli.detect", "detect RS markers in images and print JSON lines"),
     "localize": ("companion.cli.localize", "print the per-frame camera pose of a sequence (no filtering)"),
     "simulate": ("companion.cli.simulate", "render a synthetic camera sequence with ground truth"),
-    "calibrate": ("companion.cli.calibrate", "calibrate a camera from ChArUco or chessboard views (images or live)"),
+    "calibrate": ("companion.cli.calibrate", "calibrate a camera from ChArUco or chessboard views (images, videos or live)"),
     "report": ("companion.cli.report", "write an HTML flight report (plots) of a recorded flight"),
     "survey": ("companion.cli.survey", "build a facility map from walk-through footage and a few measured anchors"),
     "map": ("companion.cli.map", "check a facility map against a walk-through (markers that moved)"),

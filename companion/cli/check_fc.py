@@ -47,10 +47,12 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion check-fc: --timeout-s must be positive, not {args.timeout_s}", file=sys.stderr)
         return 2
     logging.getLogger("companion.mavlink").setLevel(logging.ERROR)  # the table says what matters
-    result = read_parameters(params, args.timeout_s)
+    result, down_reason = read_parameters(params, args.timeout_s)
     if result is None:
-        print(f"companion check-fc: no flight controller answered on {args.connection} within {args.timeout_s:g} s",
-              file=sys.stderr)
+        # a refused port or a missing serial device is retried to the end (a SITL or a USB FC may be starting)
+        why = f" ({down_reason})" if down_reason else ""
+        print(f"companion check-fc: no flight controller answered on {args.connection} within "
+              f"{args.timeout_s:g} s{why}", file=sys.stderr)
         return 2
     autopilot, values, system_id = result
     checks = fc_params.check_parameters(autopilot, values, expected)
@@ -79,8 +81,9 @@ def expectations(config_path: str | None, latency_ms: float | None) -> fc_params
                               latency_ms=latency_ms)
 
 
-def read_parameters(params: LinkParams, timeout_s: float) -> tuple[int, dict, int] | None:
-    """(autopilot, {name: value or None}, FC system id) read through a non-streaming link; None on timeout."""
+def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, dict, int] | None, str | None]:
+    """(autopilot, {name: value or None}, FC system id) read through a non-streaming link, None on timeout;
+    and why the link was down at the end (``MavlinkLink.down_reason``: it never opened), or None."""
     got: list = []
     done = threading.Event()
     link = MavlinkLink(params, stream=False)
@@ -95,4 +98,4 @@ def read_parameters(params: LinkParams, timeout_s: float) -> tuple[int, dict, in
         done.wait(timeout_s)
     finally:
         link.close()
-    return got[0] if got else None
+    return (got[0] if got else None), link.down_reason
