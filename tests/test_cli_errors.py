@@ -159,3 +159,21 @@ def test_an_old_sequence_naming_the_repository_map_is_still_read(tmp_path, capsy
     assert err.startswith(f"companion localize: {away / 'sequence.yaml'}: map: ../../../../maps/warehouse.yaml is found "
                           "neither beside the sequence nor in a folder above it") and "--map" in err
     assert cli.main(["localize", str(away), "--map", str(MAP)]) == 0
+
+
+def test_a_reader_that_goes_away_stops_a_command_quietly(tmp_path):
+    """`companion detect FOLDER --json | head -1`: when the pipe's reader exits, the command stops without a
+    word on stderr and with the status a shell gives a tool SIGPIPE stopped (128 + 13), as `grep` and `cat` do."""
+    import subprocess
+    import sys
+
+    image = np.full((240, 320), 255, np.uint8)
+    for index in range(400):
+        cv2.imwrite(str(tmp_path / f"frame{index:03d}.png"), image)
+    process = subprocess.Popen([sys.executable, "-m", "companion", "detect", str(tmp_path), "--json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = process.stdout.readline()
+    process.stdout.close()  # the reader goes away after one line, as `head -1` does
+    stderr = process.stderr.read()
+    assert process.wait(timeout=120) == 141
+    assert first.startswith('{"image": ') and stderr == ""

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
 from types import ModuleType
 
@@ -78,6 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     except OutputError as error:
         print(f"companion {command}: {error}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader went away (`companion detect ... | head`): stop quietly, as a shell tool does; stdout
+        # pointed at /dev/null so that flushing it at exit raises nothing more
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except OSError as error:
         # a file that vanished or a disk that filled up mid-way: one line, not a traceback
         where = f"{error.filename}: " if error.filename else ""
