@@ -703,6 +703,36 @@ def test_a_missing_camera_is_reported_once_by_the_daemon_not_by_opencv_at_every_
     assert "[ WARN" in debug and "VIDEOIO(V4L2)" in debug  # OpenCV does warn here: the test above means something
 
 
+def test_a_status_line_reader_that_goes_away_does_not_stop_the_vehicles_positioning(tmp_path, peers):
+    """`companion run | head -1`, or a terminal closed under it: the status line cannot be written any more.
+    The daemon says so once in the log and goes on sending vision (before, the broken pipe stopped it), and
+    SIGTERM still stops it cleanly with status 0."""
+    port = free_port()
+    peer = peers(port)
+    config = write_config(tmp_path, AISLE, port, source={"loop": True})
+    with open(tmp_path / "stderr.log", "w") as stderr_file:
+        process = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config)],
+                                   stdout=subprocess.PIPE, stderr=stderr_file, text=True)
+    try:
+        assert " fps | " in process.stdout.readline()
+        process.stdout.close()  # the reader goes away: the next status line (5 s on) meets a broken pipe
+        deadline = time.monotonic() + 30.0
+        while "status line: cannot write" not in (tmp_path / "stderr.log").read_text():
+            assert process.poll() is None and time.monotonic() < deadline, (tmp_path / "stderr.log").read_text()
+            time.sleep(0.1)
+        sent_then = len(peer.records("VISION_POSITION_ESTIMATE"))
+        time.sleep(2.0)
+        assert process.poll() is None
+        assert len(peer.records("VISION_POSITION_ESTIMATE")) > sent_then + 20  # 30 fps: still streaming
+    finally:
+        process.send_signal(signal.SIGTERM)
+        code = process.wait(timeout=30)
+    stderr = (tmp_path / "stderr.log").read_text()
+    assert code == 0, stderr
+    assert stderr.count("status line: cannot write it any more ([Errno 32] Broken pipe)") == 1, stderr
+    assert "Traceback" not in stderr and "Exception ignored" not in stderr, stderr
+
+
 def test_a_replay_as_fast_as_possible_is_filtered_as_in_real_time(tmp_path):
     """realtime: false: the frames keep their recorded times, so the filter sees the flight's own motion
     and gates none of its poses (stamped when read, time compressed several times, it rejected most of

@@ -294,20 +294,29 @@ class Daemon:
             if watchdog_s and now >= next_watchdog and now - self._pipeline_alive_s < PIPELINE_STALL_S:
                 self.notifier.watchdog()
                 next_watchdog = now + watchdog_s
-            if self.status_stream is not None and now >= next_status:
+            if now >= next_status:
                 line = self.status_line()
                 if tty:
-                    self.status_stream.write("\r\x1b[K" + line)
-                    self.status_stream.flush()
+                    self._write_status("\r\x1b[K" + line)
                 elif now >= next_log:
-                    self.status_stream.write(line + "\n")
-                    self.status_stream.flush()
+                    self._write_status(line + "\n")
                     next_log = now + max(interval_s, 5.0)
                 self.notifier.status(line)
                 next_status = now + interval_s
-        if self.status_stream is not None:
-            self.status_stream.write(("\r\x1b[K" if tty else "") + self.status_line() + "\n")
+        self._write_status(("\r\x1b[K" if tty else "") + self.status_line() + "\n")
+
+    def _write_status(self, text: str) -> None:
+        """The status line to ``status_stream``. A stream that fails (its reader gone: ``companion run | head``,
+        a closed terminal) is said once in the log and given up: the vehicle's positioning goes on without it."""
+        if self.status_stream is None:
+            return
+        try:
+            self.status_stream.write(text)
             self.status_stream.flush()
+        except (OSError, ValueError) as error:  # ValueError: a stream already closed
+            log.warning("status line: cannot write it any more (%s); the daemon goes on, status in the log and "
+                        "systemd's status only", error)
+            self.status_stream = None
 
     def status(self) -> DaemonStatus:
         """The daemon's state over the last second of wall-clock time (see ``companion.daemon.status``);
