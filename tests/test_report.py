@@ -126,3 +126,21 @@ def test_a_bad_value_names_the_file_row_and_column(tmp_path):
 def test_a_missing_map_file_is_named(recording, tmp_path):
     run = report(str(recording), "--map", str(tmp_path / "none.yaml"))
     assert run.returncode == 2 and "none.yaml" in run.stderr and run.stderr.count("\n") == 1
+
+
+def test_a_report_that_does_not_fit_on_the_disk_is_one_line_exit_1_and_no_partial_page(recording, tmp_path):
+    """The process may write no file over 50 kB (as a full disk refuses a write; the page is a few hundred
+    kB): one line naming the file, exit status 1 as for every write that fails (README), and no page left."""
+    import resource
+    import signal
+
+    def small_files_only():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (50_000, 50_000))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    out = tmp_path / "report.html"
+    run = subprocess.run([sys.executable, "-m", "companion", "report", str(recording), "--out", str(out)],
+                         capture_output=True, text=True, timeout=120, preexec_fn=small_files_only)
+    assert run.returncode == 1
+    assert run.stderr == f"companion report: cannot write {out}: File too large\n"
+    assert list(tmp_path.iterdir()) == []

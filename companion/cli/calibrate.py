@@ -123,7 +123,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     except OSError as error:
         print(f"companion calibrate: {cannot_write(error, args.out)}", file=sys.stderr)
-        return 2
+        return 1  # the input was good, the disk failed (README: exit status 1)
     print_result(calibration, paths_count, args.out)
     return 0
 

@@ -31,7 +31,7 @@ def main(args: argparse.Namespace) -> int:
         return 2
     except OSError as error:
         print(f"companion report: {cannot_write(error, args.out or args.folder)}", file=sys.stderr)
-        return 2
+        return 1  # the input was good, the disk failed (README: exit status 1)
     gaps = log.gaps()
     print(f"{out}: {len(log.frame)} frames, {log.duration_s:.1f} s, fresh fixes in "
           f"{100 * log.fix.mean():.0f} % of frames, {len(gaps)} gap(s) in vision")

@@ -61,7 +61,7 @@ def main(args) -> int:
         return 2
     except OSError as error:
         print(f"companion survey: {cannot_write(error, writing)}", file=sys.stderr)
-        return 2
+        return 1  # the input was good, the disk failed (README: exit status 1)
     print(summary(result))
     _notes(result)
     return 0
