@@ -733,6 +733,32 @@ def test_a_status_line_reader_that_goes_away_does_not_stop_the_vehicles_position
     assert "Traceback" not in stderr and "Exception ignored" not in stderr, stderr
 
 
+def test_a_hangup_leaves_the_daemon_running_and_sigterm_still_stops_it(tmp_path, peers):
+    """SIGHUP (the ssh session that started `companion run` dropped): said once in the log, vision goes on
+    (by default the signal ended the process at once: no clean stop, no finished recording)."""
+    port = free_port()
+    peer = peers(port)
+    config = write_config(tmp_path, AISLE, port, source={"loop": True})
+    process = start_daemon(config)
+    try:
+        deadline = time.monotonic() + 20.0
+        while len(peer.records("VISION_POSITION_ESTIMATE")) < 10:
+            assert process.poll() is None and time.monotonic() < deadline
+            time.sleep(0.1)
+        process.send_signal(signal.SIGHUP)
+        time.sleep(0.5)
+        sent_then = len(peer.records("VISION_POSITION_ESTIMATE"))
+        time.sleep(1.5)
+        assert process.poll() is None
+        assert len(peer.records("VISION_POSITION_ESTIMATE")) > sent_then + 20  # 30 fps: still streaming
+    finally:
+        process.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(process)
+    assert code == 0, stderr
+    assert stderr.count("SIGHUP (the terminal went away?): the daemon goes on") == 1, stderr
+    assert "SIGTERM: stopping" in stderr
+
+
 def test_a_replay_as_fast_as_possible_is_filtered_as_in_real_time(tmp_path):
     """realtime: false: the frames keep their recorded times, so the filter sees the flight's own motion
     and gates none of its poses (stamped when read, time compressed several times, it rejected most of

@@ -48,6 +48,7 @@ def main(args) -> int:
         return 2
     previous = {sig: signal.signal(sig, lambda signum, _frame: _on_signal(daemon, signum))
                 for sig in (signal.SIGTERM, signal.SIGINT)}
+    previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, lambda _signum, _frame: _on_hangup())
     try:
         return daemon.run()
     finally:
@@ -65,6 +66,12 @@ def with_options(config: Config, args) -> Config:
     if args.http is not None:
         config = dataclasses.replace(config, http=http_address(args.http, Where("command line (--http)", ConfigError, "status")))
     return config
+
+
+def _on_hangup() -> None:
+    """SIGHUP: the terminal that started the daemon went away (an ssh session dropped as the vehicle flew
+    out of Wi-Fi range). The vehicle's positioning must not end with it: the daemon goes on."""
+    log.warning("SIGHUP (the terminal went away?): the daemon goes on; SIGTERM or SIGINT stops it")
 
 
 def _on_signal(daemon: Daemon, signum: int) -> None:
