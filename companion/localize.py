@@ -32,7 +32,8 @@ from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.geometry.attitude import DEFAULT_MAX_AGE_S, history_of
 from companion.geometry.pose import PoseParams, PoseSolution, PoseSolver
-from companion.capture.replay import ReplaySource, open_recording, read_sequence_info, sequence_map_path
+from companion.capture.replay import (ReplaySource, open_recording, read_sequence_info, sequence_camera,
+                                      sequence_map_path)
 from companion.types import AttitudeSample
 
 
@@ -72,11 +73,8 @@ def resources(sequence: Path, map_path: str | None, camera_path: str | None) -> 
         if named is None:
             raise LocalizeError(f"{sequence}: no --map given and no 'map' in {info_file if info else 'a sequence.yaml'}")
         map_path = str(named)
-    if camera_path is not None:
-        camera = load_camera(camera_path)
-    elif "camera" in info:
-        camera = CameraModel.from_config(info["camera"], info_file)
-    else:
+    camera = load_camera(camera_path) if camera_path is not None else sequence_camera(sequence, info)
+    if camera is None:
         raise LocalizeError(f"{sequence}: no --camera given and no 'camera' section in sequence.yaml")
     return load_map(map_path), camera
 

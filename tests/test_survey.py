@@ -6,6 +6,7 @@ import json
 import math
 import resource
 import signal
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -386,6 +387,32 @@ def test_map_check_finds_no_moved_marker_on_the_true_map(north_walk):
     assert {s for s, line in lines.items() if line["verdict"] == "ok"} == set(NORTH_WALL)
     assert all(line["verdict"] == "unseen" and line["position_error_m"] is None
                for s, line in lines.items() if s not in NORTH_WALL)
+
+
+def test_map_check_takes_the_camera_a_sequence_folder_names_and_says_when_none_is_known(tmp_path, north_walk):
+    """A drone's own recording (or a simulated walk) names its camera in sequence.yaml: --camera may be left
+    out, with the same verdicts. Footage that names none, or walks filmed by two cameras, are one-line errors."""
+    given, named = check(north_walk, MAP), run("map", "check", str(north_walk), "--map", str(MAP), "--json")
+    assert named.returncode == 0, named.stderr
+    assert [json.loads(line) for line in named.stdout.splitlines()] == list(given[1].values())
+
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in sorted(p.name for p in (north_walk / "frames").iterdir())[:3]:
+        shutil.copy(north_walk / "frames" / name, images / name)
+    result = run("map", "check", str(images), "--map", str(MAP), "--fps", "6")
+    assert result.returncode == 2 and result.stderr.count("\n") == 1
+    assert result.stderr.startswith(f"companion map check: {images}: which camera filmed it? give --camera")
+
+    other = tmp_path / "other"
+    shutil.copytree(north_walk, other)
+    info = yaml.safe_load((other / "sequence.yaml").read_text())
+    info["camera"]["fx_px"] += 5.0
+    (other / "sequence.yaml").write_text(yaml.safe_dump(info))
+    result = run("survey", str(north_walk), str(other), "--anchors", str(anchors_file(tmp_path / "a.yaml", {"O"})),
+                 "--out", str(tmp_path / "site.yaml"))
+    assert result.returncode == 2 and "were filmed by different cameras" in result.stderr
+    assert not (tmp_path / "site.yaml").exists()
 
 
 @pytest.mark.parametrize("dx_m, turn_deg", [(0.06, 0.0), (0.0, 4.0)])

@@ -20,6 +20,7 @@ import numpy as np
 from companion.capture.attitude_csv import AttitudeFileError, sequence_attitude
 from companion.capture.source import LogThrottle, SourceError, ThreadedSource, to_gray
 from companion.geometry.attitude import DEFAULT_MAX_AGE_S, AttitudeLookup, history_of
+from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, Frame
 from companion.yaml_input import read_yaml
 
@@ -143,6 +144,16 @@ def read_sequence_info(folder) -> dict:
     if not path.is_file():
         return {}
     return read_yaml(path, SourceError, "sequence info")
+
+
+def sequence_camera(folder, info: dict | None = None) -> CameraModel | None:
+    """The camera a sequence folder's ``sequence.yaml`` describes (its ``camera`` section: what
+    ``companion run --record`` and ``companion simulate`` write), or None when it has none; CameraError
+    names sequence.yaml and the key when the section is malformed."""
+    info = read_sequence_info(folder) if info is None else info
+    if "camera" not in info:
+        return None
+    return CameraModel.from_config(info["camera"], str(Path(folder) / SEQUENCE_FILE))
 
 
 def sequence_map_path(folder, info: dict | None = None) -> Path | None:

@@ -1,4 +1,4 @@
-"""``companion map check SEQUENCE --map MAP --camera C``: find markers that moved (``companion.survey.check``)."""
+"""``companion map check SEQUENCE --map MAP [--camera C]``: find markers that moved (``companion.survey.check``)."""
 from __future__ import annotations
 
 import argparse
@@ -7,10 +7,10 @@ import sys
 from pathlib import Path
 
 from companion.capture.source import SourceError
-from companion.geometry.camera import CameraError, load_camera
+from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import MapError, load_map
 from companion.survey.check import MarkerCheck, check_map
-from companion.survey.observations import SurveyError
+from companion.survey.observations import SurveyError, footage_camera
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -21,8 +21,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     check.add_argument("sequences", nargs="+", metavar="SEQUENCE",
                        help="walk-through: sequence folder, video file or image folder")
     check.add_argument("--map", dest="map_path", required=True, help="the facility map to check")
-    check.add_argument("--camera", required=True,
-                       help="camera file: OpenCV calibration YAML or a config with a camera section")
+    check.add_argument("--camera",
+                       help="camera file: OpenCV calibration YAML or a config with a camera section (default: the "
+                            "camera a sequence folder's sequence.yaml names, as companion run --record writes it)")
     check.add_argument("--json", action="store_true", help="JSON lines instead of a table")
     check.add_argument("--fps", type=float, help="frame rate of a video or image folder without timestamps")
     check.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
@@ -34,8 +35,9 @@ def main(args) -> int:
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     try:
         facility_map = load_map(args.map_path)
-        camera = load_camera(args.camera)
-        checks = check_map([Path(s) for s in args.sequences], facility_map, camera, fps=args.fps, progress=progress)
+        sequences = [Path(s) for s in args.sequences]
+        camera = footage_camera(sequences, args.camera)
+        checks = check_map(sequences, facility_map, camera, fps=args.fps, progress=progress)
     except (SurveyError, MapError, CameraError, SourceError) as error:
         print(f"companion map check: {error}", file=sys.stderr)
         return 2

@@ -9,9 +9,9 @@ from pathlib import Path
 
 from companion.capture.source import SourceError
 from companion.cli.output import OutputError, cannot_write, output_dir, output_file
-from companion.geometry.camera import CameraError, load_camera
+from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import MapError, load_map, write_map
-from companion.survey.observations import SurveyError
+from companion.survey.observations import SurveyError, footage_camera
 from companion.survey.survey import LOOSE_SD_M, MAX_CORNER_MISFIT, SurveyOptions, SurveyResult, survey
 
 
@@ -21,8 +21,9 @@ REFILM = "film them again together with mapped markers, from more than one place
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("sequences", nargs="+", metavar="SEQUENCE",
                         help="walk-through: sequence folder, video file or image folder (several: walks of one site)")
-    parser.add_argument("--camera", required=True,
-                        help="camera file: OpenCV calibration YAML or a config with a camera section")
+    parser.add_argument("--camera",
+                        help="camera file: OpenCV calibration YAML or a config with a camera section (default: the "
+                             "camera each sequence folder's sequence.yaml names, as companion run --record writes it)")
     frame = parser.add_mutually_exclusive_group(required=True)
     frame.add_argument("--anchors", help="map file with the frame and at least one measured marker (anchors)")
     frame.add_argument("--map", dest="existing", help="existing map to extend: its markers are the anchors")
@@ -43,7 +44,7 @@ def main(args) -> int:
         if args.size_m is not None and not (math.isfinite(args.size_m) and args.size_m > 0):
             raise SurveyError(f"--size-m must be a positive number of metres, got {args.size_m:g}")
         anchors = load_map(args.anchors or args.existing)
-        camera = load_camera(args.camera)
+        camera = footage_camera([Path(s) for s in args.sequences], args.camera)
         # where the results go, before minutes of survey work
         output_file(Path(args.out), "--out")
         if args.report:

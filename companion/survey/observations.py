@@ -16,10 +16,10 @@ from typing import Callable
 
 import numpy as np
 
-from companion.capture.replay import ReplaySource, open_recording
+from companion.capture.replay import ReplaySource, open_recording, sequence_camera
 from companion.capture.source import SourceError
 from companion.geometry import frames
-from companion.geometry.camera import CameraModel
+from companion.geometry.camera import CameraModel, load_camera
 from companion.markers.layout import MarkerLayout
 from companion.progress import progress_bar
 from companion.types import Detection
@@ -99,6 +99,27 @@ class Footage:
             for marker_id in frame.marker_ids:
                 counts[marker_id] = counts.get(marker_id, 0) + 1
         return counts
+
+
+def footage_camera(sequences: list[Path], camera_path: str | None) -> CameraModel:
+    """The camera that filmed the footage: the file ``camera_path`` (``--camera``) when given, else the one
+    each sequence folder's sequence.yaml describes (a drone's recording, a simulated walk), which must be
+    one camera for all. SurveyError when a sequence carries none (a video, an image folder) or they differ."""
+    if camera_path is not None:
+        return load_camera(camera_path)
+    cameras = []
+    for sequence in sequences:
+        camera = sequence_camera(sequence) if Path(sequence).is_dir() else None
+        if camera is None:
+            raise SurveyError(f"{sequence}: which camera filmed it? give --camera (a calibration file, companion "
+                              f"calibrate): only a sequence folder's sequence.yaml names its camera")
+        cameras.append(camera)
+    for sequence, camera in zip(sequences[1:], cameras[1:]):
+        if (camera.width, camera.height) != (cameras[0].width, cameras[0].height) or not (
+                np.array_equal(camera.K, cameras[0].K) and np.array_equal(camera.dist, cameras[0].dist)):
+            raise SurveyError(f"{sequence} and {sequences[0]} were filmed by different cameras (their "
+                              f"sequence.yaml): survey them separately, or give the one --camera that took both")
+    return cameras[0]
 
 
 def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callable[[int], float | None],
