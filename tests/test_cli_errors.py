@@ -48,6 +48,11 @@ CASES = [
     (["calibrate", "{tmp}/images", "--out", "{tmp}/no-folder/camera.yaml"], 2,
      "companion calibrate: --out {tmp}/no-folder/camera.yaml: the folder {tmp}/no-folder does not exist"),
     (["calibrate", "{tmp}/images", "--out", "{tmp}/images"], 2, "companion calibrate: --out {tmp}/images: is a folder"),
+    # a camera number and its path are one device: missing, said at once (no retries, no OpenCV warnings)
+    (["calibrate", "--device", "97", "--out", "{tmp}/camera.yaml"], 2,
+     "companion calibrate: /dev/video97 does not exist (camera unplugged or another number?"),
+    (["calibrate", "--device", "/dev/video97", "--out", "{tmp}/camera.yaml"], 2,
+     "companion calibrate: /dev/video97 does not exist (camera unplugged or another number?"),
     (["simulate", "{tmp}/s", "--map", str(MAP), "--duration", "-1"], 2,
      "companion simulate: --duration must be a positive number of seconds, not -1.0"),
     (["simulate", "{tmp}/s", "--map", str(MAP), "--duration", "1e9"], 2,

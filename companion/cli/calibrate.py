@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import signal
 import sys
 import threading
@@ -144,16 +145,19 @@ def calibrate_device(args: argparse.Namespace, board) -> Calibration:
     """Live capture from a V4L2 camera, progress on stdout, Ctrl-C to stop with the views so far."""
     if not isinstance(board, CharucoBoard):
         raise CalibrationError("live capture (--device) needs a ChArUco board, not --board")
-    if args.device.startswith("/") and not Path(args.device).exists():
-        raise CalibrationError(f"{args.device}: no such camera device (ls /dev/video*)")
-    from companion.capture.v4l2 import v4l2_source
+    from companion.capture.v4l2 import device_path, device_problem, v4l2_source
+    path = device_path(args.device)
+    if not os.access(path, os.R_OK | os.W_OK):  # missing, or not this user's: say so now, not after retries
+        raise CalibrationError(device_problem(args.device))
+    # OpenCV's own warnings repeat, without the cause, what the error below says (as in the daemon)
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
     source = v4l2_source(args.device, args.width, args.height)
     goal = CaptureGoal(min_views=args.min_views, coverage=args.coverage)
     print(f"hold the {board.describe()} still in view; a view is taken each time it rests somewhere new "
           f"(goal: {goal.min_views} views, {100 * goal.coverage:.0f} % of the image covered; Ctrl-C to stop)")
     with running(source) as stop:
         if not source.connected.wait(timeout=5.0):
-            raise CalibrationError(f"{args.device}: cannot open the camera")
+            raise CalibrationError(source.lost_reason or f"{path}: cannot open the camera: {device_problem(path)}")
         calibration, images = capture_live(source, board, goal, stop, on_event=lambda e: print(e.message,
                                                                                                  flush=True))
     save_views(images, args.save_views)
