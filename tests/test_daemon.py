@@ -703,6 +703,22 @@ def test_a_missing_camera_is_reported_once_by_the_daemon_not_by_opencv_at_every_
     assert "[ WARN" in debug and "VIDEOIO(V4L2)" in debug  # OpenCV does warn here: the test above means something
 
 
+def wait_while_running(process: subprocess.Popen, condition, why=lambda: "", timeout_s: float = 30.0) -> None:
+    """Until ``condition()`` holds, the daemon still running (``why()`` says what went wrong otherwise)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert process.poll() is None and time.monotonic() < deadline, why()
+        time.sleep(0.1)
+
+
+def assert_still_streaming(process: subprocess.Popen, peer: PeerProcess) -> None:
+    """The daemon runs on and its 30 fps vision keeps reaching the peer (over 20 messages in 1.5 s)."""
+    sent_then = len(peer.records("VISION_POSITION_ESTIMATE"))
+    time.sleep(1.5)
+    assert process.poll() is None
+    assert len(peer.records("VISION_POSITION_ESTIMATE")) > sent_then + 20
+
+
 def test_a_status_line_reader_that_goes_away_does_not_stop_the_vehicles_positioning(tmp_path, peers):
     """`companion run | head -1`, or a terminal closed under it: the status line cannot be written any more.
     The daemon says so once in the log and goes on sending vision (before, the broken pipe stopped it), and
@@ -716,14 +732,9 @@ def test_a_status_line_reader_that_goes_away_does_not_stop_the_vehicles_position
     try:
         assert " fps | " in process.stdout.readline()
         process.stdout.close()  # the reader goes away: the next status line (5 s on) meets a broken pipe
-        deadline = time.monotonic() + 30.0
-        while "status line: cannot write" not in (tmp_path / "stderr.log").read_text():
-            assert process.poll() is None and time.monotonic() < deadline, (tmp_path / "stderr.log").read_text()
-            time.sleep(0.1)
-        sent_then = len(peer.records("VISION_POSITION_ESTIMATE"))
-        time.sleep(2.0)
-        assert process.poll() is None
-        assert len(peer.records("VISION_POSITION_ESTIMATE")) > sent_then + 20  # 30 fps: still streaming
+        log = tmp_path / "stderr.log"
+        wait_while_running(process, lambda: "status line: cannot write" in log.read_text(), log.read_text)
+        assert_still_streaming(process, peer)
     finally:
         process.send_signal(signal.SIGTERM)
         code = process.wait(timeout=30)
@@ -741,16 +752,10 @@ def test_a_hangup_leaves_the_daemon_running_and_sigterm_still_stops_it(tmp_path,
     config = write_config(tmp_path, AISLE, port, source={"loop": True})
     process = start_daemon(config)
     try:
-        deadline = time.monotonic() + 20.0
-        while len(peer.records("VISION_POSITION_ESTIMATE")) < 10:
-            assert process.poll() is None and time.monotonic() < deadline
-            time.sleep(0.1)
+        wait_while_running(process, lambda: len(peer.records("VISION_POSITION_ESTIMATE")) >= 10)
         process.send_signal(signal.SIGHUP)
         time.sleep(0.5)
-        sent_then = len(peer.records("VISION_POSITION_ESTIMATE"))
-        time.sleep(1.5)
-        assert process.poll() is None
-        assert len(peer.records("VISION_POSITION_ESTIMATE")) > sent_then + 20  # 30 fps: still streaming
+        assert_still_streaming(process, peer)
     finally:
         process.send_signal(signal.SIGTERM)
         code, _, stderr = finish(process)
