@@ -744,6 +744,40 @@ def test_a_status_line_reader_that_goes_away_does_not_stop_the_vehicles_position
     assert "Traceback" not in stderr and "Exception ignored" not in stderr, stderr
 
 
+def test_on_a_narrow_terminal_the_status_line_is_cut_to_its_width(tmp_path):
+    """An 80-column terminal (a default ssh session): each rewrite of the status line fits in 79 columns,
+    so that the carriage return rewrites all of it (a wrapped line left its first rows behind at every
+    update); the last line, which nothing rewrites, is whole."""
+    import fcntl
+    import pty
+    import struct
+    import termios
+
+    config = write_config(tmp_path, HOVER, free_port())
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: an 80 x 24 terminal, then the daemon on it
+        fcntl.ioctl(0, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+        os.execv(sys.executable, [sys.executable, "-m", "companion", "run", "--config", str(config)])
+    output = b""
+    while True:
+        try:
+            chunk = os.read(fd, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        output += chunk
+    _, status = os.waitpid(pid, 0)
+    os.close(fd)
+    text = output.decode(errors="replace")
+    assert os.waitstatus_to_exitcode(status) == 0, text
+    # each rewrite runs to the end of its row, or to a log line written after it (stderr, the same terminal)
+    rewrites = [re.split(r"\r\n|\d{4}-\d\d-\d\d \d\d:", part)[0] for part in text.split("\r\x1b[K")[1:]]
+    assert len(rewrites) >= 3 and all(" fps | " in line for line in rewrites), text
+    assert all(len(line) <= 79 for line in rewrites[:-1]), [len(line) for line in rewrites]
+    assert len(rewrites[-1]) > 79 and "| sent " in rewrites[-1]  # the last line, whole
+
+
 def test_a_hangup_leaves_the_daemon_running_and_sigterm_still_stops_it(tmp_path, peers):
     """SIGHUP (the ssh session that started `companion run` dropped): said once in the log, vision goes on
     (by default the signal ended the process at once: no clean stop, no finished recording)."""

@@ -55,7 +55,7 @@ from companion.daemon.map_watch import MapWatch
 from companion.daemon.pipeline import Pipeline
 from companion.daemon.record import GROUNDTRUTH_FILE, Recorder
 from companion.daemon.web import LiveView
-from companion.daemon.status import DaemonStatus, recent_activity
+from companion.daemon.status import DaemonStatus, fit_to_terminal, recent_activity
 from companion.geometry.pose import PoseSolver
 from companion.capture.replay import replay_source
 from companion.capture.simulated import SimulatedCamera
@@ -102,6 +102,9 @@ class Daemon:
     def __init__(self, config: Config, status_stream=None, record_frames: int = 2000):
         self.config = config
         self.status_stream = status_stream
+        # the status line is made (for the stream and systemd's STATUS=) only for a daemon given a stream;
+        # the stream may be given up later (_write_status), the line for systemd goes on
+        self._makes_status_line = status_stream is not None
         detector = make_detector(config)
         self.source = make_source(config)
         self.attitude_stream, attitude, self._attitude_text = attitude_source(config, self.source)
@@ -294,16 +297,24 @@ class Daemon:
             if watchdog_s and now >= next_watchdog and now - self._pipeline_alive_s < PIPELINE_STALL_S:
                 self.notifier.watchdog()
                 next_watchdog = now + watchdog_s
-            if now >= next_status:
+            if self._makes_status_line and now >= next_status:
                 line = self.status_line()
                 if tty:
-                    self._write_status("\r\x1b[K" + line)
+                    self._write_status("\r\x1b[K" + fit_to_terminal(line, self._terminal_columns()))
                 elif now >= next_log:
                     self._write_status(line + "\n")
                     next_log = now + max(interval_s, 5.0)
                 self.notifier.status(line)
                 next_status = now + interval_s
-        self._write_status(("\r\x1b[K" if tty else "") + self.status_line() + "\n")
+        if self.status_stream is not None:  # the last line whole: nothing rewrites it
+            self._write_status(("\r\x1b[K" if tty else "") + self.status_line() + "\n")
+
+    def _terminal_columns(self) -> int:
+        """The status terminal's width now (it may have been resized); 80 when it cannot be asked."""
+        try:
+            return os.get_terminal_size(self.status_stream.fileno()).columns
+        except (OSError, ValueError, AttributeError):
+            return 80
 
     def _write_status(self, text: str) -> None:
         """The status line to ``status_stream``. A stream that fails (its reader gone: ``companion run | head``,

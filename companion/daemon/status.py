@@ -91,3 +91,11 @@ def recent_activity(stats: PipelineStats, now_ns: int, window_s: float = 1.0
     latencies = [r.latency_ns for r in recent if r.latency_ns is not None]
     latency_ms = float(np.median(latencies)) / 1e6 if latencies else None
     return fps, (last.markers if last else 0), latency_ms, (last.estimate if last else None)
+
+
+def fit_to_terminal(line: str, columns: int) -> str:
+    """``line`` cut to a terminal ``columns`` wide (its last column left free). A carriage return goes back
+    to the start of the last row only: a line that wrapped (190 characters on an 80-column ssh session)
+    would leave its first rows behind at every update. The whole line still goes to the log every few
+    seconds without a terminal, to systemd's STATUS= and to the live view."""
+    return line[:max(columns - 1, 1)]
