@@ -143,6 +143,12 @@ def device_path(device: str | int) -> str:
     return f"/dev/video{device}" if isinstance(device, int) or str(device).isdigit() else str(device)
 
 
+def opencv_warnings(shown: bool) -> None:
+    """Show OpenCV's own warnings or only its errors. Left out below debug: at every reopen of a missing
+    camera OpenCV warns "can't be used to capture by name", without the cause ``device_problem`` gives."""
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_WARNING if shown else cv2.utils.logging.LOG_LEVEL_ERROR)
+
+
 def device_problem(device: str | int) -> str:
     """Why a V4L2 device does not open: missing, not readable by this user (naming the
     device's group), or present and readable but refused by the driver (busy, no capture)."""

@@ -59,6 +59,11 @@ def build_parser(command: str | None = None, module: ModuleType | None = None) -
     return parser
 
 
+def discard_stdout() -> None:
+    """Point stdout at /dev/null: its reader is gone, and flushing what is left at exit would raise again."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     # No option comes before the sub-command: a known name in first place is the chosen one.
@@ -81,9 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"companion {command}: {error}", file=sys.stderr)
         return 2
     except BrokenPipeError:
-        # the reader went away (`companion detect ... | head`): stop quietly, as a shell tool does; stdout
-        # pointed at /dev/null so that flushing it at exit raises nothing more
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        # the reader went away (`companion detect ... | head`): stop quietly, as a shell tool does
+        discard_stdout()
         return 128 + signal.SIGPIPE
     except OSError as error:
         # a file that vanished or a disk that filled up mid-way: one line, not a traceback

@@ -145,12 +145,11 @@ def calibrate_device(args: argparse.Namespace, board) -> Calibration:
     """Live capture from a V4L2 camera, progress on stdout, Ctrl-C to stop with the views so far."""
     if not isinstance(board, CharucoBoard):
         raise CalibrationError("live capture (--device) needs a ChArUco board, not --board")
-    from companion.capture.v4l2 import device_path, device_problem, v4l2_source
+    from companion.capture.v4l2 import device_path, device_problem, opencv_warnings, v4l2_source
     path = device_path(args.device)
     if not os.access(path, os.R_OK | os.W_OK):  # missing, or not this user's: say so now, not after retries
         raise CalibrationError(device_problem(args.device))
-    # OpenCV's own warnings repeat, without the cause, what the error below says (as in the daemon)
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    opencv_warnings(shown=False)
     source = v4l2_source(args.device, args.width, args.height)
     goal = CaptureGoal(min_views=args.min_views, coverage=args.coverage)
     print(f"hold the {board.describe()} still in view; a view is taken each time it rests somewhere new "

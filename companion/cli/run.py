@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import signal
 import sys
 from pathlib import Path
@@ -13,6 +12,7 @@ from companion.daemon.config import Config, ConfigError, default_config_path, ht
 from companion.daemon.record import RecordParams
 from companion.yaml_input import Where
 from companion.daemon.service import LOG_LEVELS, Daemon, setup_logging
+from companion.cli import discard_stdout
 
 log = logging.getLogger("companion")
 
@@ -54,8 +54,8 @@ def main(args) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        if daemon.status_stream is None:  # stdout failed and was given up: its unwritten rest is dropped at exit
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        if daemon.status_stream is None:  # stdout failed and was given up
+            discard_stdout()
 
 
 def with_options(config: Config, args) -> Config:

@@ -36,7 +36,6 @@ import threading
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from companion.geometry import frames
@@ -60,7 +59,7 @@ from companion.geometry.pose import PoseSolver
 from companion.capture.replay import replay_source
 from companion.capture.simulated import SimulatedCamera
 from companion.capture.source import FrameSource
-from companion.capture.v4l2 import v4l2_source
+from companion.capture.v4l2 import opencv_warnings, v4l2_source
 from companion.params import ParamsError
 from companion.types import Frame
 from companion.yaml_input import Where
@@ -419,7 +418,4 @@ def setup_logging(level: str = "info") -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(getattr(logging, level.upper()))
-    # OpenCV's own warnings (e.g. "can't be used to capture by name" at every reopen of a missing camera)
-    # repeat, without the cause, what the daemon reports itself: kept for --log-level debug
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_WARNING if level == "debug"
-                                  else cv2.utils.logging.LOG_LEVEL_ERROR)
+    opencv_warnings(shown=level == "debug")

@@ -136,6 +136,11 @@ class CameraModel:
             inside_y = (p[:, 1] >= -0.5 + margin_px) & (p[:, 1] <= self.height - 0.5 - margin_px)
         return inside_x & inside_y
 
+    def same_intrinsics(self, other: "CameraModel") -> bool:
+        """Whether ``other`` delivers the same images: frame size, K and distortion equal (the mount may differ)."""
+        return ((self.width, self.height) == (other.width, other.height) and np.array_equal(self.K, other.K)
+                and np.array_equal(self.dist, other.dist))
+
     def scaled_to(self, width: int, height: int) -> "CameraModel":
         """The same camera delivering ``width`` x ``height`` frames of the same field of view (a
         sensor mode that scales the whole image): the intrinsics scaled, the distortion (in

@@ -115,8 +115,7 @@ def footage_camera(sequences: list[Path], camera_path: str | None) -> CameraMode
                               f"calibrate): only a sequence folder's sequence.yaml names its camera")
         cameras.append(camera)
     for sequence, camera in zip(sequences[1:], cameras[1:]):
-        if (camera.width, camera.height) != (cameras[0].width, cameras[0].height) or not (
-                np.array_equal(camera.K, cameras[0].K) and np.array_equal(camera.dist, cameras[0].dist)):
+        if not camera.same_intrinsics(cameras[0]):
             raise SurveyError(f"{sequence} and {sequences[0]} were filmed by different cameras (their "
                               f"sequence.yaml): survey them separately, or give the one --camera that took both")
     return cameras[0]
