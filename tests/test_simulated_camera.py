@@ -83,10 +83,19 @@ def test_history_interpolates_and_extrapolates():
     assert not history.add(SimState(100_000_000, np.zeros(3), np.eye(3), np.zeros(3)))  # not newer
 
 
+def clock_stamps(clock: SendClock, received: np.ndarray) -> dict[int, int]:
+    """{arrival index: its stamp} of every arrival the clock stamped (a dropped one is missing)."""
+    stamps = {}
+    for i, receive_ns in enumerate(received):
+        stamps.update((index, stamp_ns) for stamp_ns, index in clock.arrive(int(receive_ns), i))
+    return stamps
+
+
 def test_send_clock_puts_delayed_and_bunched_arrivals_back_on_the_send_grid():
     """Sent every 10 ms from t = 0; received 1-15 ms later (random), with two hold-ups of 50 ms
-    whose samples arrive at once: every stamp within 3.5 ms of its send time (the promptest delay, 1 ms,
-    and the fitted interval's error over the window)."""
+    whose samples arrive at once: once the interval is fitted (``fit_after`` arrivals; until then a sample
+    is stamped at its arrival), every stamp within 4 ms of its send time (the promptest delay, 1 ms, and
+    the fitted interval's error over the run), none dropped, none a restart."""
     rng = np.random.default_rng(3)
     period = 10_000_000
     sent = np.arange(300) * period
@@ -94,19 +103,21 @@ def test_send_clock_puts_delayed_and_bunched_arrivals_back_on_the_send_grid():
     for start in (120, 250):  # a hold-up: everything sent in 50 ms arrives at its end, bunched
         received[start:start + 5] = received[start + 4] + np.arange(5) * 1000
     clock = SendClock()
-    stamps = np.array([clock.stamp(int(r)) for r in received])
-    errors_ms = (stamps - sent)[20:] / 1e6
-    assert np.all(errors_ms < 3.5) and np.all(errors_ms > -0.5), (errors_ms.min(), errors_ms.max())
+    stamps = clock_stamps(clock, received)
+    assert sorted(stamps) == list(range(len(sent))) and clock.restarts == 0
+    stamps = np.array([stamps[i] for i in range(len(sent))])
+    errors_ms = (stamps - sent)[clock.fit_after:] / 1e6
+    assert np.all(errors_ms < 4.0) and np.all(errors_ms > -0.5), (errors_ms.min(), errors_ms.max())
     assert np.all(stamps <= received)
     # the raw receive times were up to 55 ms late
-    assert ((received - sent)[20:] / 1e6).max() > 40
+    assert ((received - sent)[clock.fit_after:] / 1e6).max() > 40
 
 
 def test_send_clock_follows_a_sender_slower_than_real_time():
     clock = SendClock()
     period = 10_200_000  # a simulator 2 % behind real time
-    stamps = [clock.stamp(k * period + 2_000_000) for k in range(400)]
-    np.testing.assert_allclose(np.array(stamps[200:]) - np.arange(200, 400) * period, 2_000_000, atol=1000)
+    stamps = clock_stamps(clock, np.arange(400) * period + 2_000_000)
+    np.testing.assert_allclose([stamps[i] - i * period for i in range(200, 400)], 2_000_000, atol=1000)
 
 
 def ardupilot_send_times(stalls_at: tuple[int, ...], stall_ms: float, rng) -> np.ndarray:
@@ -132,55 +143,65 @@ def ardupilot_send_times(stalls_at: tuple[int, ...], stall_ms: float, rng) -> np
 @pytest.mark.parametrize("delays_ms, bound_ms", [((0.2, 3.0), 3.5), ((1.0, 15.0), 7.5)])
 def test_send_clock_follows_a_sender_that_falls_behind_and_restarts_its_clock(delays_ms, bound_ms):
     """Three 60 ms stalls of an ArduPilot-like sender, received 0.2-3 or 1-15 ms later: the clock restarts
-    its grid once for each stall; every stamp is within 3.5 or 7.5 ms of its send time (half the spread of the
-    delays: the promptest arrival of a young window) except the first few samples
-    after a stall (the first is stamped on the old grid until the second shows the restart, the next ones
-    at their arrival until the new grid has min_arrivals samples)."""
+    its grid once for each stall, and every stamp past the first 50 is within 3.5 or 7.5 ms of its send time
+    (half the spread of the delays; ArduPilot's 2.5 ms loop makes sends up to that late on their due
+    times), but for the first 15 after a stall, which are never early by more than that either; none is
+    later than its arrival.
+    The first arrivals after a stall, late on the old grid, are stamped only once ``confirm`` of them show
+    the restart (on the old grid the first was stamped a stall's length early). The first is dropped (its
+    content can be a stall old); with the wider delays, the next may arrive well before the slot its
+    delayed followers put it in: it is dropped too."""
     rng = np.random.default_rng(11)
     sent = ardupilot_send_times((150, 300, 450), 60.0, rng)
     # TCP hands them over in order: a sample never arrives before the one sent ahead of it
     received = np.maximum.accumulate(sent + (rng.uniform(*delays_ms, len(sent)) * 1e6).astype(np.int64))
     clock = SendClock()
-    stamps, restamped = [], {}
-    for i, r in enumerate(received):
-        stamps.append(clock.stamp(int(r)))
-        if clock.restamped_ns is not None:
-            restamped[i - 1] = clock.restamped_ns
-    stamps = np.array(stamps)
-    firsts = np.nonzero(np.diff(sent) > 50_000_000)[0] + 1
+    stamped_with = {}
+    stamps = {}
+    for i, receive_ns in enumerate(received):
+        for stamp_ns, index in clock.arrive(int(receive_ns), i):
+            stamps[index], stamped_with[index] = stamp_ns, i
     assert clock.restarts == 3
-    # the first sample after each stall, stamped on the old grid, is corrected to its arrival
-    assert restamped == {int(i): int(received[i]) for i in firsts}
-    after_stall = np.zeros(len(sent), dtype=bool)
-    for first in firsts:
-        after_stall[first:first + clock.min_arrivals] = True
-    errors_ms = np.abs(stamps - sent) / 1e6
-    assert np.all(errors_ms[20:][~after_stall[20:]] < bound_ms), errors_ms[20:][~after_stall[20:]].max()
-    assert np.all(stamps <= received)
+    # every arrival stamped, dropped or (the newest few, late) still held
+    assert len(stamps) + clock.dropped + clock.holding == len(sent)
+    assert clock.dropped <= clock.confirm * clock.restarts
+    for first in np.nonzero(np.diff(sent) > 50_000_000)[0] + 1:
+        assert first not in stamps  # its content may be a stall old
+        shown = first + clock.confirm - 1
+        assert all(stamped_with[i] == shown for i in range(first + 1, shown + 1) if i in stamps)
+    index = np.array(sorted(stamps))
+    stamps = np.array([stamps[i] for i in index])
+    errors_ms = (stamps - sent[index]) / 1e6
+    # past the first 50, none early by more than the bound; and but for the first 15 after a stall
+    # (a young run: its promptest arrival is one of few) none late by more than the bound
+    young = np.zeros(len(sent), dtype=bool)
+    for first in np.nonzero(np.diff(sent) > 50_000_000)[0] + 1:
+        young[first:first + 15] = True
+    judged = (index >= 50) & ~young[index]
+    assert errors_ms[index >= 50].min() > -bound_ms, errors_ms[index >= 50].min()
+    assert np.abs(errors_ms[judged]).max() < bound_ms, np.abs(errors_ms[judged]).max()
+    assert np.all(stamps <= received[index])
 
 
-def test_send_clock_tells_a_delayed_arrival_before_a_stall_from_a_restart():
-    """The sample sent just before a 150 ms stall arrives 20 ms late (a busy receiver); the next one, after the
-    stall, is late too. That pair is not a restarted grid: the delayed one keeps its stamp and the new grid
-    starts from the one after the stall. Every stamp stays within 3.5 ms of its send time past the stall's
-    first few samples. (Restarted from the delayed one, every stamp for 2 s was 126 ms early, as one
-    flight under load showed: the camera stalled for 1.7 s.)"""
+def test_send_clock_drops_a_delayed_arrival_before_a_stall_that_a_restart_leaves_in_doubt():
+    """The sample sent just before a 150 ms stall arrives 20 ms late (a busy receiver); those after the
+    stall are late on the old grid by the stall. The delayed one arrived well before the slot the later ones
+    put it in on the new grid: it may have been sent before the stall or after it, so neither grid's stamp
+    is sure, and it is dropped, as is the first after the stall. Every other stamp past the first 50 is within 3.5 ms of its send time.
+    (Restarted from the delayed one, every stamp for 2 s was 126 ms early, as one flight under load showed:
+    the camera stalled for 1.7 s.)"""
     rng = np.random.default_rng(7)
     sent = ardupilot_send_times((300,), 150.0, rng)
     received = sent + (rng.uniform(0.2, 1.5, len(sent)) * 1e6).astype(np.int64)
     received[299] = sent[299] + 20_000_000
     received = np.maximum.accumulate(received)
     clock = SendClock()
-    stamps, restamped = [], []
-    for r in received:
-        stamps.append(clock.stamp(int(r)))
-        restamped.append(clock.restamped_ns)
-    errors_ms = np.abs(np.array(stamps) - sent) / 1e6
+    stamps = clock_stamps(clock, received)
     assert clock.restarts == 1
-    assert not any(r is not None for r in restamped)  # the delayed one keeps its grid stamp
-    assert errors_ms[299] < 3.5
-    settled = np.r_[20:299, 300 + clock.min_arrivals:len(sent)]
-    assert errors_ms[settled].max() < 3.5, errors_ms[settled].max()
+    # and the first after the stall, whose content may be a stall old
+    assert sorted(stamps) == [i for i in range(len(sent)) if i not in (299, 300)] and clock.dropped == 2
+    errors_ms = np.array([abs(stamps[i] - sent[i]) / 1e6 for i in range(50, len(sent)) if i not in (299, 300)])
+    assert errors_ms.max() < 3.5, errors_ms.max()
 
 
 def test_send_clock_recovers_from_a_burst_at_the_start():
@@ -191,10 +212,42 @@ def test_send_clock_recovers_from_a_burst_at_the_start():
     received = sent + (rng.uniform(0.2, 1.5, len(sent)) * 1e6).astype(np.int64)
     received[:10] = received[9]
     clock = SendClock()
-    stamps = np.array([clock.stamp(int(r)) for r in received])
-    errors_ms = np.abs(stamps - sent)[60:] / 1e6
+    stamps = clock_stamps(clock, received)
+    stamps = np.array([stamps[i] for i in range(60, len(sent))])
+    errors_ms = np.abs(stamps - sent[60:]) / 1e6
     assert errors_ms.max() < 2.0, errors_ms.max()
-    assert np.all(np.diff(stamps[60:]) > 0)
+    assert np.all(np.diff(stamps) > 0)
+
+
+def test_send_clock_under_a_busy_receiver_stamps_nothing_a_stall_early():
+    """A sender at 100 Hz that stalls 150 ms every 1.5 s and restarts its clock, and a receiver on a busy
+    machine: 1-3 ms of delay, and now and then (5 % of arrivals) its thread sleeps ~20 ms and reads what
+    queued at once. No stamp is more than 20 ms early (it was: a stall's length early, 150 ms, dozens of
+    times, when the receiver's bursts hid the restart, as in a CI run where the camera stalled for 1.7 s),
+    none is later than its arrival, and at least 95 % of the samples are stamped."""
+    rng = np.random.default_rng(2)
+    period, stall = 10_000_000, 150_000_000
+    sent, t_ns = [], 0
+    while len(sent) < 2000:
+        sent.append(t_ns)
+        t_ns += period + (stall + int(rng.uniform(0, 2e6)) if len(sent) % 150 == 0 else 0)
+    sent = np.array(sent, dtype=np.int64)
+    received = sent + 200_000 + rng.exponential(2e6, len(sent)).astype(np.int64)
+    asleep_until = 0
+    for i in range(len(received)):
+        if received[i] < asleep_until:
+            received[i] = asleep_until
+        elif rng.random() < 0.05:
+            asleep_until = received[i] = received[i] + int(rng.exponential(20e6))
+    received = np.maximum.accumulate(received)
+    clock = SendClock()
+    stamps = clock_stamps(clock, received)
+    index = np.array(sorted(stamps))
+    errors_ms = (np.array([stamps[i] for i in index]) - sent[index]) / 1e6
+    assert clock.restarts >= 13
+    assert errors_ms[index >= 20].min() > -20.0, errors_ms[index >= 20].min()
+    assert np.all(np.array([stamps[i] for i in index]) <= received[index])
+    assert len(index) >= 0.95 * len(sent)
 
 
 def test_dequantizer_takes_the_degE7_steps_out_of_a_moving_vehicles_positions():
@@ -217,12 +270,12 @@ def test_dequantizer_takes_the_degE7_steps_out_of_a_moving_vehicles_positions():
     assert smoothed_cm[260:].max() < 0.1
 
 
-def test_stream_files_a_late_sample_once_the_next_says_when_it_was_sent():
+def test_stream_files_late_samples_once_the_ones_after_them_say_when_they_were_sent():
     """An ArduPilot-like sender moving north at 1 m/s, with three 150 ms stalls, received 0.2-3 ms later: the
-    first sample after each stall arrives late on the old grid; it is held until the next arrival shows the
-    restart, then filed at its arrival. After the first 20, every filed state is stamped within 3.5 ms of its
-    send (filed on the old grid, the first after each stall was 140 ms early) and is where the vehicle was
-    at its stamp within 1 cm."""
+    first samples after each stall arrive late on the old grid; they are held until ``confirm`` of them show
+    the restart, then filed on the new grid, but for the first, whose content may be a stall old. After the
+    first 50, every filed state is stamped within 3.5 ms of its send (filed on the old grid, the first after
+    each stall was 140 ms early) and is where the vehicle was at its stamp within 1 cm."""
     rng = np.random.default_rng(11)
     sent = ardupilot_send_times((150, 300, 450), 150.0, rng)
     received = np.maximum.accumulate(sent + (rng.uniform(0.2, 3.0, len(sent)) * 1e6).astype(np.int64))
@@ -235,23 +288,24 @@ def test_stream_files_a_late_sample_once_the_next_says_when_it_was_sent():
         stream.on_message(sim_state_message(lat, lon, alt, velocity=(1.0, 0.0, 0.0)), int(receive_ns))
         filed.append(history.newest_t_ns)
     states = list(history._states)
-    assert stream.clock.restarts == 3
-    assert len(states) == len(sent)  # every one filed (the last one was not late: none held)
-    stamp_errors_ms = np.abs(np.array([s.t_ns for s in states]) - sent) / 1e6
-    assert stamp_errors_ms[20:].max() < 3.5, stamp_errors_ms[20:].max()
-    errors_cm = np.array([abs(s.position_ned_m[0] - s.t_ns * 1e-9) * 100 for s in states])
     firsts = np.nonzero(np.diff(sent) > 100_000_000)[0] + 1
+    assert stream.clock.restarts == 3 and stream.clock.dropped == 3 and stream.clock.holding == 0
+    kept = np.array([i for i in range(len(sent)) if i not in firsts])
+    assert len(states) == len(kept)
+    stamp_errors_ms = np.abs(np.array([s.t_ns for s in states]) - sent[kept]) / 1e6
+    assert stamp_errors_ms[kept >= 50].max() < 3.5, stamp_errors_ms[kept >= 50].max()
+    errors_cm = np.array([abs(s.position_ned_m[0] - s.t_ns * 1e-9) * 100 for s in states])
     # right after a stall: a stamp up to 3 ms late (the new grid is young) and a degE7 step (0.56 cm at most:
     # the dequantizer starts again); elsewhere the stamp's error only
-    assert errors_cm[20:].max() < 1.0, errors_cm[20:].max()
-    settled = np.ones(len(sent), dtype=bool)
-    settled[:20] = False
+    assert errors_cm[kept >= 50].max() < 1.0, errors_cm[kept >= 50].max()
+    settled = kept >= 50
     for first in firsts:
-        settled[first:first + 60] = False
+        settled &= ~((kept >= first) & (kept < first + 60))
     assert errors_cm[settled].max() < 0.3, errors_cm[settled].max()
-    # each first sample after a stall was held one arrival: filed only with the next one
+    # the samples after a stall were held: filed only with the arrival that showed the restart
+    shown = stream.clock.confirm - 1
     for first in firsts:
-        assert filed[first] == filed[first - 1] and filed[first + 1] > filed[first]
+        assert filed[first + shown - 1] == filed[first - 1] and filed[first + shown] > filed[first - 1]
 
 
 def simulated_config(tmp_path, **source):

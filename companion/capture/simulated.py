@@ -30,12 +30,15 @@ The closed loop in a simulator (docs/sitl.md)::
   clock does with ``time_boot_ms`` (``companion.mavlink.attitude``): the
   error is that arrival's delay. A simulator that falls behind (a stall of
   its process) skips the sends it missed and starts its clock again, as
-  ArduPilot does: ``SendClock`` sees two arrivals in a row late on the old
-  grid and starts a new one from them (on the old grid every later sample
-  would be stamped a stall's length early for the window's 2 s, and the
-  camera, finding no sample near its render time, would stall). A late
-  arrival is held back until the next shows which it was, so that no frame
-  is rendered from a sample stamped a stall's length early.
+  ArduPilot does: ``SendClock`` sees three arrivals in a row late on the old
+  grid by over an interval, not in one burst, and starts a new one from
+  them (on the old grid every later sample would be stamped a stall's
+  length early, and the camera, finding no sample near its render time,
+  would stall). Late arrivals are held back until the ones after them show
+  which they were, so that no frame is rendered from a sample stamped a
+  stall's length early; a sample whose send time stays in doubt, and the
+  first after a stall (composed before it, its content can be a stall old),
+  are dropped.
   SITL must run in real time (speedup 1).
 * **Render.** Every ``1 / fps`` the thread renders the state at ``now -
   render_delay`` (interpolated between the two samples around it: positions
@@ -162,85 +165,156 @@ class SimStateHistory:
 class SendClock:
     """Send times of a message sent at a regular interval, from its receive times (see the module docstring).
 
-    Over the last ``window`` arrivals, numbered i = 0..n-1: the interval is
-    the least-squares slope of the arrival times over i (it follows a
-    simulator slower than real time), the delay line the promptest arrival
-    (offset = min(arrival_i - i * interval)); the newest is stamped on it,
-    never later than it arrived.
+    ``arrive(receive_ns, item)`` returns the arrivals whose send times are
+    now known, oldest first, as ``(stamp_ns, item)``: at once for an arrival
+    on the grid, later for a late one, held until the arrivals after it say
+    why it was late. No stamp is later than its arrival.
 
-    A sender that falls behind by more than an interval skips the missed
-    slots and starts its grid again from then (ArduPilot's
-    ``GCS_MAVLINK::update_send``): every later arrival is then late on the
-    old grid. Two arrivals in a row (not a burst: at least half an interval
-    apart) later than the grid by the window's usual spread (90th percentile
-    of the arrivals' lateness) plus half an interval are that restart, and
-    the window begins again from them, keeping the interval (if fitted to
-    ``fit_after`` arrivals or more); the first of
-    the two, stamped on the old grid, is then known to have been sent when
-    it arrived (``restamped_ns``: its holder corrects it). Unless the two are
-    further apart than an interval and a half plus that spread: then the
-    sender stalled between them, the first was only delayed on its way (its
-    stamp holds), and the window begins again from the second.
+    The grid: the current run of arrivals (the last ``window`` at most),
+    numbered i = 0..n-1, is stamped on the line interval * i + offset under
+    them all, through the promptest (offset = min(arrival_i - i * interval)).
+    The interval is fitted to the run's prompt arrivals (``_prompt_slope``:
+    a delay only ever adds) once it has ``fit_after``; until the first fit,
+    an arrival is stamped at its arrival. A fit to a run younger than the
+    one the kept interval came from is taken only within 2 % of it: a run
+    that began with a long burst can be far off.
+
+    An arrival is late when it comes after its slot on the grid by more
+    than half an interval plus the run's usual delay (median minus
+    promptest). A late arrival was either delayed on its way (a busy
+    receiver's thread woke late: the arrivals after it come on the grid
+    again, and it keeps its grid stamp) or is among the first after the
+    sender fell behind by more than an interval and started its clock again
+    from then (ArduPilot's ``GCS_MAVLINK::update_send``): every later
+    arrival is then late on the old grid by about the stall, and stamped on
+    it, it would be a stall's length early. ``confirm`` late arrivals in a
+    row, each over an interval late and not in one burst (at least half an
+    interval apart on average), or ``max_held`` in any way, are that
+    restart: a new run starts from them. Of them, those that arrived more
+    than half an interval before the slot the later ones put them in may
+    have been sent before the stall (or were the prompt first ones after
+    it, their followers delayed: the two look alike): no stamp is sure for
+    them, and they are dropped. The first of the new run is dropped too:
+    composed before the stall and sent after it, its content can be a
+    stall old.
     """
 
-    def __init__(self, window: int = 200, min_arrivals: int = 8, fit_after: int = 50):
-        self._arrivals_ns: collections.deque[int] = collections.deque(maxlen=window)
-        self.min_arrivals = min_arrivals
+    def __init__(self, window: int = 200, fit_after: int = 50, confirm: int = 3, max_held: int = 20):
+        self._arrivals_ns: collections.deque[int] = collections.deque(maxlen=window)   # the current run
+        self._held: list[tuple[int, object]] = []   # late arrivals, until the ones after them say why
+        self._held_late_ns: list[float] = []
         self.fit_after = fit_after
+        self.confirm = confirm
+        self.max_held = max_held
         self.restarts = 0
+        self.dropped = 0
         self._interval_ns = 0.0
-        self._fitted_over = 0           # arrivals the interval was last fitted to
-        self._keep_interval = False     # after a restart: the interval fitted before it, until fit_after arrivals
-        self._previous_late = False
-        self.restamped_ns: int | None = None   # set by stamp(): the previous sample's corrected stamp
+        self._fitted_over = 0   # arrivals the interval was fitted to
 
     @property
-    def late(self) -> bool:
-        """The newest arrival was late on the grid: the next one says whether its stamp holds (``restamped_ns``)."""
-        return self._previous_late
+    def holding(self) -> int:
+        """Late arrivals not yet stamped."""
+        return len(self._held)
 
-    def stamp(self, receive_ns: int) -> int:
-        arrivals = self._arrivals_ns
-        self.restamped_ns = None
-        if len(arrivals) + 1 >= self.min_arrivals:
-            self._notice_restart(receive_ns)
-        arrivals.append(receive_ns)
-        if len(arrivals) < self.min_arrivals:
-            return receive_ns
+    def arrive(self, receive_ns: int, item=None) -> list[tuple[int, object]]:
+        """(stamp_ns, item) of every arrival whose send time is now known, oldest first."""
+        late_ns = self._late_ns(receive_ns)
+        if late_ns <= self._interval_ns / 2:
+            held, self._held = self._held, []
+            self._held_late_ns = []
+            return self._settle([*held, (receive_ns, item)])
+        self._held.append((receive_ns, item))
+        self._held_late_ns.append(late_ns)
+        if not self._restarted():
+            return []
+        held, self._held = self._held, []
+        self._held_late_ns = []
+        # the first of the new run goes too: composed before the stall, sent after it, it may be a stall old
+        dropped = self._in_doubt([receive_ns for receive_ns, _ in held]) + 1
+        self.dropped += dropped
+        self.restarts += 1
+        self._arrivals_ns.clear()
+        self._settle(held[dropped - 1:dropped])
+        return self._settle(held[dropped:])
+
+    def _late_ns(self, receive_ns: int) -> float:
+        """How much later than its slot on the grid ``receive_ns`` came, beyond the run's usual delay
+        (median minus promptest); 0 while the interval is unknown."""
+        if not self._arrivals_ns or self._interval_ns <= 0:
+            return 0.0
         lateness_ns = self._lateness_ns()
-        return min(receive_ns, arrivals[0] + int(lateness_ns.min() + (len(arrivals) - 1) * self._interval_ns))
+        slot = len(self._arrivals_ns) + len(self._held)
+        return (receive_ns - self._arrivals_ns[0]) - slot * self._interval_ns - np.median(lateness_ns)
+
+    def _restarted(self) -> bool:
+        """The held arrivals are a new grid: the last ``confirm`` of them a whole interval late and not in
+        one burst, or too many held."""
+        held = self._held
+        if len(held) >= self.max_held:
+            return True
+        return (len(held) >= self.confirm
+                and min(self._held_late_ns[-self.confirm:]) > self._interval_ns
+                and held[-1][0] - held[-self.confirm][0] >= (self.confirm - 1) * self._interval_ns / 2)
+
+    def _in_doubt(self, held_ns: list[int]) -> int:
+        """How many of the first held arrivals came more than half an interval before the slot the ones
+        after them put them in."""
+        doubtful = 0
+        for j in range(len(held_ns) - 1):
+            slot_ns = min(r - (k - j) * self._interval_ns for k, r in enumerate(held_ns) if k > j)
+            if held_ns[j] < slot_ns - self._interval_ns / 2:
+                doubtful = j + 1
+        return doubtful
+
+    def _settle(self, arrivals: list[tuple[int, object]]) -> list[tuple[int, object]]:
+        """Onto the current run, each stamped on its grid (at its arrival while the interval is unknown)."""
+        settled = []
+        for receive_ns, item in arrivals:
+            self._arrivals_ns.append(receive_ns)
+            if self._update_interval() <= 0:
+                settled.append((receive_ns, item))
+                continue
+            grid_ns = (self._arrivals_ns[0] + self._lateness_ns().min()
+                       + (len(self._arrivals_ns) - 1) * self._interval_ns)
+            settled.append((min(receive_ns, int(grid_ns)), item))
+        return settled
+
+    def _update_interval(self) -> float:
+        """The interval (ns; 0 until first fitted): fitted to the run once it has ``fit_after`` arrivals.
+        A fit to a younger run than the kept interval's differs from it by 2 % at most (one that began with
+        a long burst can be far off), or is not taken."""
+        if len(self._arrivals_ns) >= self.fit_after:
+            t = np.asarray(self._arrivals_ns, dtype=np.float64) - self._arrivals_ns[0]
+            interval_ns = _prompt_slope(t, self._interval_ns)
+            if len(t) >= self._fitted_over or abs(interval_ns - self._interval_ns) <= 0.02 * self._interval_ns:
+                self._interval_ns, self._fitted_over = interval_ns, max(len(t), self._fitted_over)
+        return self._interval_ns
 
     def _lateness_ns(self) -> np.ndarray:
-        """(n,) each arrival's time after its slot on the grid from the oldest (fits the interval)."""
+        """(n,) each arrival of the run: its time after its slot on the grid from the oldest."""
         t = np.asarray(self._arrivals_ns, dtype=np.float64) - self._arrivals_ns[0]
-        i = np.arange(len(t), dtype=np.float64)
-        if not (self._keep_interval and len(t) < self.fit_after):
-            # least squares: interval = cov(i, t) / var(i)
-            self._interval_ns = float(np.dot(i - i.mean(), t - t.mean()) / np.dot(i - i.mean(), i - i.mean()))
-            self._fitted_over = len(t)
-        return t - i * self._interval_ns
+        return t - np.arange(len(t)) * self._interval_ns
 
-    def _notice_restart(self, receive_ns: int) -> None:
-        """Begin the window again from the previous arrival when it and ``receive_ns`` are a restarted grid."""
-        arrivals = self._arrivals_ns
-        lateness_ns = self._lateness_ns()
-        promptest_ns = lateness_ns.min()
-        spread_ns = np.percentile(lateness_ns, 90) - promptest_ns
-        late_ns = (receive_ns - arrivals[0]) - len(arrivals) * self._interval_ns - promptest_ns
-        late = self._interval_ns > 0 and late_ns > spread_ns + self._interval_ns / 2
-        burst = receive_ns - arrivals[-1] < self._interval_ns / 2
-        if late and self._previous_late and not burst:
-            previous_ns = arrivals[-1]
-            arrivals.clear()
-            # a stall between the two: the previous one was merely delayed (its stamp holds), the grid starts here
-            if receive_ns - previous_ns <= 1.5 * self._interval_ns + spread_ns:
-                arrivals.append(previous_ns)
-                self.restamped_ns = previous_ns
-            self.restarts += 1
-            # an interval fitted to a young window (a burst at the start) is not kept
-            self._keep_interval = self._fitted_over >= self.fit_after
-            late = False
-        self._previous_late = late
+
+def _prompt_slope(t: np.ndarray, guess: float) -> float:
+    """(n,) arrival times of slots 0..n-1 (n >= 3): the slope of the line through the promptest arrival of
+    the first third and that of the last third (a delay only ever adds), promptest against the line of
+    slope ``guess`` (0: least squares' slope), then again against the line found."""
+    i = np.arange(len(t), dtype=np.float64)
+    slope = guess if guess > 0 else _least_squares_slope(i, t)
+    third = len(t) // 3
+    for _ in range(2):
+        residual = t - slope * i
+        a = int(np.argmin(residual[:third]))
+        b = len(t) - third + int(np.argmin(residual[-third:]))
+        slope = float(t[b] - t[a]) / (b - a)
+    return slope
+
+
+def _least_squares_slope(i: np.ndarray, t: np.ndarray) -> float:
+    # slope = cov(i, t) / var(i)
+    di = i - i.mean()
+    return float(np.dot(di, t - t.mean()) / np.dot(di, di))
 
 
 class Dequantizer:
@@ -293,29 +367,20 @@ class SimStateStream:
         self.request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SIM_STATE, rate_hz, request_retry_s)
         self.clock = SendClock()
         self.dequantizer = Dequantizer()
-        self._held: SimState | None = None  # a late arrival, until the next says when it was sent
 
     def on_message(self, message, receive_ns: int) -> None:
-        stamp_ns = self.clock.stamp(receive_ns)
-        if self._held is not None:
-            held, self._held = self._held, None
-            if self.clock.restamped_ns is not None:  # the sender restarted its clock: sent when it arrived
-                held = SimState(self.clock.restamped_ns, held.position_ned_m, held.R_ned_body, held.velocity_ned_m_s)
-            self._file(held)
-        state = sim_state_from_message(message, stamp_ns, self.origin)
+        # an unusable one still takes its slot on the send grid
+        state = sim_state_from_message(message, receive_ns, self.origin)
         if state is None:
             self.unusable += 1
             if self.unusable == 1:
                 log.warning("simulated camera: SIM_STATE without lat_int/lon_int or with a non-finite value: "
                             "ignored (ArduPilot SITL from 4.5 on fills lat_int/lon_int)")
-            return
-        self.request.arrived(receive_ns)
-        if self.clock.late:
-            # its grid stamp may be a stall's length early: rendered on it, a frame would show the vehicle
-            # where it was later than the frame's time says
-            self._held = state
         else:
-            self._file(state)
+            self.request.arrived(receive_ns)
+        for stamp_ns, sample in self.clock.arrive(receive_ns, state):
+            if sample is not None:
+                self._file(SimState(stamp_ns, sample.position_ned_m, sample.R_ned_body, sample.velocity_ned_m_s))
 
     def _file(self, state: SimState) -> None:
         """Into the history, its position freed of the degE7 steps (``Dequantizer``)."""
