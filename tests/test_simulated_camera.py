@@ -187,7 +187,8 @@ def test_send_clock_drops_a_delayed_arrival_before_a_stall_that_a_restart_leaves
     """The sample sent just before a 150 ms stall arrives 20 ms late (a busy receiver); those after the
     stall are late on the old grid by the stall. The delayed one arrived well before the slot the later ones
     put it in on the new grid: it may have been sent before the stall or after it, so neither grid's stamp
-    is sure, and it is dropped, as is the first after the stall. Every other stamp past the first 50 is within 3.5 ms of its send time.
+    is sure, and it is dropped, as is the first after the stall. Every other stamp past the first 50 is
+    within 3.5 ms of its send time.
     (Restarted from the delayed one, every stamp for 2 s was 126 ms early, as one flight under load showed:
     the camera stalled for 1.7 s.)"""
     rng = np.random.default_rng(7)
