@@ -744,6 +744,60 @@ def test_a_status_line_reader_that_goes_away_does_not_stop_the_vehicles_position
     assert "Traceback" not in stderr and "Exception ignored" not in stderr, stderr
 
 
+def full_pipe() -> tuple[int, int]:
+    """(read end, write end) of a pipe filled to its last byte: the next write to it waits for a reader."""
+    read_end, write_end = os.pipe()
+    os.set_blocking(write_end, False)
+    for size in (65536, 4096, 256, 1):
+        try:
+            while True:
+                os.write(write_end, b"x" * size)
+        except BlockingIOError:
+            pass
+    os.set_blocking(write_end, True)
+    return read_end, write_end
+
+
+def test_a_status_line_reader_that_stops_reading_does_not_hold_up_the_daemon(tmp_path, peers):
+    """`companion run | less`, not scrolled: the pipe fills (after about half an hour of lines) and the next
+    status line would wait for the reader, and with it the supervisor: its health reports, the systemd
+    watchdog and SIGTERM (before, the daemon did not stop). Lines are left out, said once in the log; vision
+    goes on; the status line comes back when the reader reads; SIGTERM stops the daemon with 0."""
+    port = free_port()
+    peer = peers(port)
+    config = write_config(tmp_path, AISLE, port, source={"loop": True})
+    read_end, write_end = full_pipe()
+    log = tmp_path / "stderr.log"
+    try:
+        with open(log, "w") as stderr_file:
+            process = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config)],
+                                       stdout=write_end, stderr=stderr_file)
+        os.close(write_end)
+        try:
+            wait_while_running(process, lambda: "status line: its reader is not reading" in log.read_text(),
+                               log.read_text)
+            assert_still_streaming(process, peer)
+            os.set_blocking(read_end, False)
+            drained = b""
+            deadline = time.monotonic() + 15  # the next status line, 5 s on, once the pipe has room
+            while b" fps | " not in drained and time.monotonic() < deadline:
+                try:
+                    drained += os.read(read_end, 65536)
+                except BlockingIOError:
+                    time.sleep(0.1)
+            assert b" fps | " in drained, log.read_text()
+        finally:
+            process.send_signal(signal.SIGTERM)
+            code = process.wait(timeout=30)
+    finally:
+        os.close(read_end)
+    stderr = log.read_text()
+    assert code == 0, stderr
+    assert stderr.count("status line: its reader is not reading") == 1, stderr
+    assert "status line: its reader reads again" in stderr, stderr
+    assert "Traceback" not in stderr, stderr
+
+
 def test_on_a_narrow_terminal_the_status_line_is_cut_to_its_width(tmp_path):
     """An 80-column terminal (a default ssh session): each rewrite of the status line fits in 79 columns,
     so that the carriage return rewrites all of it (a wrapped line left its first rows behind at every

@@ -31,6 +31,7 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import select
 import sys
 import threading
 import time
@@ -95,6 +96,16 @@ def make_detector(config: Config, camera: CameraModel | None = None) -> Detector
     return Detector(detector_params_for(config), camera=camera or config.camera)
 
 
+
+def _takes_a_line_now(stream) -> bool:
+    """Whether ``stream`` takes a status line without waiting for its reader (a pipe or terminal that nobody
+    reads fills up; one with room for a line, PIPE_BUF at least, takes it whole). A stream with no file
+    descriptor never waits."""
+    try:
+        return bool(select.select([], [stream.fileno()], [], 0)[1])
+    except (OSError, ValueError, AttributeError):  # io.StringIO (UnsupportedOperation), a closed stream
+        return True
+
 class Daemon:
     """Builds the stages from a Config and runs the threads until stopped."""
 
@@ -104,6 +115,7 @@ class Daemon:
         # the status line is made (for the stream and systemd's STATUS=) only for a daemon given a stream;
         # the stream may be given up later (_write_status), the line for systemd goes on
         self._makes_status_line = status_stream is not None
+        self._status_held_up = False   # its reader was not reading at the last line
         detector = make_detector(config)
         self.source = make_source(config)
         self.attitude_stream, attitude, self._attitude_text = attitude_source(config, self.source)
@@ -320,6 +332,16 @@ class Daemon:
         a closed terminal) is said once in the log and given up: the vehicle's positioning goes on without it."""
         if self.status_stream is None:
             return
+        if not _takes_a_line_now(self.status_stream):
+            # waiting for the reader would hold up the supervisor: health reports, the watchdog, SIGTERM
+            if not self._status_held_up:
+                log.warning("status line: its reader is not reading (a full pipe: `companion run | less` not "
+                            "scrolled?); lines are left out until it reads, the daemon goes on")
+                self._status_held_up = True
+            return
+        if self._status_held_up:
+            log.info("status line: its reader reads again")
+            self._status_held_up = False
         try:
             self.status_stream.write(text)
             self.status_stream.flush()
