@@ -144,6 +144,30 @@ def test_mjpeg_stream_sends_successive_frames_and_counts_its_client(daemon):
     wait_for(lambda: daemon.live_view._streams == 0)
 
 
+def test_a_client_that_stops_taking_the_stream_or_sends_nothing_is_dropped(daemon, caplog):
+    """A frozen viewer (its MJPEG stream no longer read) and a client that connects and sends no request:
+    each is dropped after the client timeout (1 s here), without a traceback; the frames then stop being
+    encoded. (Before, the stream's thread waited on the full socket forever and every frame was encoded
+    for it; the silent client's thread waited for its request forever.)"""
+    daemon.live_view.client_timeout_s = 1.0
+    host, port = daemon.live_view.server.server_address[:2]
+    frozen = socket.socket()
+    frozen.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    frozen.connect((host, port))
+    silent = socket.create_connection((host, port))
+    try:
+        frozen.sendall(b"GET /stream.mjpg HTTP/1.1\r\nHost: x\r\n\r\n")
+        wait_for(lambda: daemon.live_view._streams == 1)
+        wait_for(lambda: daemon.live_view._streams == 0, timeout_s=30.0)
+        wait_for(lambda: not daemon.live_view.wanted())
+        silent.settimeout(10.0)
+        assert silent.recv(1) == b""   # closed by the server
+    finally:
+        frozen.close()
+        silent.close()
+    assert "Traceback" not in caplog.text and "Exception" not in caplog.text
+
+
 def test_unknown_path_is_404(daemon):
     with pytest.raises(urllib.error.HTTPError) as error:
         get(daemon, "/admin")

@@ -14,6 +14,8 @@ observer does nothing unless a client wants frames (an open MJPEG stream, or
 a ``/frame.jpg`` request within the last ``INTEREST_S``); then it hands at
 most ``MAX_FPS`` frames a second to the encoder through a one-slot queue
 (dropped and counted when the encoder is busy), so the pipeline never waits.
+A client that sends no request, or stops taking what it asked for, is
+dropped after ``CLIENT_TIMEOUT_S``.
 
 No authentication and no encryption: anyone who reaches the address sees the
 camera and the vehicle's position. The default address is loopback
@@ -57,6 +59,9 @@ TRACK_S = 30.0             # the map panel's track: the estimates of the last TR
 LOOPBACK_HOSTS = {"127.0.0.1", "localhost", "::1"}
 PAGE = "live_view.html"
 BOUNDARY = "companionframe"
+# a client that sends no request, or stops taking the stream it asked for (a frozen viewer), is dropped
+# after this long: its thread ends and, when it was the last stream, the frames stop being encoded
+CLIENT_TIMEOUT_S = 10.0
 
 
 class WebError(ValueError):
@@ -94,6 +99,7 @@ class LiveView:
         self._records = records
         self._statustexts = statustexts
         self.counters = ViewCounters()
+        self.client_timeout_s = CLIENT_TIMEOUT_S
         self._frames: queue.Queue = queue.Queue(maxsize=1)
         self._latest: EncodedFrame | None = None
         self._new_frame = threading.Condition()
@@ -310,6 +316,10 @@ class _Handler(BaseHTTPRequestHandler):
     view: LiveView
     server_version = "companion"
     protocol_version = "HTTP/1.1"
+
+    def setup(self) -> None:
+        self.timeout = self.view.client_timeout_s   # set on the connection: reads and writes wait this long
+        super().setup()
 
     def log_message(self, format, *args) -> None:   # noqa: A002 (BaseHTTPRequestHandler's name)
         log.debug("http %s: " + format, self.client_address[0], *args)
