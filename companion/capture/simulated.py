@@ -229,13 +229,13 @@ class SendClock:
             return []
         held, self._held = self._held, []
         self._held_late_ns = []
-        # the first of the new run goes too: composed before the stall, sent after it, it may be a stall old
-        dropped = self._in_doubt([receive_ns for receive_ns, _ in held]) + 1
-        self.dropped += dropped
+        doubtful = self._in_doubt([receive_ns for receive_ns, _ in held])
+        self.dropped += doubtful + 1
         self.restarts += 1
         self._arrivals_ns.clear()
-        self._settle(held[dropped - 1:dropped])
-        return self._settle(held[dropped:])
+        # the new run's first: its arrival times the grid, its content (maybe a stall old) is not returned
+        self._settle(held[doubtful:doubtful + 1])
+        return self._settle(held[doubtful + 1:])
 
     def _late_ns(self, receive_ns: int) -> float:
         """How much later than its slot on the grid ``receive_ns`` came, beyond the run's usual delay

@@ -96,7 +96,6 @@ def make_detector(config: Config, camera: CameraModel | None = None) -> Detector
     return Detector(detector_params_for(config), camera=camera or config.camera)
 
 
-
 def _takes_a_line_now(stream) -> bool:
     """Whether ``stream`` takes a status line without waiting for its reader (a pipe or terminal that nobody
     reads fills up; one with room for a line, PIPE_BUF at least, takes it whole). A stream with no file
@@ -105,6 +104,7 @@ def _takes_a_line_now(stream) -> bool:
         return bool(select.select([], [stream.fileno()], [], 0)[1])
     except (OSError, ValueError, AttributeError):  # io.StringIO (UnsupportedOperation), a closed stream
         return True
+
 
 class Daemon:
     """Builds the stages from a Config and runs the threads until stopped."""
