@@ -346,6 +346,22 @@ def test_config_needs_the_maps_geodetic_origin(tmp_path):
         config_from_dict(data, tmp_path / "sim.yaml")
 
 
+def test_a_simulator_that_was_asked_for_sim_state_and_sends_none_is_named_as_the_reason():
+    """The link saw the flight controller and asked it for SIM_STATE (MAV_CMD_SET_MESSAGE_INTERVAL), and none
+    came: the camera's lost reason asks whether it is ArduPilot SITL (PX4 sends no SIM_STATE)."""
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0}, "test")
+    source = SimulatedCamera(load_map(HALL_MAP), camera, SimulatedCameraParams(stall_timeout_s=0.1))
+    assert len(source.state_stream.requests_due(time.monotonic(), 1, 1)) == 1
+    source.start()
+    try:
+        deadline = time.monotonic() + 2.0
+        while source.lost_reason is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "no SIM_STATE from the simulator yet (is it ArduPilot SITL" in source.lost_reason
+    finally:
+        source.close()
+
+
 def test_camera_renders_from_the_state_and_stalls_without_it():
     camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0,
                                       "mount": {"facing": "forward"}}, "test")
@@ -357,7 +373,7 @@ def test_camera_renders_from_the_state_and_stalls_without_it():
         deadline = time.monotonic() + 1.0
         while source.lost_reason is None and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert "no SIM_STATE from the simulator yet" in source.lost_reason
+        assert source.lost_reason == "simulated camera: no SIM_STATE yet: no simulator seen on the link"
         assert source.get(0.05) is None
         # a state stream at 100 Hz: frames come, stamped with a state's time plus the latency
         R_ned_body = frames.rotation_from_euler_321(0, 0, math.radians(215.0))

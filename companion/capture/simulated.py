@@ -520,9 +520,13 @@ class SimulatedCamera(ThreadedSource):
         if silent_s < self.params.stall_timeout_s or self.lost_reason is not None:
             return
         newest = self.history.newest_t_ns
-        what = ("no SIM_STATE from the simulator yet (is it ArduPilot SITL, and does it answer "
-                "MAV_CMD_SET_MESSAGE_INTERVAL?)" if newest is None
-                else f"no SIM_STATE for {(now_ns - newest) * 1e-9:.1f} s")
+        if newest is not None:
+            what = f"no SIM_STATE for {(now_ns - newest) * 1e-9:.1f} s"
+        elif self.state_stream.requests == 0:  # asked for once the link sees the flight controller
+            what = "no SIM_STATE yet: no simulator seen on the link"
+        else:
+            what = ("no SIM_STATE from the simulator yet (is it ArduPilot SITL, and does it answer "
+                    "MAV_CMD_SET_MESSAGE_INTERVAL?)")
         self.lost_reason = f"simulated camera: {what}"
         log.warning("%s", self.lost_reason)
 
