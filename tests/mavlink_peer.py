@@ -44,6 +44,11 @@ monotonic clock (the truth the tests compare against). Roll and pitch come
 from ``--attitude-csv`` (a sequence's attitude.csv whose t_ns 0 is monotonic
 ``--attitude-start-ns``), or a slow sine. ``--attitude-pause START,LENGTH``
 (seconds after streaming began) stops it for a while.
+
+``--reboot-at S``: S seconds after the link connected, the pretend autopilot
+restarts without a pause in its heartbeat (a fast boot on a UART): its
+``time_boot_ms`` starts again from 0 and it forgets the origin and home
+(event "rebooted").
 """
 from __future__ import annotations
 
@@ -93,6 +98,7 @@ def main() -> None:
     parser.add_argument("--home", choices=["auto", "command", "never"], default="auto")
     parser.add_argument("--params", default="{}", help="JSON object: parameter name -> value")
     parser.add_argument("--autopilot", type=int, default=3)
+    parser.add_argument("--reboot-at", type=float, default=None, help="seconds after connecting: restart")
     args = parser.parse_args()
 
     stop = threading.Event()
@@ -210,9 +216,17 @@ def main() -> None:
             return
     record("event", "connected", {})
     connection.send(heartbeat)  # at once, not at the runtime's next 1 Hz beat
-    next_timesync = next_ekf_report = time.monotonic()
+    next_timesync = next_ekf_report = connected_s = time.monotonic()
+    reboot_s = None if args.reboot_at is None else connected_s + args.reboot_at
     while not stop.is_set() and time.monotonic() < deadline:
         now_s = time.monotonic()
+        if reboot_s is not None and now_s >= reboot_s:
+            reboot_s = None
+            with state_lock:
+                origin.clear()
+                vehicle.update(origin_valid=False, vision=False, home=None)
+            streamer.boot_ns = time.monotonic_ns()
+            record("event", "rebooted", {})
         if args.timesync_period and now_s >= next_timesync:
             ts1 = time.monotonic_ns()
             connection.send(messages.create("TIMESYNC").set_from_dict({"tc1": 0, "ts1": ts1}))

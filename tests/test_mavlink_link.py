@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from companion.mavlink import messages as mm
+from companion.geometry.attitude import AttitudeHistory
+from companion.mavlink.attitude import AttitudeStream
 from companion.mavlink.link import LinkError, LinkParams, LinkState, MavlinkLink, Origin, parse_connection
 from companion.types import Estimate
 from mavlink_peer import PeerProcess, free_port
@@ -64,8 +66,8 @@ def peers(tmp_path):
 def links():
     opened = []
 
-    def open_link(**kwargs):
-        link = MavlinkLink(LinkParams(**kwargs))
+    def open_link(attitude=None, **kwargs):
+        link = MavlinkLink(LinkParams(**kwargs), attitude=attitude)
         link.start()
         opened.append(link)
         return link
@@ -216,6 +218,31 @@ def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links)
     publisher.stop()
     assert first_time(second.records(), "SET_GPS_GLOBAL_ORIGIN") < vision[0]["t_ns"]
     assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
+
+
+def test_a_flight_controller_that_restarts_without_a_heartbeat_pause_gets_the_origin_again(peers, links):
+    """A fast boot on a UART: the FC's heartbeat never pauses for fc_timeout_s and no connection drops, but its
+    time_boot_ms (ATTITUDE's, here) starts again from 0 and its EKF has lost the origin. The link sees the
+    restart, holds vision, sends the origin again and streams on once it is confirmed (before, it went on
+    streaming to an EKF with no origin: no position, no arming)."""
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set", "--attitude", "--reboot-at", "2.0")
+    link = links(attitude=AttitudeStream(AttitudeHistory(0.1), 50.0), connection=f"udpout:127.0.0.1:{port}",
+                 origin=ORIGIN, heartbeat_interval_s=0.2, origin_retry_s=0.2)
+    publisher = Publisher(link)
+    try:
+        rebooted_ns = peer.wait_for("rebooted", kind="event", timeout_s=10)[0]["t_ns"]
+        deadline = time.monotonic() + 10
+        while link.counters.origin_confirmed < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+    finally:
+        publisher.stop()
+    # handshakes: the link opened, the FC seen, its restart (once: every later time_boot_ms is newer)
+    assert link.counters.origin_confirmed == 2 and link.counters.handshakes == 3
+    assert link.state is LinkState.STREAMING and link.fc_seen
+    origin_again_ns = min(r["t_ns"] for r in peer.records("SET_GPS_GLOBAL_ORIGIN") if r["t_ns"] > rebooted_ns)
+    assert any(r["t_ns"] > origin_again_ns for r in peer.records("VISION_POSITION_ESTIMATE"))
 
 
 def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):

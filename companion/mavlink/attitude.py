@@ -41,6 +41,12 @@ NS_PER_MS = 1_000_000
 REBOOT_STEP_MS = 1000  # time_boot_ms going back further than this: the autopilot restarted
 
 
+def restarted(previous_boot_ms: int | None, boot_ms: int) -> bool:
+    """Whether an autopilot whose ``time_boot_ms`` was ``previous_boot_ms`` (None: not yet seen) and is now
+    ``boot_ms`` restarted in between: its clock went back by more than ``REBOOT_STEP_MS``."""
+    return previous_boot_ms is not None and boot_ms < previous_boot_ms - REBOOT_STEP_MS
+
+
 class BootClock:
     """Maps the autopilot's ``time_boot_ms`` onto our monotonic clock (see the module docstring)."""
 
@@ -65,7 +71,7 @@ class BootClock:
 
     def went_back(self, boot_ms: int) -> bool:
         """Whether ``boot_ms`` is far before the last one (the autopilot restarted)."""
-        return self._last_boot_ms is not None and boot_ms < self._last_boot_ms - REBOOT_STEP_MS
+        return restarted(self._last_boot_ms, boot_ms)
 
     def reset(self) -> None:
         self._candidates.clear()

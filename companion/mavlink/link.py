@@ -47,7 +47,10 @@ and each sample is put on our clock for the pose stage.
 
 Every bounded wait that runs out is logged and told by STATUSTEXT, and the
 stream starts anyway. A FC seen again after it went silent for
-``fc_timeout_s`` (a reboot) gets all of it again.
+``fc_timeout_s`` (a reboot) gets all of it again, and so does one whose
+``time_boot_ms`` (in any of its messages that carry it, ATTITUDE among them)
+went back: a FC that restarted without a pause in its heartbeat that long (a
+fast boot on a UART, where no connection drops) has lost the origin.
 
 STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (nothing
 floods the FC nor the ground station), from a queue ordered by urgency:
@@ -83,7 +86,7 @@ from companion.mavlink import messages as mm  # sets MAVLINK20 before pymavlink 
 from pymavlink import mavutil  # noqa: E402  (after mavlink_messages on purpose)
 
 from companion.mavlink import fc_params
-from companion.mavlink.attitude import ATTITUDE_MESSAGES, AttitudeStream
+from companion.mavlink.attitude import ATTITUDE_MESSAGES, AttitudeStream, restarted
 from companion.types import Estimate
 
 log = logging.getLogger(__name__)
@@ -265,6 +268,7 @@ class MavlinkLink:
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
+        self._fc_boot_ms: int | None = None   # the FC's newest time_boot_ms: going back, it restarted
         self._connected_s = 0.0
         self._handshake_started_s = 0.0
         self._fc_seen_in_handshake_s: float | None = None
@@ -492,6 +496,7 @@ class MavlinkLink:
             self._on_origin(message)
         elif message.get_srcSystem() == self.fc_system_id:
             self._on_fc_report(kind, message)
+        self._watch_boot_time(message)
 
     def _on_fc_report(self, kind: str, message) -> None:
         """What the start order and the parameter check wait for, from the FC's system."""
@@ -511,6 +516,7 @@ class MavlinkLink:
         returning = now_s - self._last_fc_heartbeat_s >= self.params.fc_timeout_s
         self._last_fc_heartbeat_s = now_s
         if returning:
+            self._fc_boot_ms = None  # a restart after a pause: told here, not again by its boot time
             self.fc_system_id, self.fc_component_id = message.get_srcSystem(), message.get_srcComponent()
             self.fc_autopilot = message.autopilot
             log.info("link: flight controller %d/%d seen (autopilot %d, type %d)",
@@ -523,6 +529,21 @@ class MavlinkLink:
             self._begin_handshake(now_s)
             if self.attitude is not None:
                 self.attitude.autopilot_appeared()
+
+    def _watch_boot_time(self, message) -> None:
+        """A FC whose ``time_boot_ms`` went back restarted: the start order again (its EKF lost the origin)."""
+        boot_ms = getattr(message, "time_boot_ms", None)
+        if boot_ms is None or (message.get_srcSystem(), message.get_srcComponent()) != (self.fc_system_id,
+                                                                                          self.fc_component_id):
+            return
+        if restarted(self._fc_boot_ms, int(boot_ms)):
+            log.warning("link: the flight controller restarted (its time_boot_ms went back from %.1f to %.1f s); "
+                        "the origin again before any vision", self._fc_boot_ms / 1000, boot_ms / 1000)
+            self._begin_parameter_read()
+            self._begin_handshake()
+            if self.attitude is not None:
+                self.attitude.autopilot_appeared()
+        self._fc_boot_ms = int(boot_ms)
 
     def _on_companion_heartbeat(self, message) -> None:
         """A HEARTBEAT of a non-autopilot: another process with our ids is a second companion."""
