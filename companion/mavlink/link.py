@@ -48,9 +48,10 @@ and each sample is put on our clock for the pose stage.
 Every bounded wait that runs out is logged and told by STATUSTEXT, and the
 stream starts anyway. A FC seen again after it went silent for
 ``fc_timeout_s`` (a reboot) gets all of it again, and so does one whose
-``time_boot_ms`` (in any of its messages that carry it, ATTITUDE among them)
-went back: a FC that restarted without a pause in its heartbeat that long (a
-fast boot on a UART, where no connection drops) has lost the origin.
+``time_boot_ms`` went back (in ATTITUDE, SYSTEM_TIME or a position message:
+``BOOT_TIME_MESSAGES``): a FC that restarted without a pause in its heartbeat
+that long (a fast boot on a UART, where no connection drops) has lost the
+origin.
 
 STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (nothing
 floods the FC nor the ground station), from a queue ordered by urgency:
@@ -104,6 +105,10 @@ PARAMETER_ATTEMPTS = 3  # PARAM_REQUEST_READ sent this many times before a param
 STATUSTEXT_QUEUE = 16   # STATUSTEXTs waiting for their turn; the least urgent is dropped beyond
 ARDUPILOT = mm.mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
 PX4 = mm.mavlink2.MAV_AUTOPILOT_PX4
+
+
+# the FC's messages whose time_boot_ms ArduPilot and PX4 fill from their boot clock (watched for a restart)
+BOOT_TIME_MESSAGES = ("ATTITUDE", "ATTITUDE_QUATERNION", "SYSTEM_TIME", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
 
 
 class LinkError(ValueError):
@@ -532,10 +537,10 @@ class MavlinkLink:
 
     def _watch_boot_time(self, message) -> None:
         """A FC whose ``time_boot_ms`` went back restarted: the start order again (its EKF lost the origin)."""
-        boot_ms = getattr(message, "time_boot_ms", None)
-        if boot_ms is None or (message.get_srcSystem(), message.get_srcComponent()) != (self.fc_system_id,
-                                                                                          self.fc_component_id):
+        if message.get_type() not in BOOT_TIME_MESSAGES or (
+                (message.get_srcSystem(), message.get_srcComponent()) != (self.fc_system_id, self.fc_component_id)):
             return
+        boot_ms = message.time_boot_ms
         if restarted(self._fc_boot_ms, int(boot_ms)):
             log.warning("link: the flight controller restarted (its time_boot_ms went back from %.1f to %.1f s); "
                         "the origin again before any vision", self._fc_boot_ms / 1000, boot_ms / 1000)
