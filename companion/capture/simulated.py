@@ -202,7 +202,6 @@ class SendClock:
     def __init__(self, window: int = 200, fit_after: int = 50, confirm: int = 3, max_held: int = 20):
         self._arrivals_ns: collections.deque[int] = collections.deque(maxlen=window)   # the current run
         self._held: list[tuple[int, object]] = []   # late arrivals, until the ones after them say why
-        self._held_late_ns: list[float] = []
         self.fit_after = fit_after
         self.confirm = confirm
         self.max_held = max_held
@@ -218,17 +217,13 @@ class SendClock:
 
     def arrive(self, receive_ns: int, item=None) -> list[tuple[int, object]]:
         """(stamp_ns, item) of every arrival whose send time is now known, oldest first."""
-        late_ns = self._late_ns(receive_ns)
-        if late_ns <= self._interval_ns / 2:
+        if self._late_ns(receive_ns, len(self._held)) <= self._interval_ns / 2:
             held, self._held = self._held, []
-            self._held_late_ns = []
             return self._settle([*held, (receive_ns, item)])
         self._held.append((receive_ns, item))
-        self._held_late_ns.append(late_ns)
         if not self._restarted():
             return []
         held, self._held = self._held, []
-        self._held_late_ns = []
         doubtful = self._in_doubt([receive_ns for receive_ns, _ in held])
         self.dropped += doubtful + 1
         self.restarts += 1
@@ -237,14 +232,14 @@ class SendClock:
         self._settle(held[doubtful:doubtful + 1])
         return self._settle(held[doubtful + 1:])
 
-    def _late_ns(self, receive_ns: int) -> float:
-        """How much later than its slot on the grid ``receive_ns`` came, beyond the run's usual delay
-        (median minus promptest); 0 while the interval is unknown."""
+    def _late_ns(self, receive_ns: int, held_before: int) -> float:
+        """How much later than its slot on the grid an arrival at ``receive_ns`` with ``held_before`` held
+        ones ahead of it came, beyond the run's usual delay (median minus promptest); 0 while the interval
+        is unknown."""
         if not self._arrivals_ns or self._interval_ns <= 0:
             return 0.0
-        lateness_ns = self._lateness_ns()
-        slot = len(self._arrivals_ns) + len(self._held)
-        return (receive_ns - self._arrivals_ns[0]) - slot * self._interval_ns - np.median(lateness_ns)
+        slot = len(self._arrivals_ns) + held_before
+        return (receive_ns - self._arrivals_ns[0]) - slot * self._interval_ns - np.median(self._lateness_ns())
 
     def _restarted(self) -> bool:
         """The held arrivals are a new grid: the last ``confirm`` of them a whole interval late and not in
@@ -252,8 +247,9 @@ class SendClock:
         held = self._held
         if len(held) >= self.max_held:
             return True
+        last = range(len(held) - self.confirm, len(held))
         return (len(held) >= self.confirm
-                and min(self._held_late_ns[-self.confirm:]) > self._interval_ns
+                and min(self._late_ns(held[k][0], k) for k in last) > self._interval_ns
                 and held[-1][0] - held[-self.confirm][0] >= (self.confirm - 1) * self._interval_ns / 2)
 
     def _in_doubt(self, held_ns: list[int]) -> int:

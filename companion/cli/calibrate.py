@@ -23,7 +23,7 @@ import numpy as np
 
 from companion.capture.replay import TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files, open_recording
 from companion.capture.source import SourceError
-from companion.cli.output import cannot_write, output_dir, output_file
+from companion.cli.output import write_failed, output_dir, output_file
 from companion.files import write_whole
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
                                             CharucoBoard, calibrate, capture_live, recorded_views,
@@ -123,8 +123,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion calibrate: {error}", file=sys.stderr)
         return 2
     except OSError as error:
-        print(f"companion calibrate: {cannot_write(error, args.out)}", file=sys.stderr)
-        return 1  # the input was good, the disk failed (README: exit status 1)
+        return write_failed("calibrate", error, args.out)
     print_result(calibration, paths_count, args.out)
     return 0
 

@@ -7,6 +7,7 @@ is then written whole or not at all (``companion.files.write_whole``).
 """
 from __future__ import annotations
 
+import sys
 import tempfile
 from pathlib import Path
 
@@ -39,9 +40,11 @@ def output_file(path: Path, option: str) -> Path:
     return path
 
 
-def cannot_write(error: OSError, path) -> str:
-    """"cannot write PATH: why" for an OSError raised while writing ``path`` (a full disk's error names no file)."""
-    return f"cannot write {error.filename or path}: {error.strerror or error}"
+def write_failed(command: str, error: OSError, path) -> int:
+    """Say "companion COMMAND: cannot write PATH: why" for an OSError raised while writing ``path`` (a full
+    disk's error names no file); the exit status 1: the input was good, the disk failed (README)."""
+    print(f"companion {command}: cannot write {error.filename or path}: {error.strerror or error}", file=sys.stderr)
+    return 1
 
 
 def _probe(folder: Path, option: str, named: Path) -> None:

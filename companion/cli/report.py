@@ -7,7 +7,7 @@ from pathlib import Path
 
 from companion.capture.replay import sequence_map_path
 from companion.capture.source import SourceError
-from companion.cli.output import cannot_write
+from companion.cli.output import write_failed
 from companion.geometry.facility_map import FacilityMap, MapError, load_map
 from companion.report.flight_log import FlightLog, ReportError, read_flight
 
@@ -30,8 +30,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion report: {error}", file=sys.stderr)
         return 2
     except OSError as error:
-        print(f"companion report: {cannot_write(error, args.out or args.folder)}", file=sys.stderr)
-        return 1  # the input was good, the disk failed (README: exit status 1)
+        return write_failed("report", error, args.out or args.folder)
     gaps = log.gaps()
     print(f"{out}: {len(log.frame)} frames, {log.duration_s:.1f} s, fresh fixes in "
           f"{100 * log.fix.mean():.0f} % of frames, {len(gaps)} gap(s) in vision")

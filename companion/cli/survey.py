@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from companion.capture.source import SourceError
-from companion.cli.output import OutputError, cannot_write, output_dir, output_file
+from companion.cli.output import OutputError, write_failed, output_dir, output_file
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import MapError, load_map, write_map
 from companion.survey.observations import SurveyError, footage_camera
@@ -61,8 +61,7 @@ def main(args) -> int:
         print(f"companion survey: {error}", file=sys.stderr)
         return 2
     except OSError as error:
-        print(f"companion survey: {cannot_write(error, writing)}", file=sys.stderr)
-        return 1  # the input was good, the disk failed (README: exit status 1)
+        return write_failed("survey", error, writing)
     print(summary(result))
     _notes(result)
     return 0

@@ -529,11 +529,15 @@ class MavlinkLink:
             if self.fc_system_id != self.params.system_id:
                 log.warning("link: flight controller has system id %d but we send as %d",
                             self.fc_system_id, self.params.system_id)
-            self._begin_parameter_read()
-            # A FC that appears (or reappears after a reboot) gets the origin before any vision.
-            self._begin_handshake(now_s)
-            if self.attitude is not None:
-                self.attitude.autopilot_appeared()
+            self._start_over(now_s)
+
+    def _start_over(self, now_s: float | None = None) -> None:
+        """A FC that appeared, or restarted: its parameters read again, the origin before any vision, its
+        attitude asked for at once."""
+        self._begin_parameter_read()
+        self._begin_handshake(now_s)
+        if self.attitude is not None:
+            self.attitude.autopilot_appeared()
 
     def _watch_boot_time(self, message) -> None:
         """A FC whose ``time_boot_ms`` went back restarted: the start order again (its EKF lost the origin)."""
@@ -544,10 +548,7 @@ class MavlinkLink:
         if restarted(self._fc_boot_ms, int(boot_ms)):
             log.warning("link: the flight controller restarted (its time_boot_ms went back from %.1f to %.1f s); "
                         "the origin again before any vision", self._fc_boot_ms / 1000, boot_ms / 1000)
-            self._begin_parameter_read()
-            self._begin_handshake()
-            if self.attitude is not None:
-                self.attitude.autopilot_appeared()
+            self._start_over()
         self._fc_boot_ms = int(boot_ms)
 
     def _on_companion_heartbeat(self, message) -> None:
