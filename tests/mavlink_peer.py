@@ -45,10 +45,14 @@ from ``--attitude-csv`` (a sequence's attitude.csv whose t_ns 0 is monotonic
 ``--attitude-start-ns``), or a slow sine. ``--attitude-pause START,LENGTH``
 (seconds after streaming began) stops it for a while.
 
+SYSTEM_TIME: once asked with MAV_CMD_SET_MESSAGE_INTERVAL for it (whatever
+the options), it is streamed at the asked rate, ``time_boot_ms`` on the same
+boot clock.
+
 ``--reboot-at S``: S seconds after the link connected, the pretend autopilot
 restarts without a pause in its heartbeat (a fast boot on a UART): its
-``time_boot_ms`` starts again from 0 and it forgets the origin and home
-(event "rebooted").
+``time_boot_ms`` starts again from 0 and it forgets the origin, home and the
+SYSTEM_TIME it was asked to stream (event "rebooted").
 """
 from __future__ import annotations
 
@@ -78,6 +82,7 @@ MAV_RESULT_ACCEPTED, MAV_RESULT_FAILED = 0, 4
 MAV_PARAM_TYPE_REAL32 = 9
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 ATTITUDE_ID = 30
+SYSTEM_TIME_ID = 2
 
 
 def main() -> None:
@@ -124,6 +129,7 @@ def main() -> None:
     # the vehicle: ekf (initialised?), origin_valid (the EKF core's), vision (a position came), home (dict)
     vehicle = {"ekf": args.ekf_init_s <= 0, "origin_valid": False, "vision": False, "home": None}
     state_lock = threading.Lock()
+    system_time = {"interval_s": None, "next_s": 0.0}  # the SYSTEM_TIME stream asked for
 
     def send(connection, name: str, fields: dict) -> None:
         connection.send(messages.create(name).set_from_dict(dict(fields)))
@@ -177,6 +183,8 @@ def main() -> None:
             send(connection, "HOME_POSITION", vehicle["home"])
         elif command == MAV_CMD_SET_MESSAGE_INTERVAL and param1 == ATTITUDE_ID and args.attitude:
             streamer.ask(fields["param2"] * 1e-6)
+        elif command == MAV_CMD_SET_MESSAGE_INTERVAL and param1 == SYSTEM_TIME_ID:
+            system_time.update(interval_s=fields["param2"] * 1e-6, next_s=time.monotonic())
         elif command == MAV_CMD_DO_SET_HOME:
             done = args.home != "never" and set_home(connection)
             send(connection, "COMMAND_ACK", {"command": command,
@@ -226,6 +234,7 @@ def main() -> None:
                 origin.clear()
                 vehicle.update(origin_valid=False, vision=False, home=None)
             streamer.boot_ns = time.monotonic_ns()
+            system_time["interval_s"] = None
             record("event", "rebooted", {})
         if args.timesync_period and now_s >= next_timesync:
             ts1 = time.monotonic_ns()
@@ -244,6 +253,10 @@ def main() -> None:
             next_ekf_report += 0.5
         if args.home == "auto" and vehicle["home"] is None:
             set_home(connection)
+        if system_time["interval_s"] and now_s >= system_time["next_s"]:
+            system_time["next_s"] += system_time["interval_s"]
+            send(connection, "SYSTEM_TIME", {"time_unix_usec": 0,
+                                             "time_boot_ms": (time.monotonic_ns() - streamer.boot_ns) // 1_000_000})
         streamer.step()
         stop.wait(0.001 if args.attitude else 0.01)
     connection.remove_all_callbacks()

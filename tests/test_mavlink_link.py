@@ -12,7 +12,8 @@ import pytest
 from companion.mavlink import messages as mm
 from companion.geometry.attitude import AttitudeHistory
 from companion.mavlink.attitude import AttitudeStream
-from companion.mavlink.link import LinkError, LinkParams, LinkState, MavlinkLink, Origin, parse_connection
+from companion.mavlink.link import (BOOT_CLOCK_RATE_HZ, BOOT_CLOCK_RETRY_S, LinkError, LinkParams, LinkState, MavlinkLink,
+                                    Origin, parse_connection)
 from companion.types import Estimate
 from mavlink_peer import PeerProcess, free_port
 
@@ -241,6 +242,34 @@ def test_a_flight_controller_that_restarts_without_a_heartbeat_pause_gets_the_or
     # handshakes: the link opened, the FC seen, its restart (once: every later time_boot_ms is newer)
     assert link.counters.origin_confirmed == 2 and link.counters.handshakes == 3
     assert link.state is LinkState.STREAMING and link.fc_seen
+    origin_again_ns = min(r["t_ns"] for r in peer.records("SET_GPS_GLOBAL_ORIGIN") if r["t_ns"] > rebooted_ns)
+    assert any(r["t_ns"] > origin_again_ns for r in peer.records("VISION_POSITION_ESTIMATE"))
+
+
+def test_a_flight_controller_that_streams_no_boot_time_is_asked_for_one_and_its_restart_seen(peers, links):
+    """No attitude asked for and nothing streamed with a time_boot_ms: after BOOT_CLOCK_RETRY_S the link asks
+    for SYSTEM_TIME (not before: an autopilot that streams ATTITUDE on its own is not asked), so a restart
+    without a heartbeat pause is seen there; the restarted FC forgot the stream and is asked again (before,
+    the origin was confirmed once and vision streamed on to an EKF without one)."""
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set", "--reboot-at", "5.0")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, heartbeat_interval_s=0.2,
+                 origin_retry_s=0.2)
+    publisher = Publisher(link)
+    try:
+        rebooted_ns = peer.wait_for("rebooted", kind="event", timeout_s=15)[0]["t_ns"]
+        deadline = time.monotonic() + 10
+        while link.counters.origin_confirmed < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+    finally:
+        publisher.stop()
+    assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
+    asked = [r["t_ns"] for r in peer.records("COMMAND_LONG") if r["fields"]["command"] == 511
+             and r["fields"]["param1"] == 2 and r["fields"]["param2"] == 1e6 / BOOT_CLOCK_RATE_HZ]
+    connected_ns = peer.wait_for("connected", kind="event")[0]["t_ns"]
+    assert asked[0] - connected_ns >= BOOT_CLOCK_RETRY_S * 1e9 * 0.9
+    assert any(t > rebooted_ns for t in asked)
     origin_again_ns = min(r["t_ns"] for r in peer.records("SET_GPS_GLOBAL_ORIGIN") if r["t_ns"] > rebooted_ns)
     assert any(r["t_ns"] > origin_again_ns for r in peer.records("VISION_POSITION_ESTIMATE"))
 

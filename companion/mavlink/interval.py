@@ -33,6 +33,10 @@ class StreamRequest:
         self.requests += 1
         return [mm.set_message_interval(target_system, target_component, self.message_id, self.rate_hz)]
 
+    def ask_after(self, now_s: float) -> None:
+        """The next ``due`` asks no sooner than ``retry_s`` from now (time for a stream to come on its own)."""
+        self._last_request_s = now_s
+
     def ask_at_once(self) -> None:
         """The next ``due`` asks whatever the last request's time (an autopilot appeared)."""
         self._last_request_s = -math.inf
