@@ -52,7 +52,7 @@ boot clock.
 ``--reboot-at S``: S seconds after the link connected, the pretend autopilot
 restarts without a pause in its heartbeat (a fast boot on a UART): its
 ``time_boot_ms`` starts again from 0 and it forgets the origin, home and the
-SYSTEM_TIME it was asked to stream (event "rebooted").
+streams it was asked for (ATTITUDE, SYSTEM_TIME) (event "rebooted").
 """
 from __future__ import annotations
 
@@ -234,7 +234,7 @@ def main() -> None:
                 origin.clear()
                 vehicle.update(origin_valid=False, vision=False, home=None)
             streamer.boot_ns = time.monotonic_ns()
-            system_time["interval_s"] = None
+            streamer.interval_s = system_time["interval_s"] = None
             record("event", "rebooted", {})
         if args.timesync_period and now_s >= next_timesync:
             ts1 = time.monotonic_ns()

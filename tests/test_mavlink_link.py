@@ -223,9 +223,10 @@ def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links)
 
 def test_a_flight_controller_that_restarts_without_a_heartbeat_pause_gets_the_origin_again(peers, links):
     """A fast boot on a UART: the FC's heartbeat never pauses for fc_timeout_s and no connection drops, but its
-    time_boot_ms (ATTITUDE's, here) starts again from 0 and its EKF has lost the origin. The link sees the
-    restart, holds vision, sends the origin again and streams on once it is confirmed (before, it went on
-    streaming to an EKF with no origin: no position, no arming)."""
+    time_boot_ms (ATTITUDE's, here) starts again from 0, its EKF has lost the origin and it forgot the ATTITUDE
+    stream. The link asks for ATTITUDE again, sees the restart, holds vision, sends the origin again and
+    streams on once it is confirmed (before, it went on streaming to an EKF with no origin: no position, no
+    arming)."""
     port = free_port()
     peer = peers(port, "--origin-reply", "on_set", "--attitude", "--reboot-at", "2.0")
     link = links(attitude=AttitudeStream(AttitudeHistory(0.1), 50.0), connection=f"udpout:127.0.0.1:{port}",
@@ -242,6 +243,8 @@ def test_a_flight_controller_that_restarts_without_a_heartbeat_pause_gets_the_or
     # handshakes: the link opened, the FC seen, its restart (once: every later time_boot_ms is newer)
     assert link.counters.origin_confirmed == 2 and link.counters.handshakes == 3
     assert link.state is LinkState.STREAMING and link.fc_seen
+    assert any(r["t_ns"] > rebooted_ns for r in peer.records("COMMAND_LONG")
+               if r["fields"]["command"] == 511 and r["fields"]["param1"] == 30)
     origin_again_ns = min(r["t_ns"] for r in peer.records("SET_GPS_GLOBAL_ORIGIN") if r["t_ns"] > rebooted_ns)
     assert any(r["t_ns"] > origin_again_ns for r in peer.records("VISION_POSITION_ESTIMATE"))
 
