@@ -1,6 +1,7 @@
 """Frame sources on real files read by real OpenCV: replay, corrupt frames, a capture that vanishes."""
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from pathlib import Path
@@ -39,10 +40,11 @@ def write_sequence(folder: Path, count: int, period_ns: int = PERIOD_NS, jitter=
     return folder
 
 
-def write_video(path: Path, count: int, fps: float = 25.0) -> Path:
+def write_video(path: Path, count: int, fps: float = 25.0, numbers: list[int] | None = None) -> Path:
+    """An MJPG video of frames 0..count-1, or of ``numbers`` (a number again is the very same image)."""
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (64, 48), isColor=False)
     assert writer.isOpened()
-    for n in range(count):
+    for n in (range(count) if numbers is None else numbers):
         writer.write(image_with_number(n))
     writer.release()
     return path
@@ -284,6 +286,70 @@ def drain_until(source, count: int, took, limit_s: float = 10.0) -> list[Frame]:
         if frame is not None:
             frames.append(took(frame))
     return frames
+
+
+class CameraPacedCapture:
+    """A real cv2.VideoCapture over a video file that hands over a frame every ``period_s``, as a camera does."""
+
+    def __init__(self, path: Path, period_s: float = 0.005):
+        self._capture, self._period_s = cv2.VideoCapture(str(path)), period_s
+
+    def isOpened(self) -> bool:
+        return self._capture.isOpened()
+
+    def grab(self) -> bool:
+        time.sleep(self._period_s)
+        return self._capture.grab()
+
+    def retrieve(self):
+        return self._capture.retrieve()
+
+    def release(self) -> None:
+        self._capture.release()
+
+
+def test_a_camera_that_hands_over_the_same_image_again_delivers_each_view_once(tmp_path):
+    """A driver that repeats its buffer (30 times here): the repeats are counted, not delivered, so no pose
+    is sent stamped now from an old image (before, every repeat went on as a new frame)."""
+    path = write_video(tmp_path / "cam.avi", 0, numbers=[0, 1, 2, 3, 4] + [4] * 30 + [5, 6, 7, 8, 9])
+    source = CaptureSource(lambda: CameraPacedCapture(path), name="test", stall_timeout_s=5.0)
+    source.start()
+    numbers = []
+    deadline = time.monotonic() + 10
+    while 9 not in numbers and time.monotonic() < deadline:
+        frame = source.get(timeout_s=0.1)
+        if frame is not None:
+            numbers.append(number_of(frame.image))
+    source.close()
+    assert 9 in numbers and numbers == sorted(set(numbers)), numbers  # every view once at most, in order
+    assert source.counters.repeated == 30 and source.lost_reason is None
+
+
+def test_a_camera_stuck_on_one_image_is_lost_with_that_reason_and_reopened(tmp_path, caplog):
+    """The same image for longer than the stall timeout is a frozen driver or a covered lens: the camera is
+    lost with that reason (the daemon's health says it, critical) and reopened; the reason holds until a new
+    image comes, and each loss is logged once."""
+    path = write_video(tmp_path / "cam.avi", 0, numbers=[0, 1, 2] + [2] * 200)  # a second of one image
+    source = CaptureSource(lambda: CameraPacedCapture(path), name="test", stall_timeout_s=0.3,
+                           backoff_initial_s=0.05, backoff_max_s=0.1)
+    with caplog.at_level(logging.DEBUG, logger="companion.capture.v4l2"):
+        source.start()
+        deadline = time.monotonic() + 10
+        while source.lost_reason is None and time.monotonic() < deadline:
+            source.get(timeout_s=0.05)
+        reason = source.lost_reason
+        while source.counters.reopens < 1 and time.monotonic() < deadline:
+            source.get(timeout_s=0.05)
+        # reopened, the file starts again: a new image (the newest of 0, 1, 2 when taken), and the reason goes
+        frame = None
+        while frame is None and time.monotonic() < deadline:
+            frame = source.get(timeout_s=0.05)
+        back = source.lost_reason
+        source.close()
+    assert reason == "camera test: the same image over and over for 0.3 s (a frozen driver, or a covered lens)"
+    assert frame is not None and frame.index >= 3 and number_of(frame.image) in (0, 1, 2) and back is None
+    lost = [r for r in caplog.records if "same image" in r.getMessage()]
+    assert lost and lost[0].levelno == logging.WARNING
 
 
 def test_missing_v4l2_camera_is_retried_with_backoff_until_closed():

@@ -49,6 +49,7 @@ class SourceCounters:
     dropped: int = 0       # frames overwritten before the pipeline took them
     corrupt: int = 0       # frames that could not be read or decoded, skipped
     reopens: int = 0       # camera (re)open attempts after the first
+    repeated: int = 0      # camera frames identical to the one before (no new view), skipped
 
 
 class FrameSource(Protocol):

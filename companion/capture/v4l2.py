@@ -10,6 +10,7 @@ import time
 from typing import Callable
 
 import cv2
+import numpy as np
 
 from companion.capture.source import ThreadedSource, to_gray
 from companion.types import Frame
@@ -39,6 +40,8 @@ class CaptureSource(ThreadedSource):
         self.backoff_initial_s = backoff_initial_s
         self.backoff_max_s = backoff_max_s
         self.connected = threading.Event()
+        # the last image delivered, kept across reopens: a covered lens reads the same after one
+        self._last_image = None
 
     def _run(self) -> None:
         backoff_s = self.backoff_initial_s
@@ -55,20 +58,21 @@ class CaptureSource(ThreadedSource):
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.backoff_max_s)
                 continue
-            log.info("camera %s: opened", self.name)
-            self.lost_reason = None
+            # lost_reason stays until a frame comes: a reopened camera that delivers nothing is still lost
+            log.log(logging.INFO if self.lost_reason is None else logging.DEBUG, "camera %s: opened", self.name)
             self.connected.set()
             try:
-                index, delivered = self._read_until_lost(capture, index)
+                index, delivered, why = self._read_until_lost(capture, index)
             finally:
                 capture.release()
                 self.connected.clear()
             if delivered:
                 backoff_s = self.backoff_initial_s
             if not self._stop.is_set():
-                self.lost_reason = f"camera {self.name}: no frame for {self.stall_timeout_s:.1f} s"
-                log.warning("camera %s: lost (no frame for %.1f s); reopening in %.1f s",
-                            self.name, self.stall_timeout_s, backoff_s)
+                reason = f"camera {self.name}: {why}"
+                log.log(logging.WARNING if reason != self.lost_reason else logging.DEBUG,
+                        "%s; reopening with backoff (%.1f s, up to %.0f s)", reason, backoff_s, self.backoff_max_s)
+                self.lost_reason = reason
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.backoff_max_s)
 
@@ -81,8 +85,14 @@ class CaptureSource(ThreadedSource):
             log.debug("%s; retrying in %.1f s", reason, backoff_s)
         self.lost_reason = reason
 
-    def _read_until_lost(self, capture: cv2.VideoCapture, index: int) -> tuple[int, bool]:
-        """Read frames until stopped or lost; returns (next index, any frame delivered)."""
+    def _read_until_lost(self, capture: cv2.VideoCapture, index: int) -> tuple[int, bool, str]:
+        """Read frames until stopped or lost; returns (next index, any frame delivered, why it was lost).
+
+        A frame identical to the one before is no new view (a driver handing over the same buffer again,
+        or a covered lens reading one flat level; a live sensor's noise makes two captures differ): it is
+        counted, not delivered, so that no pose goes out stamped now from an old image, and a camera that
+        repeats itself stalls like one that delivers nothing.
+        """
         delivered = False
         last_frame_ns = time.monotonic_ns()
         while not self._stop.is_set():
@@ -90,18 +100,31 @@ class CaptureSource(ThreadedSource):
             t_ns = time.monotonic_ns()
             image = capture.retrieve()[1] if grabbed else None
             gray = to_gray(image) if grabbed else None
-            if gray is None:
-                if grabbed:
+            repeated = gray is not None and self._last_image is not None and same_image(gray, self._last_image)
+            if gray is None or repeated:
+                if repeated:
+                    self.counters.repeated += 1
+                elif grabbed:
                     self.counters.corrupt += 1
                 if (time.monotonic_ns() - last_frame_ns) * 1e-9 > self.stall_timeout_s:
-                    return index, delivered
-                self._stop.wait(0.005)
+                    return index, delivered, (
+                        f"the same image over and over for {self.stall_timeout_s:.1f} s (a frozen driver, "
+                        f"or a covered lens)" if repeated else f"no frame for {self.stall_timeout_s:.1f} s")
+                if not repeated:
+                    self._stop.wait(0.005)
                 continue
-            last_frame_ns = t_ns
+            last_frame_ns, self._last_image, self.lost_reason = t_ns, gray, None
             self._publish(Frame(image=gray, t_ns=t_ns, index=index))
             index += 1
             delivered = True
-        return index, delivered
+        return index, delivered, "stopped"
+
+
+def same_image(image: np.ndarray, other: np.ndarray) -> bool:
+    """Whether two frames are equal pixel for pixel (a sparse look first: two captures of a live sensor
+    differ almost everywhere, so the whole frames are compared only for a repeat)."""
+    return (image.shape == other.shape and np.array_equal(image[::16, ::16], other[::16, ::16])
+            and np.array_equal(image, other))
 
 
 def v4l2_source(device: str | int, width: int | None = None, height: int | None = None,

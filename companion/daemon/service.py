@@ -370,8 +370,8 @@ class Daemon:
 
     def _print_summary(self) -> None:
         stats, source = self.pipeline.stats, self.source.counters
-        log.info("frames %d, sent %d, dropped %d, corrupt %d, camera reopens %d, link %s",
-                 stats.frames, stats.sent, source.dropped, source.corrupt, source.reopens,
+        log.info("frames %d, sent %d, dropped %d, corrupt %d, repeated %d, camera reopens %d, link %s",
+                 stats.frames, stats.sent, source.dropped, source.corrupt, source.repeated, source.reopens,
                  dict(self.link.counters.sent))
         for name, median_ms, p99_ms in stats.stage_table():
             log.info("stage %-14s median %7.2f ms  p99 %7.2f ms", name, median_ms, p99_ms)
