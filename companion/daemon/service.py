@@ -52,6 +52,7 @@ from companion.mavlink.link import LinkState, MavlinkLink
 from companion.mavlink.messages import SEVERITY_CRITICAL, SEVERITY_WARNING
 from companion.daemon.notify import Notifier
 from companion.daemon.map_watch import MapWatch
+from companion.daemon.mount_watch import MOUNT_WATCH_SDS, MountWatch, MountWatchParams
 from companion.daemon.pipeline import Pipeline
 from companion.daemon.record import GROUNDTRUTH_FILE, Recorder
 from companion.daemon.web import LiveView
@@ -136,6 +137,9 @@ class Daemon:
         self.pipeline.observers.append(self.health.observe)
         # a marker the pose stage keeps leaving out is said once (docs/survey.md)
         self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
+        # so is a camera mount (or FC level) that puts the markers' down away from the FC's
+        self.pipeline.observers.append(MountWatch(self.link, MountWatchParams(
+            min_angle_deg=MOUNT_WATCH_SDS * config.pose.attitude_sd_deg)))
         self.link.on_parameters = self._on_fc_parameters
         self.notifier = Notifier()
         self.stop_event = threading.Event()

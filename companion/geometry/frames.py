@@ -110,6 +110,13 @@ def roll_pitch_321(R: np.ndarray) -> tuple[float, float]:
     return roll, pitch
 
 
+def down_in_body(roll_rad: float, pitch_rad: float) -> np.ndarray:
+    """(3,) NED's down (gravity's direction) in body FRD axes at this roll and pitch, Z-Y-X order: the third
+    row of ``R_ned_body`` (see ``roll_pitch_321``), whatever the yaw."""
+    cos_pitch = math.cos(pitch_rad)
+    return np.array([-math.sin(pitch_rad), cos_pitch * math.sin(roll_rad), cos_pitch * math.cos(roll_rad)])
+
+
 def roll_pitch_321_jacobian(R: np.ndarray) -> np.ndarray:
     """(2, 3) derivative of (roll, pitch) of ``R`` by a small rotation ``theta`` applied as ``R' = exp(theta) R``.
 
