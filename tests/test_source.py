@@ -352,6 +352,28 @@ def test_a_camera_stuck_on_one_image_is_lost_with_that_reason_and_reopened(tmp_p
     assert lost and lost[0].levelno == logging.WARNING
 
 
+def test_a_camera_that_opens_but_delivers_nothing_stays_lost_and_is_logged_once(tmp_path, caplog):
+    """Reopened again and again, each time without a new frame (a video of one frame: its one image, then
+    nothing): the lost reason never clears between reopens, so the daemon's health stays "camera lost"
+    instead of flipping to "stalled" and back (a CRITICAL message each time), and the log says it once."""
+    path = write_video(tmp_path / "cam.avi", 1)
+    source = CaptureSource(lambda: CameraPacedCapture(path), name="test", stall_timeout_s=0.1,
+                           backoff_initial_s=0.02, backoff_max_s=0.05)
+    reasons = []
+    with caplog.at_level(logging.DEBUG, logger="companion.capture.v4l2"):
+        source.start()
+        deadline = time.monotonic() + 10
+        while source.counters.reopens < 8 and time.monotonic() < deadline:
+            source.get(timeout_s=0.005)
+            reasons.append(source.lost_reason)
+        source.close()
+    since_lost = reasons[next(i for i, r in enumerate(reasons) if r is not None):]
+    assert source.counters.reopens >= 8 and None not in since_lost
+    assert set(since_lost) == {"camera test: no frame for 0.1 s", "camera test: opened, no frame yet"}
+    said = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert [r.getMessage().split(";")[0] for r in said] == ["camera test: no frame for 0.1 s"]
+
+
 def test_missing_v4l2_camera_is_retried_with_backoff_until_closed():
     """The real V4L2 backend on a device that is not there: the thread keeps retrying
     (doubling its wait) instead of failing, and stops promptly on close."""

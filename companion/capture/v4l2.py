@@ -42,6 +42,7 @@ class CaptureSource(ThreadedSource):
         self.connected = threading.Event()
         # the last image delivered, kept across reopens: a covered lens reads the same after one
         self._last_image = None
+        self._said: str | None = None  # the loss last logged, until a frame comes
 
     def _run(self) -> None:
         backoff_s = self.backoff_initial_s
@@ -58,8 +59,9 @@ class CaptureSource(ThreadedSource):
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.backoff_max_s)
                 continue
-            # lost_reason stays until a frame comes: a reopened camera that delivers nothing is still lost
             log.log(logging.INFO if self.lost_reason is None else logging.DEBUG, "camera %s: opened", self.name)
+            if self.lost_reason is not None:  # still lost until a frame comes (the health says no more)
+                self.lost_reason = f"camera {self.name}: opened, no frame yet"
             self.connected.set()
             try:
                 index, delivered, why = self._read_until_lost(capture, index)
@@ -69,21 +71,19 @@ class CaptureSource(ThreadedSource):
             if delivered:
                 backoff_s = self.backoff_initial_s
             if not self._stop.is_set():
-                reason = f"camera {self.name}: {why}"
-                log.log(logging.WARNING if reason != self.lost_reason else logging.DEBUG,
-                        "%s; reopening with backoff (%.1f s, up to %.0f s)", reason, backoff_s, self.backoff_max_s)
-                self.lost_reason = reason
+                self._lost(f"camera {self.name}: {why}", "reopening", backoff_s)
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.backoff_max_s)
 
     def _cannot_open(self, backoff_s: float) -> None:
-        """Say why the device cannot be opened: once per distinct reason, retries at DEBUG."""
-        reason = f"camera {self.name}: cannot open: {self._diagnose()}"
-        if reason != self.lost_reason:
-            log.warning("%s; retrying with backoff (up to %.0f s)", reason, self.backoff_max_s)
-        else:
-            log.debug("%s; retrying in %.1f s", reason, backoff_s)
-        self.lost_reason = reason
+        self._lost(f"camera {self.name}: cannot open: {self._diagnose()}", "retrying", backoff_s)
+
+    def _lost(self, reason: str, then: str, backoff_s: float) -> None:
+        """Why the camera delivers nothing, for the health (``lost_reason``) and the log: once per distinct
+        reason until a frame comes, its repeats at DEBUG."""
+        log.log(logging.WARNING if reason != self._said else logging.DEBUG, "%s; %s with backoff (%.1f s, up to "
+                "%.0f s)", reason, then, backoff_s, self.backoff_max_s)
+        self.lost_reason = self._said = reason
 
     def _read_until_lost(self, capture: cv2.VideoCapture, index: int) -> tuple[int, bool, str]:
         """Read frames until stopped or lost; returns (next index, any frame delivered, why it was lost).
@@ -113,7 +113,7 @@ class CaptureSource(ThreadedSource):
                 if not repeated:
                     self._stop.wait(0.005)
                 continue
-            last_frame_ns, self._last_image, self.lost_reason = t_ns, gray, None
+            last_frame_ns, self._last_image, self.lost_reason, self._said = t_ns, gray, None, None
             self._publish(Frame(image=gray, t_ns=t_ns, index=index))
             index += 1
             delivered = True
