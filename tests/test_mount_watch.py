@@ -4,15 +4,19 @@ from __future__ import annotations
 import math
 import re
 import shutil
+import subprocess
+import sys
+
+import yaml
 
 import numpy as np
 import pytest
 
-from companion.daemon.mount_watch import level_difference_deg
+from companion.daemon.mount_watch import level_difference_deg, tilt_turn_deg
 from companion.geometry import frames
 from companion.types import AttitudeSample
 from mavlink_peer import PeerProcess, free_port
-from test_daemon import AISLE, finish, start_daemon, write_config
+from test_daemon import AISLE, MAP, finish, start_daemon, write_config
 
 SAID = re.compile(r"the markers and the flight controller disagree on level by ([0-9.]+) deg \(median of the last "
                   r"(\d+) frames; markers - FC: roll ([-+0-9.]+), pitch ([-+0-9.]+) deg\)")
@@ -25,6 +29,24 @@ def test_level_difference_is_the_angle_between_the_two_downs_whatever_the_yaw():
     down = R_ned_body.T @ np.array([0.0, 0.0, 1.0])
     assert angle == pytest.approx(math.degrees(math.acos(down[2])))
     assert level_difference_deg(R_ned_body, AttitudeSample(0, math.radians(2.0), math.radians(-3.0)))[0] < 1e-6
+
+
+def test_the_turn_between_two_sets_of_tilts_is_found_when_the_vehicle_tilts_enough():
+    rng = np.random.default_rng(3)
+    directions = rng.uniform(0, 2 * math.pi, 60)
+
+    def downs(tilt_deg, turn_deg=0.0):
+        t = math.radians(tilt_deg)
+        across = np.column_stack([np.cos(directions + math.radians(turn_deg)),
+                                  np.sin(directions + math.radians(turn_deg))]) * math.sin(t)
+        return np.column_stack([across, np.full(60, math.cos(t))])
+
+    assert tilt_turn_deg(downs(5.0, 30.0), downs(5.0)) == pytest.approx(30.0)
+    assert tilt_turn_deg(downs(5.0, -90.0), downs(5.0)) == pytest.approx(-90.0)
+    assert tilt_turn_deg(downs(1.0, 30.0), downs(1.0)) is None  # about level: a turn does not show
+    tilted = np.tile([math.sin(math.radians(4.0)), 0.0, math.cos(math.radians(4.0))], (60, 1))
+    level = np.tile([0.0, 0.0, 1.0], (60, 1)) + rng.normal(0.0, 0.003, (60, 3))
+    assert tilt_turn_deg(level, tilted) is None  # a level error alone: no turn to tell
 
 
 def aisle_with_attitude_offset(folder, pitch_offset_deg: float):
@@ -62,3 +84,28 @@ def test_a_camera_mount_off_its_config_is_said_once_with_the_difference(tmp_path
     assert frames_counted == 60 and abs(roll) < 0.3 and pitch == pytest.approx(-pitch_offset_deg, abs=0.3)
     assert angle == pytest.approx(pitch_offset_deg, abs=0.3)
     assert texts[0] == f"companion: camera mount? level {angle:.1f} deg off FC"
+
+
+def test_a_camera_turned_against_its_config_is_told_as_its_yaw_error_critical(tmp_path):
+    """A figure eight (tilts of 5-11 degrees) rendered with the camera facing forward, flown with a config
+    that says it is turned 30 degrees right: the markers see the FC's tilts turned by +30 degrees; the daemon
+    says once, CRITICAL, that the camera's yaw is +30 degrees off (every heading sent is; before, nothing)."""
+    sequence = tmp_path / "eight"
+    subprocess.run([sys.executable, "-m", "companion", "simulate", str(sequence), "--map", str(MAP), "--pattern",
+                    "figure8", "--fps", "15", "--duration", "4.5", "--period", "4", "--size", "0.6,0.3",
+                    "--no-progress"], check=True, capture_output=True)
+    camera = yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"]
+    camera["mount"]["yaw_deg"] = 30.0
+    port = free_port()
+    peer = PeerProcess(port, tmp_path / "peer.jsonl", "--origin-reply", "on_set", duration_s=60).wait_listening()
+    try:
+        config = write_config(tmp_path, sequence, port, source={"realtime": False}, camera=camera)
+        code, _, stderr = finish(start_daemon(config), timeout_s=60)
+    finally:
+        peer.stop()
+    assert code == 0, stderr
+    turned = re.findall(r"ERROR companion: the markers and the flight controller disagree on level .* the tilt the "
+                        r"markers see is the FC's turned by ([-+0-9]+) deg", stderr)
+    assert len(turned) == 1 and abs(int(turned[0]) - 30) <= 2, stderr
+    texts = [r["fields"] for r in peer.records("STATUSTEXT") if "camera mount?" in r["fields"]["text"]]
+    assert [(t["text"], t["severity"]) for t in texts] == [(f"companion: camera mount? yaw off by {turned[0]} deg", 2)]

@@ -12,6 +12,14 @@ daemon sends) or the flight controller's level (its accelerometer calibration,
 ArduPilot's AHRS_TRIM). The pose stage then leaves the attitude out where it
 disagrees with the markers, which nobody would notice; this says it once, in
 the log with the roll and pitch differences and by STATUSTEXT.
+
+A camera turned about the body's down axis against its config (a wrong yaw or
+facing) shows only while the vehicle tilts: the markers then see the FC's tilt
+turned by as much. Where the FC's tilts over the window spread by
+``MIN_TILT_SPREAD_FOR_TURN_DEG`` or more, that turn is estimated (least squares
+over the frames' tilts, a constant level error beside it), and one of ``MIN_REPORTED_TURN_DEG`` or more is told as the
+camera's yaw error, CRITICAL: every heading sent is off by as much, and an
+autopilot that takes its heading from vision flies off.
 """
 from __future__ import annotations
 
@@ -23,13 +31,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.geometry import frames
-from companion.mavlink.link import SEVERITY_WARNING, MavlinkLink
+from companion.mavlink.link import MavlinkLink
+from companion.mavlink.messages import SEVERITY_CRITICAL, SEVERITY_WARNING
 from companion.types import AttitudeSample
 
 log = logging.getLogger("companion")
 
 
 MOUNT_WATCH_SDS = 3.0  # the daemon reports a median angle of this many ``PoseParams.attitude_sd_deg`` or more
+MIN_TILT_SPREAD_FOR_TURN_DEG = 2.0  # the FC's tilts must spread this much (RMS) for a turn about the vertical
+MIN_REPORTED_TURN_DEG = 10.0  # a turn this large is reported as the camera's yaw (CRITICAL: every heading is off)
 
 
 @dataclass(frozen=True)
@@ -48,14 +59,18 @@ class MountWatch:
 
     def __init__(self, link: MavlinkLink | None, params: MountWatchParams = MountWatchParams()):
         self.link, self.params = link, params
+        # per frame: (angle, roll, pitch) differences in degrees, and both downs in body axes (2, 3)
         self._differences: collections.deque = collections.deque(maxlen=params.window)
+        self._downs: collections.deque = collections.deque(maxlen=params.window)
         self.reported = False
 
     def __call__(self, frame, record) -> None:
         solution, attitude = record.solution, record.attitude
         if self.reported or attitude is None or solution is None or solution.measurement is None:
             return
-        self._differences.append(level_difference_deg(solution.measurement.T_ned_body[:3, :3], attitude))
+        R_ned_body = solution.measurement.T_ned_body[:3, :3]
+        self._differences.append(level_difference_deg(R_ned_body, attitude))
+        self._downs.append((R_ned_body[2], frames.down_in_body(attitude.roll_rad, attitude.pitch_rad)))
         if len(self._differences) == self.params.window:
             angle_deg, roll_deg, pitch_deg = np.median(np.array(self._differences), axis=0)
             if angle_deg >= self.params.min_angle_deg:
@@ -63,13 +78,22 @@ class MountWatch:
 
     def _report(self, angle_deg: float, roll_deg: float, pitch_deg: float) -> None:
         self.reported = True
-        log.warning("the markers and the flight controller disagree on level by %.1f deg (median of the last %d "
-                    "frames; markers - FC: roll %+.1f, pitch %+.1f deg): the pose stage leaves the FC's attitude "
-                    "out where they disagree. Check the camera's mount in the config (camera.mount: facing, "
-                    "tilt_down_deg or roll/pitch/yaw_deg) and the FC's level calibration",
-                    angle_deg, len(self._differences), roll_deg, pitch_deg)
+        downs = np.array(self._downs)  # (N, 2, 3): the markers' down, the FC's down
+        turn = tilt_turn_deg(downs[:, 0], downs[:, 1])
+        turned = turn is not None and abs(turn) >= MIN_REPORTED_TURN_DEG
+        why = (f"the tilt the markers see is the FC's turned by {turn:+.0f} deg about the body's down axis: the "
+               f"camera's yaw in the config is {turn:+.0f} deg off (camera.mount yaw_deg or facing; every heading "
+               f"sent is off by as much)" if turned else
+               "check the camera's mount in the config (camera.mount: facing, tilt_down_deg or roll/pitch/yaw_deg) "
+               "and the FC's level calibration")
+        log.log(logging.ERROR if turned else logging.WARNING, "the markers and the flight controller disagree on "
+                "level by %.1f deg (median of the last %d frames; markers - FC: roll %+.1f, pitch %+.1f deg); the "
+                "pose stage leaves the FC's attitude out where they disagree; %s",
+                angle_deg, len(self._differences), roll_deg, pitch_deg, why)
         if self.link is not None:
-            self.link.statustext(f"companion: camera mount? level {angle_deg:.1f} deg off FC", SEVERITY_WARNING)
+            self.link.statustext(f"companion: camera mount? yaw off by {turn:+.0f} deg" if turned else
+                                 f"companion: camera mount? level {angle_deg:.1f} deg off FC",
+                                 SEVERITY_CRITICAL if turned else SEVERITY_WARNING)
 
 
 def level_difference_deg(R_ned_body: np.ndarray, attitude: AttitudeSample) -> tuple[float, float, float]:
@@ -81,3 +105,18 @@ def level_difference_deg(R_ned_body: np.ndarray, attitude: AttitudeSample) -> tu
     roll, pitch = frames.roll_pitch_321(R_ned_body)
     return (angle_deg, math.degrees(math.remainder(roll - attitude.roll_rad, 2 * math.pi)),
             math.degrees(pitch - attitude.pitch_rad))
+
+
+def tilt_turn_deg(down_markers: np.ndarray, down_fc: np.ndarray, min_spread_deg: float = MIN_TILT_SPREAD_FOR_TURN_DEG
+                  ) -> float | None:
+    """The turn about the body's down axis that best takes the FC's tilts onto the markers' (degrees, positive
+    from body x towards y), from (N, 3) downs in body axes, a constant tilt offset between them allowed (a
+    level error); None unless the FC's tilts spread by ``min_spread_deg`` or more (RMS about their mean): on
+    tilts that hardly change, a turn does not show."""
+    fc, markers = down_fc[:, :2], down_markers[:, :2]  # the tilts: down's part across the body's down axis
+    fc, markers = fc - fc.mean(axis=0), markers - markers.mean(axis=0)
+    if math.degrees(math.asin(min(float(np.sqrt(np.mean(np.sum(fc * fc, axis=1)))), 1.0))) < min_spread_deg:
+        return None
+    # the least-squares turn: atan2 of the summed cross and dot products
+    cross = float(np.sum(fc[:, 0] * markers[:, 1] - fc[:, 1] * markers[:, 0]))
+    return math.degrees(math.atan2(cross, float(np.sum(fc * markers))))
