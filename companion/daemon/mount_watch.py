@@ -59,9 +59,8 @@ class MountWatch:
 
     def __init__(self, link: MavlinkLink | None, params: MountWatchParams = MountWatchParams()):
         self.link, self.params = link, params
-        # per frame: (angle, roll, pitch) differences in degrees, and both downs in body axes (2, 3)
-        self._differences: collections.deque = collections.deque(maxlen=params.window)
-        self._downs: collections.deque = collections.deque(maxlen=params.window)
+        # per frame, 9 values: the angle, roll and pitch differences (degrees), the markers' down, the FC's down
+        self._frames: collections.deque = collections.deque(maxlen=params.window)
         self.reported = False
 
     def __call__(self, frame, record) -> None:
@@ -69,17 +68,17 @@ class MountWatch:
         if self.reported or attitude is None or solution is None or solution.measurement is None:
             return
         R_ned_body = solution.measurement.T_ned_body[:3, :3]
-        self._differences.append(level_difference_deg(R_ned_body, attitude))
-        self._downs.append((R_ned_body[2], frames.down_in_body(attitude.roll_rad, attitude.pitch_rad)))
-        if len(self._differences) == self.params.window:
-            angle_deg, roll_deg, pitch_deg = np.median(np.array(self._differences), axis=0)
+        self._frames.append(np.concatenate([level_difference_deg(R_ned_body, attitude), R_ned_body[2],
+                                            frames.down_in_body(attitude.roll_rad, attitude.pitch_rad)]))
+        if len(self._frames) == self.params.window:
+            table = np.array(self._frames)
+            angle_deg, roll_deg, pitch_deg = np.median(table[:, :3], axis=0)
             if angle_deg >= self.params.min_angle_deg:
-                self._report(float(angle_deg), float(roll_deg), float(pitch_deg))
+                self._report(float(angle_deg), float(roll_deg), float(pitch_deg),
+                             tilt_turn_deg(table[:, 3:6], table[:, 6:9]))
 
-    def _report(self, angle_deg: float, roll_deg: float, pitch_deg: float) -> None:
+    def _report(self, angle_deg: float, roll_deg: float, pitch_deg: float, turn: float | None) -> None:
         self.reported = True
-        downs = np.array(self._downs)  # (N, 2, 3): the markers' down, the FC's down
-        turn = tilt_turn_deg(downs[:, 0], downs[:, 1])
         turned = turn is not None and abs(turn) >= MIN_REPORTED_TURN_DEG
         why = (f"the tilt the markers see is the FC's turned by {turn:+.0f} deg about the body's down axis: the "
                f"camera's yaw in the config is {turn:+.0f} deg off (camera.mount yaw_deg or facing; every heading "
@@ -89,7 +88,7 @@ class MountWatch:
         log.log(logging.ERROR if turned else logging.WARNING, "the markers and the flight controller disagree on "
                 "level by %.1f deg (median of the last %d frames; markers - FC: roll %+.1f, pitch %+.1f deg); the "
                 "pose stage leaves the FC's attitude out where they disagree; %s",
-                angle_deg, len(self._differences), roll_deg, pitch_deg, why)
+                angle_deg, len(self._frames), roll_deg, pitch_deg, why)
         if self.link is not None:
             self.link.statustext(f"companion: camera mount? yaw off by {turn:+.0f} deg" if turned else
                                  f"companion: camera mount? level {angle_deg:.1f} deg off FC",
