@@ -231,20 +231,30 @@ def test_a_flight_controller_that_restarts_without_a_heartbeat_pause_gets_the_or
     peer = peers(port, "--origin-reply", "on_set", "--attitude", "--reboot-at", "2.0")
     link = links(attitude=AttitudeStream(AttitudeHistory(0.1), 50.0), connection=f"udpout:127.0.0.1:{port}",
                  origin=ORIGIN, heartbeat_interval_s=0.2, origin_retry_s=0.2)
+    rebooted_ns = stream_through_a_restart(peer, link)
+    # handshakes: the link opened, the FC seen, its restart (once: every later time_boot_ms is newer)
+    assert link.counters.origin_confirmed == 2 and link.counters.handshakes == 3
+    assert link.state is LinkState.STREAMING and link.fc_seen
+    assert any(r["t_ns"] > rebooted_ns for r in peer.records("COMMAND_LONG")
+               if r["fields"]["command"] == 511 and r["fields"]["param1"] == 30)
+    assert_vision_after_the_origin_again(peer, rebooted_ns)
+
+
+def stream_through_a_restart(peer, link, timeout_s: float = 15.0) -> int:
+    """Publish until the peer restarted and the link had the origin confirmed again; the restart's time."""
     publisher = Publisher(link)
     try:
-        rebooted_ns = peer.wait_for("rebooted", kind="event", timeout_s=10)[0]["t_ns"]
+        rebooted_ns = peer.wait_for("rebooted", kind="event", timeout_s=timeout_s)[0]["t_ns"]
         deadline = time.monotonic() + 10
         while link.counters.origin_confirmed < 2 and time.monotonic() < deadline:
             time.sleep(0.05)
         time.sleep(0.5)
     finally:
         publisher.stop()
-    # handshakes: the link opened, the FC seen, its restart (once: every later time_boot_ms is newer)
-    assert link.counters.origin_confirmed == 2 and link.counters.handshakes == 3
-    assert link.state is LinkState.STREAMING and link.fc_seen
-    assert any(r["t_ns"] > rebooted_ns for r in peer.records("COMMAND_LONG")
-               if r["fields"]["command"] == 511 and r["fields"]["param1"] == 30)
+    return rebooted_ns
+
+
+def assert_vision_after_the_origin_again(peer, rebooted_ns: int) -> None:
     origin_again_ns = min(r["t_ns"] for r in peer.records("SET_GPS_GLOBAL_ORIGIN") if r["t_ns"] > rebooted_ns)
     assert any(r["t_ns"] > origin_again_ns for r in peer.records("VISION_POSITION_ESTIMATE"))
 
@@ -258,23 +268,14 @@ def test_a_flight_controller_that_streams_no_boot_time_is_asked_for_one_and_its_
     peer = peers(port, "--origin-reply", "on_set", "--reboot-at", "5.0")
     link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, heartbeat_interval_s=0.2,
                  origin_retry_s=0.2)
-    publisher = Publisher(link)
-    try:
-        rebooted_ns = peer.wait_for("rebooted", kind="event", timeout_s=15)[0]["t_ns"]
-        deadline = time.monotonic() + 10
-        while link.counters.origin_confirmed < 2 and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(0.5)
-    finally:
-        publisher.stop()
+    rebooted_ns = stream_through_a_restart(peer, link)
     assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
     asked = [r["t_ns"] for r in peer.records("COMMAND_LONG") if r["fields"]["command"] == 511
              and r["fields"]["param1"] == 2 and r["fields"]["param2"] == 1e6 / BOOT_CLOCK_RATE_HZ]
     connected_ns = peer.wait_for("connected", kind="event")[0]["t_ns"]
     assert asked[0] - connected_ns >= BOOT_CLOCK_RETRY_S * 1e9 * 0.9
     assert any(t > rebooted_ns for t in asked)
-    origin_again_ns = min(r["t_ns"] for r in peer.records("SET_GPS_GLOBAL_ORIGIN") if r["t_ns"] > rebooted_ns)
-    assert any(r["t_ns"] > origin_again_ns for r in peer.records("VISION_POSITION_ESTIMATE"))
+    assert_vision_after_the_origin_again(peer, rebooted_ns)
 
 
 def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):
