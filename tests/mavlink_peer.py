@@ -19,7 +19,9 @@ It behaves like ArduCopter (master of 2026-03) in the start order
 
 * EKF_STATUS_REPORT at 2 Hz and on MAV_CMD_REQUEST_MESSAGE(193):
   EKF_UNINITIALIZED for ``--ekf-init-s`` seconds after start, then attitude,
-  velocity and relative position;
+  velocity and relative position; with ``--ekf-ignores-vision`` an EKF that
+  never fuses the vision positions (attitude, vertical velocity and height,
+  constant position mode: no position, so no home either);
 * SET_GPS_GLOBAL_ORIGIN is taken once ("origin already set" after that) and
   acknowledged with GPS_GLOBAL_ORIGIN; one that arrives before the EKF has
   initialised is acknowledged too, but lost when the EKF initialises (event
@@ -78,6 +80,7 @@ EKF_STATUS_REPORT_ID = 193
 HOME_POSITION_ID = 242
 EKF_UNINITIALIZED = 1024
 EKF_INITIALISED = 1 | 2 | 4 | 8 | 32  # attitude, horizontal and vertical velocity, relative position, height
+EKF_WITHOUT_POSITION = 1 | 4 | 32 | 128  # attitude, vertical velocity, height, constant position mode
 MAV_RESULT_ACCEPTED, MAV_RESULT_FAILED = 0, 4
 MAV_PARAM_TYPE_REAL32 = 9
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
@@ -100,6 +103,7 @@ def main() -> None:
     parser.add_argument("--attitude-start-ns", type=int, default=0)
     parser.add_argument("--attitude-pause", help="START,LENGTH seconds after streaming began: a gap")
     parser.add_argument("--ekf-init-s", type=float, default=0.0)
+    parser.add_argument("--ekf-ignores-vision", action="store_true", help="an EKF that never fuses vision")
     parser.add_argument("--home", choices=["auto", "command", "never"], default="auto")
     parser.add_argument("--params", default="{}", help="JSON object: parameter name -> value")
     parser.add_argument("--autopilot", type=int, default=3)
@@ -141,7 +145,8 @@ def main() -> None:
 
     def ekf_report(connection) -> None:
         with state_lock:
-            flags = EKF_INITIALISED if vehicle["ekf"] else EKF_UNINITIALIZED
+            flags = ((EKF_WITHOUT_POSITION if args.ekf_ignores_vision else EKF_INITIALISED) if vehicle["ekf"]
+                     else EKF_UNINITIALIZED)
         send(connection, "EKF_STATUS_REPORT", {"flags": flags})
 
     def set_home(connection) -> bool:
@@ -199,7 +204,7 @@ def main() -> None:
         elif message.name == "COMMAND_LONG":
             on_command(fields)
         elif message.name == "VISION_POSITION_ESTIMATE":
-            vehicle["vision"] = True
+            vehicle["vision"] = not args.ekf_ignores_vision
         elif message.name == "PARAM_REQUEST_READ" and fields["param_id"] in parameters:
             send(connection, "PARAM_VALUE", {"param_id": fields["param_id"],
                                              "param_value": float(parameters[fields["param_id"]]),

@@ -413,8 +413,23 @@ def test_a_fc_that_gets_no_home_is_reported(peers, links):
     publisher = Publisher(link)
     texts = [r["fields"]["text"] for r in peer.wait_for("STATUSTEXT")]
     publisher.stop()
-    assert any("no home" in text for text in texts), texts
+    assert texts == ["companion: FC has no home; reboot the FC"], texts  # its EKF has a position: not vision
     assert link.home is None
+
+
+def test_a_fc_whose_ekf_does_not_use_the_vision_is_told_so_not_to_reboot(peers, links):
+    """An EKF that never fuses the vision positions (its EKF_STATUS_REPORT has no horizontal position) sets no
+    home either: the link says the EKF is not using vision and points to the parameters (before, it said
+    "reboot the FC", the remedy for an origin that reached the FC before its EKF initialised)."""
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set", "--ekf-ignores-vision")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_retry_s=0.2,
+                 heartbeat_interval_s=0.2, home_wait_s=0.5, statustext_interval_s=0.1)
+    publisher = Publisher(link)
+    texts = [r["fields"]["text"] for r in peer.wait_for("STATUSTEXT")]
+    publisher.stop()
+    assert texts == ["companion: FC EKF not using vision"], texts
+    assert link.home is None and link.state is LinkState.STREAMING
 
 
 def test_parameters_are_read_when_the_fc_appears(peers, links):

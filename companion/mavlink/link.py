@@ -39,7 +39,8 @@ Start order, whatever comes up first (see docs/daemon.md, "Start order"):
    vision (ArduPilot's EKF settles at a wrong height when the origin arrives
    after vision fusion began);
 4. while streaming, ask for HOME_POSITION; none after ``home_wait_s``: send
-   MAV_CMD_DO_SET_HOME (here), none after twice that: warn.
+   MAV_CMD_DO_SET_HOME (here), none after twice that: warn, saying whether
+   the EKF has no position (it does not use vision) or dropped the origin.
 
 Beside all of it, from the first FC heartbeat on (it needs neither the EKF
 nor the origin): with an ``AttitudeStream`` the FC is asked for ATTITUDE,
@@ -263,6 +264,7 @@ class MavlinkLink:
         self.confirmed_origin: Origin | None = None
         self.home: Origin | None = None
         self.ekf_flags: int | None = None
+        self._ekf_report_s: float | None = None  # when the last EKF_STATUS_REPORT came (monotonic)
         self.duplicate: str | None = None
         # (autopilot, {name: value or None if the FC did not answer}) once read; see companion.mavlink.fc_params
         self.on_parameters: Callable[[int, dict[str, float | None]], None] | None = None
@@ -595,7 +597,7 @@ class MavlinkLink:
             self._start_streaming()
 
     def _on_ekf_status(self, message) -> None:
-        self.ekf_flags = message.flags
+        self.ekf_flags, self._ekf_report_s = message.flags, time.monotonic()
         if not self._ekf_ready and mm.ekf_ready(message.flags):
             self._ekf_ready = True
             if self.state is LinkState.HANDSHAKE:
@@ -803,11 +805,7 @@ class MavlinkLink:
             self._home_check_started_s = None
             return
         if waited_s > 2 * self.params.home_wait_s:
-            log.warning("link: the flight controller reports no home %.1f s after the origin (EKF flags %s): "
-                        "GUIDED take-off, RTL and fences will be refused; if the origin reached it before its EKF "
-                        "was initialised, reboot the flight controller", waited_s,
-                        "unknown" if self.ekf_flags is None else f"0x{self.ekf_flags:x}")
-            self.statustext("companion: FC has no home; reboot the FC", SEVERITY_WARNING)
+            self._no_home(waited_s)
             self._home_check_started_s = None
             return
         if waited_s > self.params.home_wait_s and not self._home_set_requested:
@@ -817,4 +815,21 @@ class MavlinkLink:
             self._home_set_requested = True
         if now_s - self._last_home_request_s >= self.params.origin_retry_s:
             self._send(mm.request_home_position(self.fc_system_id, self.fc_component_id))
+            if self.fc_autopilot == ARDUPILOT:  # its EKF's report tells why no home comes (_no_home)
+                self._send(mm.request_ekf_status(self.fc_system_id, self.fc_component_id))
             self._last_home_request_s = now_s
+
+    def _no_home(self, waited_s: float) -> None:
+        """No home twice home_wait_s after the first vision: why, as far as the EKF's latest report tells."""
+        flags = "unknown" if self.ekf_flags is None else f"0x{self.ekf_flags:x}"
+        reported = self._ekf_report_s is not None and self._ekf_report_s >= self._home_check_started_s
+        if reported and not mm.ekf_has_horizontal_position(self.ekf_flags):
+            log.warning("link: the flight controller's EKF has no horizontal position %.1f s after vision began "
+                        "(EKF flags %s): it is not using the vision positions, so it sets no home either; check "
+                        "its parameters (companion check-fc)", waited_s, flags)
+            self.statustext("companion: FC EKF not using vision", SEVERITY_WARNING)
+            return
+        log.warning("link: the flight controller reports no home %.1f s after the origin (EKF flags %s): "
+                    "GUIDED take-off, RTL and fences will be refused; if the origin reached it before its EKF "
+                    "was initialised, reboot the flight controller", waited_s, flags)
+        self.statustext("companion: FC has no home; reboot the FC", SEVERITY_WARNING)

@@ -204,6 +204,12 @@ def set_home_here(target_system: int, target_component: int) -> Message:
     )
 
 
+def ekf_has_horizontal_position(flags: int) -> bool:
+    """An EKF_STATUS_REPORT's flags say the EKF has a horizontal position (relative or absolute): from
+    vision, when nothing else gives it one."""
+    return bool(flags & (ardupilot.EKF_POS_HORIZ_REL | ardupilot.EKF_POS_HORIZ_ABS))
+
+
 def ekf_ready(flags: int) -> bool:
     """An EKF_STATUS_REPORT's flags say the EKF has its attitude and has been initialised."""
     return bool(flags & EKF_READY_FLAG) and not flags & EKF_UNINITIALIZED_FLAG
