@@ -12,7 +12,7 @@ import pytest
 from companion.mavlink import messages as mm
 from companion.geometry.attitude import AttitudeHistory
 from companion.mavlink.attitude import AttitudeStream
-from companion.mavlink.link import (BOOT_CLOCK_RATE_HZ, BOOT_CLOCK_RETRY_S, LinkError, LinkParams, LinkState, MavlinkLink,
+from companion.mavlink.link import (BOOT_TIME_REQUEST_RATE_HZ, BOOT_TIME_REQUEST_RETRY_S, LinkError, LinkParams, LinkState, MavlinkLink,
                                     Origin, parse_connection)
 from companion.types import Estimate
 from mavlink_peer import PeerProcess, free_port
@@ -260,7 +260,7 @@ def assert_vision_after_the_origin_again(peer, rebooted_ns: int) -> None:
 
 
 def test_a_flight_controller_that_streams_no_boot_time_is_asked_for_one_and_its_restart_seen(peers, links):
-    """No attitude asked for and nothing streamed with a time_boot_ms: after BOOT_CLOCK_RETRY_S the link asks
+    """No attitude asked for and nothing streamed with a time_boot_ms: after BOOT_TIME_REQUEST_RETRY_S the link asks
     for SYSTEM_TIME (not before: an autopilot that streams ATTITUDE on its own is not asked), so a restart
     without a heartbeat pause is seen there; the restarted FC forgot the stream and is asked again (before,
     the origin was confirmed once and vision streamed on to an EKF without one)."""
@@ -271,9 +271,9 @@ def test_a_flight_controller_that_streams_no_boot_time_is_asked_for_one_and_its_
     rebooted_ns = stream_through_a_restart(peer, link)
     assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
     asked = [r["t_ns"] for r in peer.records("COMMAND_LONG") if r["fields"]["command"] == 511
-             and r["fields"]["param1"] == 2 and r["fields"]["param2"] == 1e6 / BOOT_CLOCK_RATE_HZ]
+             and r["fields"]["param1"] == 2 and r["fields"]["param2"] == 1e6 / BOOT_TIME_REQUEST_RATE_HZ]
     connected_ns = peer.wait_for("connected", kind="event")[0]["t_ns"]
-    assert asked[0] - connected_ns >= BOOT_CLOCK_RETRY_S * 1e9 * 0.9
+    assert asked[0] - connected_ns >= BOOT_TIME_REQUEST_RETRY_S * 1e9 * 0.9
     assert any(t > rebooted_ns for t in asked)
     assert_vision_after_the_origin_again(peer, rebooted_ns)
 

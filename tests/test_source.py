@@ -288,31 +288,21 @@ def drain_until(source, count: int, took, limit_s: float = 10.0) -> list[Frame]:
     return frames
 
 
-class CameraPacedCapture:
+def camera_paced(path: Path, period_s: float = 0.005) -> PacedCapture:
     """A real cv2.VideoCapture over a video file that hands over a frame every ``period_s``, as a camera does."""
 
-    def __init__(self, path: Path, period_s: float = 0.005):
-        self._capture, self._period_s = cv2.VideoCapture(str(path)), period_s
+    def wait_a_period() -> bool:
+        time.sleep(period_s)
+        return True
 
-    def isOpened(self) -> bool:
-        return self._capture.isOpened()
-
-    def grab(self) -> bool:
-        time.sleep(self._period_s)
-        return self._capture.grab()
-
-    def retrieve(self):
-        return self._capture.retrieve()
-
-    def release(self) -> None:
-        self._capture.release()
+    return PacedCapture(cv2.VideoCapture(str(path)), wait_a_period)
 
 
 def test_a_camera_that_hands_over_the_same_image_again_delivers_each_view_once(tmp_path):
     """A driver that repeats its buffer (30 times here): the repeats are counted, not delivered, so no pose
     is sent stamped now from an old image (before, every repeat went on as a new frame)."""
     path = write_video(tmp_path / "cam.avi", 0, numbers=[0, 1, 2, 3, 4] + [4] * 30 + [5, 6, 7, 8, 9])
-    source = CaptureSource(lambda: CameraPacedCapture(path), name="test", stall_timeout_s=5.0)
+    source = CaptureSource(lambda: camera_paced(path), name="test", stall_timeout_s=5.0)
     source.start()
     numbers = []
     deadline = time.monotonic() + 10
@@ -330,7 +320,7 @@ def test_a_camera_stuck_on_one_image_is_lost_with_that_reason_and_reopened(tmp_p
     lost with that reason (the daemon's health says it, critical) and reopened; the reason holds until a new
     image comes, and each loss is logged once."""
     path = write_video(tmp_path / "cam.avi", 0, numbers=[0, 1, 2] + [2] * 200)  # a second of one image
-    source = CaptureSource(lambda: CameraPacedCapture(path), name="test", stall_timeout_s=0.3,
+    source = CaptureSource(lambda: camera_paced(path), name="test", stall_timeout_s=0.3,
                            backoff_initial_s=0.05, backoff_max_s=0.1)
     with caplog.at_level(logging.DEBUG, logger="companion.capture.v4l2"):
         source.start()
@@ -357,7 +347,7 @@ def test_a_camera_that_opens_but_delivers_nothing_stays_lost_and_is_logged_once(
     nothing): the lost reason never clears between reopens, so the daemon's health stays "camera lost"
     instead of flipping to "stalled" and back (a CRITICAL message each time), and the log says it once."""
     path = write_video(tmp_path / "cam.avi", 1)
-    source = CaptureSource(lambda: CameraPacedCapture(path), name="test", stall_timeout_s=0.1,
+    source = CaptureSource(lambda: camera_paced(path), name="test", stall_timeout_s=0.1,
                            backoff_initial_s=0.02, backoff_max_s=0.05)
     reasons = []
     with caplog.at_level(logging.DEBUG, logger="companion.capture.v4l2"):

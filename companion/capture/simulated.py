@@ -217,11 +217,12 @@ class SendClock:
 
     def arrive(self, receive_ns: int, item=None) -> list[tuple[int, object]]:
         """(stamp_ns, item) of every arrival whose send time is now known, oldest first."""
-        if self._late_ns(receive_ns, len(self._held)) <= self._interval_ns / 2:
+        usual_ns = self._usual_delay_ns()  # of the run, which holding does not change
+        if self._late_ns(receive_ns, len(self._held), usual_ns) <= self._interval_ns / 2:
             held, self._held = self._held, []
             return self._settle([*held, (receive_ns, item)])
         self._held.append((receive_ns, item))
-        if not self._restarted():
+        if not self._restarted(usual_ns):
             return []
         held, self._held = self._held, []
         doubtful = self._in_doubt([receive_ns for receive_ns, _ in held])
@@ -232,16 +233,23 @@ class SendClock:
         self._settle(held[doubtful:doubtful + 1])
         return self._settle(held[doubtful + 1:])
 
-    def _late_ns(self, receive_ns: int, held_before: int) -> float:
+    def _usual_delay_ns(self) -> float:
+        """The run's usual delay on the grid from its oldest arrival (the median lateness); 0 while the
+        interval is unknown."""
+        if not self._arrivals_ns or self._interval_ns <= 0:
+            return 0.0
+        return float(np.median(self._lateness_ns()))
+
+    def _late_ns(self, receive_ns: int, held_before: int, usual_ns: float) -> float:
         """How much later than its slot on the grid an arrival at ``receive_ns`` with ``held_before`` held
-        ones ahead of it came, beyond the run's usual delay (median minus promptest); 0 while the interval
-        is unknown."""
+        ones ahead of it came, beyond the run's usual delay (``_usual_delay_ns``: median minus promptest);
+        0 while the interval is unknown."""
         if not self._arrivals_ns or self._interval_ns <= 0:
             return 0.0
         slot = len(self._arrivals_ns) + held_before
-        return (receive_ns - self._arrivals_ns[0]) - slot * self._interval_ns - np.median(self._lateness_ns())
+        return (receive_ns - self._arrivals_ns[0]) - slot * self._interval_ns - usual_ns
 
-    def _restarted(self) -> bool:
+    def _restarted(self, usual_ns: float) -> bool:
         """The held arrivals are a new grid: the last ``confirm`` of them a whole interval late and not in
         one burst, or too many held."""
         held = self._held
@@ -249,7 +257,7 @@ class SendClock:
             return True
         last = range(len(held) - self.confirm, len(held))
         return (len(held) >= self.confirm
-                and min(self._late_ns(held[k][0], k) for k in last) > self._interval_ns
+                and min(self._late_ns(held[k][0], k, usual_ns) for k in last) > self._interval_ns
                 and held[-1][0] - held[-self.confirm][0] >= (self.confirm - 1) * self._interval_ns / 2)
 
     def _in_doubt(self, held_ns: list[int]) -> int:

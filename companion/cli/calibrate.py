@@ -23,7 +23,7 @@ import numpy as np
 
 from companion.capture.replay import TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files, open_recording
 from companion.capture.source import SourceError
-from companion.cli.output import write_failed, output_dir, output_file
+from companion.cli.output import output_dir, output_file, write_failed
 from companion.files import write_whole
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
                                             CharucoBoard, calibrate, capture_live, recorded_views,

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from companion.capture.source import SourceError
-from companion.cli.output import OutputError, write_failed, output_dir, output_file
+from companion.cli.output import OutputError, output_dir, output_file, write_failed
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import MapError, load_map, write_map
 from companion.survey.observations import SurveyError, footage_camera

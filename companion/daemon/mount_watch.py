@@ -67,9 +67,7 @@ class MountWatch:
         solution, attitude = record.solution, record.attitude
         if self.reported or attitude is None or solution is None or solution.measurement is None:
             return
-        R_ned_body = solution.measurement.T_ned_body[:3, :3]
-        self._frames.append(np.concatenate([level_difference_deg(R_ned_body, attitude), R_ned_body[2],
-                                            frames.down_in_body(attitude.roll_rad, attitude.pitch_rad)]))
+        self._frames.append(level_row(solution.measurement.T_ned_body[:3, :3], attitude))
         if len(self._frames) == self.params.window:
             table = np.array(self._frames)
             angle_deg, roll_deg, pitch_deg = np.median(table[:, :3], axis=0)
@@ -95,15 +93,21 @@ class MountWatch:
                                  SEVERITY_CRITICAL if turned else SEVERITY_WARNING)
 
 
-def level_difference_deg(R_ned_body: np.ndarray, attitude: AttitudeSample) -> tuple[float, float, float]:
-    """(angle, roll, pitch) degrees: the angle between down from the markers' pose (R_ned_body (3, 3)) and down
-    from the FC's roll and pitch, and their roll and pitch differences (markers - FC)."""
-    down_markers = R_ned_body[2]
-    down_fc = frames.down_in_body(attitude.roll_rad, attitude.pitch_rad)
+def level_row(R_ned_body: np.ndarray, attitude: AttitudeSample) -> np.ndarray:
+    """(9,): the angle between down from the markers' pose (R_ned_body (3, 3)) and down from the FC's roll and
+    pitch, their roll and pitch differences (markers - FC), degrees; the markers' down, the FC's down."""
+    down_markers = frames.down_in_body(R_ned_body)
+    down_fc = frames.down_in_body_at(attitude.roll_rad, attitude.pitch_rad)
     angle_deg = math.degrees(math.acos(min(1.0, float(down_markers @ down_fc))))
     roll, pitch = frames.roll_pitch_321(R_ned_body)
-    return (angle_deg, math.degrees(math.remainder(roll - attitude.roll_rad, 2 * math.pi)),
-            math.degrees(pitch - attitude.pitch_rad))
+    return np.array([angle_deg, math.degrees(math.remainder(roll - attitude.roll_rad, 2 * math.pi)),
+                     math.degrees(pitch - attitude.pitch_rad), *down_markers, *down_fc])
+
+
+def level_difference_deg(R_ned_body: np.ndarray, attitude: AttitudeSample) -> tuple[float, float, float]:
+    """(angle, roll, pitch) degrees of ``level_row``."""
+    angle_deg, roll_deg, pitch_deg = level_row(R_ned_body, attitude)[:3]
+    return float(angle_deg), float(roll_deg), float(pitch_deg)
 
 
 def tilt_turn_deg(down_markers: np.ndarray, down_fc: np.ndarray, min_spread_deg: float = MIN_TILT_SPREAD_FOR_TURN_DEG

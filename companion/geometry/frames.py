@@ -110,9 +110,13 @@ def roll_pitch_321(R: np.ndarray) -> tuple[float, float]:
     return roll, pitch
 
 
-def down_in_body(roll_rad: float, pitch_rad: float) -> np.ndarray:
-    """(3,) NED's down (gravity's direction) in body FRD axes at this roll and pitch, Z-Y-X order: the third
-    row of ``R_ned_body`` (see ``roll_pitch_321``), whatever the yaw."""
+def down_in_body(R_ned_body: np.ndarray) -> np.ndarray:
+    """(3,) NED's down (gravity's direction) in body FRD axes: ``R_ned_body^T (0, 0, 1)``, its third row."""
+    return R_ned_body[2]
+
+
+def down_in_body_at(roll_rad: float, pitch_rad: float) -> np.ndarray:
+    """(3,) ``down_in_body`` at this roll and pitch, Z-Y-X order (see ``roll_pitch_321``), whatever the yaw."""
     cos_pitch = math.cos(pitch_rad)
     return np.array([-math.sin(pitch_rad), cos_pitch * math.sin(roll_rad), cos_pitch * math.cos(roll_rad)])
 

@@ -53,8 +53,8 @@ stream starts anyway. A FC seen again after it went silent for
 ``BOOT_TIME_MESSAGES``): a FC that restarted without a pause in its heartbeat
 that long (a fast boot on a UART, where no connection drops) has lost the
 origin. A FC that sends none of those on its own (no attitude asked for, no
-stream set up on the port) is asked for SYSTEM_TIME at ``BOOT_CLOCK_RATE_HZ``
-once ``BOOT_CLOCK_RETRY_S`` have passed without any, and again whenever it
+stream set up on the port) is asked for SYSTEM_TIME at ``BOOT_TIME_REQUEST_RATE_HZ``
+once ``BOOT_TIME_REQUEST_RETRY_S`` have passed without any, and again whenever it
 stops (a restarted FC forgets what it was asked to stream).
 
 STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (nothing
@@ -114,9 +114,9 @@ PX4 = mm.mavlink2.MAV_AUTOPILOT_PX4
 
 # the FC's messages whose time_boot_ms ArduPilot and PX4 fill from their boot clock (watched for a restart)
 BOOT_TIME_MESSAGES = ("ATTITUDE", "ATTITUDE_QUATERNION", "SYSTEM_TIME", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
-# without any of them for BOOT_CLOCK_RETRY_S, SYSTEM_TIME is asked for at this rate (12 bytes: nothing on a UART)
-BOOT_CLOCK_RATE_HZ = 2.0
-BOOT_CLOCK_RETRY_S = 2.0
+# without any of them for BOOT_TIME_REQUEST_RETRY_S, SYSTEM_TIME is asked for at this rate (12 bytes: nothing on a UART)
+BOOT_TIME_REQUEST_RATE_HZ = 2.0
+BOOT_TIME_REQUEST_RETRY_S = 2.0
 
 
 class LinkError(ValueError):
@@ -283,7 +283,7 @@ class MavlinkLink:
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
         self._fc_boot_ms: int | None = None   # the FC's newest time_boot_ms: going back, it restarted
-        self._boot_clock = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME, BOOT_CLOCK_RATE_HZ, BOOT_CLOCK_RETRY_S)
+        self._boot_time_request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME, BOOT_TIME_REQUEST_RATE_HZ, BOOT_TIME_REQUEST_RETRY_S)
         self._connected_s = 0.0
         self._handshake_started_s = 0.0
         self._fc_seen_in_handshake_s: float | None = None
@@ -543,10 +543,10 @@ class MavlinkLink:
 
     def _start_over(self, now_s: float | None = None) -> None:
         """A FC that appeared, or restarted: its parameters read again, the origin before any vision, its
-        attitude asked for at once (its boot clock only if nothing brings it within BOOT_CLOCK_RETRY_S)."""
+        attitude asked for at once (SYSTEM_TIME only if nothing brings a boot time within BOOT_TIME_REQUEST_RETRY_S)."""
         self._begin_parameter_read()
         self._begin_handshake(now_s)
-        self._boot_clock.ask_after(time.monotonic() if now_s is None else now_s)
+        self._boot_time_request.ask_after(time.monotonic() if now_s is None else now_s)
         if self.attitude is not None:
             self.attitude.autopilot_appeared()
 
@@ -555,7 +555,7 @@ class MavlinkLink:
         if message.get_type() not in BOOT_TIME_MESSAGES or (
                 (message.get_srcSystem(), message.get_srcComponent()) != (self.fc_system_id, self.fc_component_id)):
             return
-        self._boot_clock.arrived(time.monotonic_ns())
+        self._boot_time_request.arrived(time.monotonic_ns())
         boot_ms = message.time_boot_ms
         if restarted(self._fc_boot_ms, int(boot_ms)):
             log.warning("link: the flight controller restarted (its time_boot_ms went back from %.1f to %.1f s); "
@@ -661,6 +661,12 @@ class MavlinkLink:
             for message in self.attitude.requests_due(now_s, self.fc_system_id, self.fc_component_id):
                 self._send(message)
 
+    def _request_boot_time(self, now_s: float) -> None:
+        """SYSTEM_TIME, while the FC sends none of BOOT_TIME_MESSAGES on its own (``_watch_boot_time``)."""
+        if self.fc_seen:
+            for message in self._boot_time_request.due(now_s, self.fc_system_id, self.fc_component_id):
+                self._send(message)
+
     # ---------------------------------------------------- subscriptions
 
     def _deliver(self, message) -> None:
@@ -727,9 +733,7 @@ class MavlinkLink:
         if self.state is LinkState.STREAMING and self._home_check_started_s is not None:
             self._home_step(now_s)
         self._request_attitude(now_s)
-        if self.fc_seen:
-            for request in self._boot_clock.due(now_s, self.fc_system_id, self.fc_component_id):
-                self._send(request)
+        self._request_boot_time(now_s)
         if now_s - self._last_statustext_s >= self.params.statustext_interval_s:
             self._send_statustext(now_s)
 
