@@ -1,6 +1,8 @@
 """Config loading: defaults, resolution of paths, and errors that name the file and key."""
 from __future__ import annotations
 
+import dataclasses
+import re
 import shutil
 from pathlib import Path
 
@@ -9,9 +11,13 @@ import numpy as np
 import pytest
 import yaml
 
-from companion.daemon.config import ConfigError, ReplayConfig, V4L2Config, config_from_dict, load_config
+from companion.daemon.config import (ATTITUDE_KEYS, STATUS_KEYS, V4L2_KEYS, AttitudeConfig, ConfigError, ReplayConfig,
+                                     V4L2Config, config_from_dict, load_config)
+from companion.daemon.record import RecordParams
+from companion.fusion import FusionParams
 from companion.geometry.facility_map import load_map
-from companion.mavlink.link import Origin
+from companion.geometry.pose import PoseParams
+from companion.mavlink.link import LinkParams, Origin
 
 REPO = Path(__file__).resolve().parent.parent
 CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,
@@ -121,6 +127,45 @@ def test_commented_raspberry_pi_example_is_a_valid_config(site):
     assert isinstance(config.source, V4L2Config) and config.source.pixel_format == "MJPG"
     assert config.mavlink.connection == "/dev/ttyAMA0,921600"
     assert config.camera.K[0, 0] == 600.0
+
+
+def example_lines(path: Path) -> dict[str, dict[str, tuple[str, str]]]:
+    """{section: {key: (value, comment)}} of a commented config, commented-out keys included: a section is a
+    key at the line's start (``# record:`` too), its keys the indented ``key: value  # comment`` lines."""
+    sections: dict[str, dict[str, tuple[str, str]]] = {}
+    section = None
+    for line in path.read_text().splitlines():
+        top = re.match(r"^#? ?(\w+):", line)
+        if top and not line.startswith("#  "):
+            section = sections.setdefault(top.group(1), {})
+            continue
+        entry = re.match(r"^(?:\s*#)?\s{1,}(\w+):\s*([^#]*?)\s*(#.*)?$", line)
+        if entry and section is not None:
+            section.setdefault(entry.group(1), (entry.group(2), entry.group(3) or ""))
+    return sections
+
+
+def test_the_raspberry_pi_example_shows_every_key_and_the_default_of_every_unmarked_one():
+    """The example says it shows every key, with the defaults except where a comment says "site" or "example"."""
+    sections = example_lines(REPO / "config" / "example-raspberrypi.yaml")
+    defaults = {"pose": PoseParams(), "fusion": FusionParams(), "attitude": AttitudeConfig(),
+                "mavlink": LinkParams(), "record": RecordParams(path=Path("unused"))}
+    accepted = {"source": V4L2_KEYS, "status": STATUS_KEYS, "attitude": ATTITUDE_KEYS,
+                "pose": {f.name for f in dataclasses.fields(PoseParams)},
+                "fusion": {f.name for f in dataclasses.fields(FusionParams)},
+                "mavlink": {f.name for f in dataclasses.fields(LinkParams) if not f.name.startswith("send_")}
+                | {"messages"},
+                "record": {f.name for f in dataclasses.fields(RecordParams)}}
+    for name, keys in accepted.items():
+        assert keys <= set(sections[name]), f"{name}: not shown: {sorted(keys - set(sections[name]))}"
+    for name, params in defaults.items():
+        for key, (value, comment) in sections[name].items():
+            if "site" in comment or "example" in comment or not hasattr(params, key) or key == "path":
+                continue
+            default = getattr(params, key)
+            shown = yaml.safe_load(value)
+            assert shown == default or (isinstance(default, float) and shown == pytest.approx(default, abs=1e-4)), \
+                f"{name}.{key}: the example shows {shown!r}, the default is {default!r}"
 
 
 @pytest.mark.parametrize("change, key, words", [
