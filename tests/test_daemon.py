@@ -541,6 +541,26 @@ def test_markers_but_no_pose_say_why_in_the_status_line_and_the_log(tmp_path, pe
     assert re.search(r"no pose for 2\.\d s: reprojection \d+", stderr)
 
 
+def test_a_config_camera_that_did_not_take_the_replayed_frames_is_named_at_the_start(tmp_path):
+    """--replay of a recording under a config with another camera: every pose is off or rejected ('markers
+    lost' with markers in view). The start says which camera is used and what differs from the recording's."""
+    recorded = yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"]
+    other = {**recorded, "fx_px": recorded["fx_px"] * 0.8, "fy_px": recorded["fy_px"] * 0.8,
+             "mount": {**recorded["mount"], "pitch_deg": recorded["mount"]["pitch_deg"] + 10.0}}
+    runs = {}
+    for name, camera in (("same", recorded), ("other", other)):
+        config = write_config(tmp_path, HOVER, free_port())
+        config.write_text(yaml.safe_dump({**yaml.safe_load(config.read_text()), "camera": camera}))
+        runs[name] = finish(start_daemon(config))
+    assert runs["same"][0] == 0 and "is not the one" not in runs["same"][2], runs["same"][2]
+    code, _, stderr = runs["other"]
+    warnings = [line for line in stderr.splitlines() if "is not the one" in line]
+    assert code == 0 and len(warnings) == 1, stderr
+    assert "WARNING" in warnings[0] and f"{HOVER / 'sequence.yaml'}" in warnings[0]
+    fx = recorded["fx_px"]
+    assert f"fx {0.8 * fx:.1f} -> {fx:.1f} px" in warnings[0] and "mount turned by 10.0 deg" in warnings[0]
+
+
 def test_a_parameter_that_blocks_vision_is_logged_and_told(tmp_path, peers):
     port = free_port()
     served = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 0, "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_YAW": 6,

@@ -124,6 +124,17 @@ def test_no_markers_is_shown_and_the_filter_says_lost_and_reacquired(health):
     assert [text for text, _ in said] == ["tracking markers", "markers lost", "re-acquired (reset 1)"]
 
 
+def test_markers_lost_with_markers_in_view_says_why_the_pose_stage_gave_none(health):
+    """A wrong camera or map loses the track while the markers stay in sight: 'markers lost' alone misleads."""
+    monitor, clock, said = health
+    play(monitor, clock, 10)
+    play(monitor, clock, 3, status="implausible attitude", tracking=False)
+    play(monitor, clock, 5, status="inconsistent markers", tracking=None)
+    # the commonest since the last pose, when the filter gave up (the longest status still one STATUSTEXT)
+    assert said[-1] == ("markers lost: implausible attitude", 4)
+    assert len("companion: " + said[-1][0]) <= 50
+
+
 def test_the_status_line_says_the_state_with_its_reasons():
     status = DaemonStatus(fps=0.0, markers=0, latency_ms=None, estimate=None, state="camera stalled", state_s=3.24,
                           reasons=("no frame for 3.2 s",), critical=True, track_state="acquiring",

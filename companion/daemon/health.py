@@ -26,7 +26,8 @@ While a critical state lasts the link's HEARTBEAT says MAV_STATE_CRITICAL.
 Messages (``emit(text, severity, topic)``: the daemon logs them and sends them
 as STATUSTEXT), one per change: the camera lost, stalled, and delivering again;
 no pose with its reasons; and the filter's own changes (tracking markers,
-markers lost, re-acquired with its reset counter). "no markers" is shown,
+markers lost, with the pose stage's commonest reason when markers are still in
+view, re-acquired with its reset counter). "no markers" is shown,
 not sent: the filter's "markers lost" already says it. The camera's messages
 have the topic "camera", the attitude's "attitude", the filter's and "no
 pose" "tracking" (whether poses flow): the link sends such a health change
@@ -153,8 +154,17 @@ class Health:
             else:
                 self._emit(f"re-acquired (reset {estimate.reset_counter})", SEVERITY_INFO, TRACKING)
         elif track == "acquiring":
-            self._emit("markers lost", SEVERITY_WARNING, TRACKING)
+            self._emit(self._lost_text(record), SEVERITY_WARNING, TRACKING)
         # tracking <-> coasting flickers frame to frame: not worth a message
+
+    def _lost_text(self, record: FrameRecord) -> str:
+        """'markers lost', with the pose stage's commonest reason when markers are still in view (a wrong camera
+        or map loses the track with markers in sight; short enough for one STATUSTEXT)."""
+        with self._lock:
+            statuses = self._pose_statuses.most_common(1)
+        if not record.markers or not statuses:
+            return "markers lost"
+        return f"markers lost: {statuses[0][0]}"
 
     def _follow_the_attitude(self, record: FrameRecord) -> None:
         """The attitude's state from this frame's, and a message when it changes (pipeline thread)."""

@@ -58,7 +58,7 @@ from companion.daemon.record import GROUNDTRUTH_FILE, Recorder
 from companion.daemon.web import LiveView
 from companion.daemon.status import DaemonStatus, fit_to_terminal, recent_activity
 from companion.geometry.pose import PoseSolver
-from companion.capture.replay import replay_source
+from companion.capture.replay import SEQUENCE_FILE, replay_source, sequence_camera
 from companion.capture.simulated import SimulatedCamera
 from companion.capture.source import FrameSource
 from companion.capture.v4l2 import opencv_warnings, v4l2_source
@@ -170,6 +170,31 @@ class Daemon:
                 self.attitude_stream.on_sample = recorder.attitude
         return recorder, live_view
 
+    def _compare_replay_camera(self) -> None:
+        """A replayed recording names the camera that took it (sequence.yaml); the config's camera, which is
+        the one used, differing from it poses every frame wrong (rejected poses, 'markers lost' with markers
+        in view, a mount warning): said once at the start, with what differs."""
+        source = self.config.source
+        if not isinstance(source, ReplayConfig) or not source.path.is_dir():
+            return
+        try:
+            recorded = sequence_camera(source.path)
+        except ValueError:
+            return  # the config's own camera is used; a broken sequence.yaml camera is not ours to judge
+        if recorded is None:
+            return
+        ours = self.config.camera
+        if (ours.width, ours.height) != (recorded.width, recorded.height):
+            try:  # the pipeline scales a camera to frames of another size and the same aspect
+                ours = ours.scaled_to(recorded.width, recorded.height)
+            except CameraError:
+                pass
+        differences = ours.differences(recorded)
+        if differences:
+            log.warning("the config's camera (%s) is not the one %s names, which took the replayed frames: %s; "
+                        "the config's is used, and poses are only right if it is the camera that took them",
+                        self.config.path, source.path / SEQUENCE_FILE, "; ".join(differences))
+
     def run(self) -> int:
         """Run until ``stop_event`` is set (signal, end of replay); returns the exit code."""
         self.link.start()
@@ -185,6 +210,7 @@ class Daemon:
         log.info("running: source %s, map %s, MAVLink %s", describe_source(self.config),
                  self.config.facility_map.path, self.config.mavlink.connection)
         log.info("attitude: %s", self._attitude_text)
+        self._compare_replay_camera()
         try:
             self._supervise()
         finally:

@@ -141,6 +141,27 @@ class CameraModel:
         return ((self.width, self.height) == (other.width, other.height) and np.array_equal(self.K, other.K)
                 and np.array_equal(self.dist, other.dist))
 
+    def differences(self, other: "CameraModel") -> list[str]:
+        """What ``other`` has otherwise, as "what: ours -> other's" (a tenth of a pixel, of a degree, a
+        millimetre, a distortion coefficient's thousandth: below that they are the same camera); [] if nothing."""
+        found = []
+        if (self.width, self.height) != (other.width, other.height):
+            found.append(f"frame size {self.width}x{self.height} -> {other.width}x{other.height}")
+        for name, (row, col) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2))):
+            if abs(self.K[row, col] - other.K[row, col]) >= 0.1:
+                found.append(f"{name} {self.K[row, col]:.1f} -> {other.K[row, col]:.1f} px")
+        ours, theirs = (np.pad(np.ravel(d), (0, 14 - np.size(d))) for d in (self.dist, other.dist))
+        if np.abs(ours - theirs).max() >= 1e-3:
+            found.append(f"distortion {np.trim_zeros(ours, 'b').round(4).tolist()} -> "
+                         f"{np.trim_zeros(theirs, 'b').round(4).tolist()}")
+        turn_deg = math.degrees(frames.rotation_angle_rad(self.T_body_camera[:3, :3], other.T_body_camera[:3, :3]))
+        if turn_deg >= 0.1:
+            found.append(f"mount turned by {turn_deg:.1f} deg")
+        lever_m = float(np.linalg.norm(self.T_body_camera[:3, 3] - other.T_body_camera[:3, 3]))
+        if lever_m >= 0.001:
+            found.append(f"lever arm {1000 * lever_m:.0f} mm apart")
+        return found
+
     def scaled_to(self, width: int, height: int) -> "CameraModel":
         """The same camera delivering ``width`` x ``height`` frames of the same field of view (a
         sensor mode that scales the whole image): the intrinsics scaled, the distortion (in
