@@ -111,3 +111,12 @@ def test_a_sub_command_that_cannot_be_imported_is_a_clear_error(tmp_path, body, 
     assert named in lines[0]
     menu = run_dispatcher(["--help"], setup=setup, extra_path=tmp_path)
     assert menu.status == 0 and "a command whose module cannot be imported" in menu.stdout  # still in the menu
+
+
+@pytest.mark.parametrize("args", [["slow"], ["slow", "--help"]])
+def test_ctrl_c_while_a_sub_command_is_still_importing_is_one_line_and_130(tmp_path, args):
+    """A sub-command's imports (scipy, matplotlib) take a second on a small computer: Ctrl-C then is no traceback."""
+    (tmp_path / "slow_command.py").write_text("raise KeyboardInterrupt  # as Ctrl-C during a long import\n")
+    setup = "cli.COMMANDS['slow'] = ('slow_command', 'a command interrupted while it imports')"
+    outcome = run_dispatcher(args, setup=setup, extra_path=tmp_path)
+    assert outcome.status == 130 and outcome.stderr == "companion slow: interrupted\n", outcome.stderr

@@ -69,6 +69,15 @@ def main(argv: list[str] | None = None) -> int:
     # No option comes before the sub-command: a known name in first place is the chosen one.
     command = argv[0] if argv and argv[0] in COMMANDS else None
     try:
+        return _run(command, argv)
+    except KeyboardInterrupt:  # Ctrl-C at any point, the sub-command's imports included
+        print(f"companion{f' {command}' if command else ''}: interrupted", file=sys.stderr)
+        return 130
+
+
+def _run(command: str | None, argv: list[str]) -> int:
+    """Parse ``argv`` and run ``command``; what a command raises becomes one line and an exit status."""
+    try:
         module = load_command(command) if command else None
     except CommandUnavailable as error:
         print(error, file=sys.stderr)
@@ -94,9 +103,6 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{error.filename}: " if error.filename else ""
         print(f"companion {command}: {where}{error.strerror or error}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print(f"companion {command}: interrupted", file=sys.stderr)
-        return 130
 
 
 if __name__ == "__main__":
