@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -80,3 +82,39 @@ def test_parity_option_and_empty_folder(tmp_path):
     assert [(d["symbol"], d["path"]) for d in line["detections"]] == [("L", "circles")]
     empty = run_detect(str(tmp_path))
     assert empty.returncode == 2 and "no images found" in empty.stderr
+
+
+def test_annotated_copies_never_replace_the_images_read(parity2_images, tmp_path):
+    folder = tmp_path / "frames"
+    shutil.copytree(parity2_images, folder)
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    result = run_detect(str(folder), "--draw", str(folder))
+    assert result.returncode == 2 and result.stdout == "", result.stderr
+    assert result.stderr.startswith(f"companion detect: --draw {folder}: an annotated copy would replace an image")
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    # a JPEG's copy is a PNG of the same stem: beside it, the PNG read from the same folder would be replaced
+    jpeg = tmp_path / "mixed"
+    jpeg.mkdir()
+    image = cv2.imread(str(next(folder.glob("*.png"))), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(jpeg / "a.jpg"), image)
+    assert run_detect(str(jpeg / "a.jpg"), "--draw", str(jpeg)).returncode == 0     # a.png is no input
+    cv2.imwrite(str(jpeg / "b.png"), image)
+    cv2.imwrite(str(jpeg / "b.jpg"), image)
+    assert run_detect(str(jpeg), "--draw", str(jpeg)).returncode == 2
+
+
+def test_annotated_copies_that_do_not_fit_are_said_apart_from_unreadable_images(parity2_images, tmp_path):
+    def small_files():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # a write past the limit fails, as on a full disk
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))
+
+    draw = tmp_path / "drawn"
+    result = subprocess.run([sys.executable, "-m", "companion", "detect", str(parity2_images), "--draw", str(draw)],
+                            capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(REPO)),
+                            preexec_fn=small_files, timeout=120)
+    images = len(list(parity2_images.glob("*.png")))
+    assert result.returncode == 1 and len(result.stdout.splitlines()) == images   # every image read and detected
+    assert f"{images} of {images} annotated copies could not be written" in result.stderr, result.stderr
+    assert "could not be read" not in result.stderr and "libpng" not in result.stderr
+    assert "cannot write: File too large" in result.stderr
+    assert list(draw.iterdir()) == []   # no truncated copy

@@ -18,7 +18,7 @@ from types import ModuleType
 COMMANDS = {
     "run": ("companion.cli.run", "run the positioning daemon (default: bundled replay to udpout:127.0.0.1:14550)"),
     "markers": ("companion.cli.markers", "write printable RS markers (PNG, SVG, PDF sheets)"),
-    "detect": ("companion.cli.detect", "detect RS markers in images and print JSON lines"),
+    "detect": ("companion.cli.detect", "detect RS markers in images: one line per image (JSON with --json)"),
     "localize": ("companion.cli.localize", "print the per-frame camera pose of a sequence (no filtering)"),
     "simulate": ("companion.cli.simulate", "render a synthetic camera sequence with ground truth"),
     "calibrate": ("companion.cli.calibrate", "calibrate a camera from ChArUco or chessboard views (images, videos or live)"),

@@ -29,6 +29,7 @@ from companion.cli.output import output_dir
 from companion.detect.circles import CIRCLES_RUN_MODES, CircleParams
 from companion.capture.replay import image_files
 from companion.detect.detector import DICTIONARIES, Detector, DetectorParams
+from companion.files import write_whole
 from companion.params import ParamsError
 from companion.types import Detection
 
@@ -39,7 +40,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", type=Path, metavar="IMAGE",
                         help="image files, or directories of them")
     parser.add_argument("--json", action="store_true", help="one JSON object per image and line")
-    parser.add_argument("--draw", type=Path, metavar="DIR", help="write annotated copies of the images here")
+    parser.add_argument("--draw", type=Path, metavar="DIR",
+                        help="write annotated copies of the images here, as PNG (not over the images read)")
     parser.add_argument("--parity", type=int, choices=(2, 4), default=DetectorParams.parity,
                         help="RS parity symbols of the markers")
     parser.add_argument("--dictionary", default=DetectorParams.dictionary,
@@ -61,29 +63,39 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion detect: {error}", file=sys.stderr)
         return 2
     detector = Detector(params)
+    drawn = drawn_paths(paths, args.draw) if args.draw else {}
+    inputs = {path.resolve() for path in paths}
+    overwritten = [copy for copy in drawn.values() if copy.resolve() in inputs]
+    if overwritten:
+        print(f"companion detect: --draw {args.draw}: an annotated copy would replace an image it reads "
+              f"({overwritten[0]}): give another folder", file=sys.stderr)
+        return 2
     if args.draw:
         output_dir(args.draw, "--draw")
-    failed = len(missing)
-    drawn_names: set[str] = set()
+    unread, unwritten = len(missing), 0
     for path in paths:
         gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if gray is None:
             print(f"companion detect: {path}: not a readable image, skipped", file=sys.stderr)
-            failed += 1
+            unread += 1
             continue
         start = time.perf_counter_ns()
         detections = detector.detect(gray)
         ms = (time.perf_counter_ns() - start) / 1e6
         print(json_line(path, detections, ms) if args.json else text_line(path, detections, ms), flush=True)
         if args.draw:
-            name = _unique_name(path, drawn_names)
-            if not cv2.imwrite(str(args.draw / name), draw(gray, detections)):
-                print(f"companion detect: --draw {args.draw / name}: could not be written", file=sys.stderr)
-                failed += 1
-    if failed:
-        print(f"companion detect: {failed} of {len(paths) + len(missing)} images could not be read",
-              file=sys.stderr)
-    return 1 if failed else 0
+            try:
+                write_whole(drawn[path], cv2.imencode(".png", draw(gray, detections))[1].tobytes())
+            except OSError as error:
+                print(f"companion detect: --draw {drawn[path]}: cannot write: {error.strerror or error}",
+                      file=sys.stderr)
+                unwritten += 1
+    images = len(paths) + len(missing)
+    if unread:
+        print(f"companion detect: {unread} of {images} images could not be read", file=sys.stderr)
+    if unwritten:
+        print(f"companion detect: {unwritten} of {images} annotated copies could not be written", file=sys.stderr)
+    return 1 if unread or unwritten else 0
 
 
 def expand_images(inputs: list[Path]) -> tuple[list[Path], list[Path]]:
@@ -134,11 +146,15 @@ def draw(gray: np.ndarray, detections: list[Detection]) -> np.ndarray:
     return image
 
 
-def _unique_name(path: Path, used: set[str]) -> str:
-    """The image's name as a PNG, numbered if an earlier image already used it."""
-    name, n = f"{path.stem}.png", 1
-    while name in used:
-        n += 1
-        name = f"{path.stem}_{n}.png"
-    used.add(name)
-    return name
+def drawn_paths(paths: list[Path], folder: Path) -> dict[Path, Path]:
+    """Where each image's annotated copy goes: its name as a PNG in ``folder``, numbered when an earlier
+    image has the same name."""
+    drawn, used = {}, set()
+    for path in paths:
+        name, n = f"{path.stem}.png", 1
+        while name in used:
+            n += 1
+            name = f"{path.stem}_{n}.png"
+        used.add(name)
+        drawn[path] = folder / name
+    return drawn
