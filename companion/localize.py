@@ -32,8 +32,9 @@ from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.geometry.attitude import DEFAULT_MAX_AGE_S, history_of
 from companion.geometry.pose import PoseParams, PoseSolution, PoseSolver
-from companion.capture.replay import (ReplaySource, open_recording, read_sequence_info, sequence_camera,
-                                      sequence_map_path)
+from companion.capture.replay import (ReplaySource, check_recording_path, open_recording, read_sequence_info,
+                                      sequence_camera, sequence_map_path)
+from companion.capture.source import SourceError
 from companion.types import AttitudeSample
 
 
@@ -64,8 +65,10 @@ class FrameResult:
 
 def resources(sequence: Path, map_path: str | None, camera_path: str | None) -> tuple[FacilityMap, CameraModel]:
     """The facility map and camera: given on the command line, or from sequence.yaml."""
-    if not sequence.exists():
-        raise LocalizeError(f"{sequence}: no such sequence folder, video or image folder")
+    try:
+        check_recording_path(sequence)
+    except SourceError as error:
+        raise LocalizeError(str(error)) from None
     info = read_sequence_info(sequence) if sequence.is_dir() else {}
     info_file = str(sequence / "sequence.yaml")
     if map_path is None:
@@ -150,6 +153,9 @@ def localize(sequence: Path, solver: PoseSolver, truth: dict[int, np.ndarray] | 
     source.start()
     try:
         for frame in source.frames():
+            problem = solver.camera.frame_size_problem(frame.image)
+            if problem is not None:
+                raise LocalizeError(f"{sequence}: {problem}")
             t_ns = source.recorded_t_ns(frame)
             detections = detector.detect(frame.image)
             sample = attitude.at(t_ns) if attitude is not None else None

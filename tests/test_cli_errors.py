@@ -26,6 +26,8 @@ def place(tmp_path):
     images.mkdir()
     for name in ("one.png", "two.png"):
         cv2.imwrite(str(images / name), np.full((120, 160), 200, np.uint8))
+    (tmp_path / "camera-1280x720.yaml").write_text(yaml.safe_dump({"camera": {
+        "width": 1280, "height": 720, "hfov_deg": 70.0, "mount": {"facing": "forward"}}}))
     return tmp_path
 
 
@@ -66,7 +68,12 @@ CASES = [
      "companion simulate: OUT {tmp}/a-file: exists and is not a folder"),
     (["simulate", "{tmp}/images", "--map", str(MAP), "--duration", "0.1"], 2,
      "companion simulate: {tmp}/images: not empty and not a sequence written by companion simulate"),
-    (["localize", "{tmp}/missing"], 2, "companion localize: {tmp}/missing: no such sequence folder, video or image folder"),
+    (["localize", "{tmp}/missing"], 2, "companion localize: {tmp}/missing: no such file or folder"),
+    (["localize", str(MAP)], 2, f"companion localize: {MAP}: not a sequence folder, image folder or video"),
+    # the camera's size, as the survey checks it (a 1280x720 calibration on the 640x480 hover)
+    (["localize", str(HOVER), "--camera", "{tmp}/camera-1280x720.yaml"], 2,
+     f"companion localize: {HOVER}: the frames are 640x480 but the camera file describes a 1280x720 camera"),
+    (["report", str(MAP)], 2, f"companion report: {MAP}: not a folder"),
     (["localize", "{tmp}/images", "--map", str(MAP), "--camera", str(REPO / "config" / "camera-example.yaml")], 2,
      "companion localize: {tmp}/images: an image folder without timestamps.csv needs --fps"),
     (["localize", str(HOVER), "--max-markers", "0"], 2, "companion localize: --max-markers must be 1 or more, not 0"),
@@ -85,6 +92,15 @@ CASES = [
     (["map", "check", "{tmp}/images", "--camera", str(REPO / "config" / "camera-example.yaml"), "--map", str(MAP),
       "--no-progress"], 2,
      "companion map check: {tmp}/images: an image folder without timestamps.csv needs --fps"),
+    # a missing walk is missing, with or without --camera (not 'which camera filmed it?')
+    (["survey", str(HOVER), "{tmp}/missing", "--map", str(MAP), "--out", "{tmp}/map.yaml", "--no-progress"], 2,
+     "companion survey: {tmp}/missing: no such file or folder"),
+    (["map", "check", "{tmp}/missing", "--map", str(MAP), "--no-progress"], 2,
+     "companion map check: {tmp}/missing: no such file or folder"),
+    (["survey", "{tmp}/images", "--fps", "nan", "--camera", str(REPO / "config" / "camera-example.yaml"), "--map",
+      str(MAP), "--out", "{tmp}/map.yaml", "--no-progress"], 2, "companion survey: --fps must be positive, not nan"),
+    (["map", "check", "{tmp}/images", "--fps", "-1", "--camera", str(REPO / "config" / "camera-example.yaml"),
+      "--map", str(MAP), "--no-progress"], 2, "companion map check: --fps must be positive, not -1.0"),
     (["check-fc", "serial0"], 2, "companion check-fc: connection 'serial0': want udpout:HOST:PORT"),
     (["check-fc", "udpout:127.0.0.1:9", "--config", "{tmp}/missing.yaml"], 2,
      "companion check-fc: {tmp}/missing.yaml: cannot read config"),

@@ -254,6 +254,23 @@ def test_a_map_that_cannot_be_written_out_is_named_with_no_partial_file(tmp_path
     assert list(out.parent.iterdir()) == []
 
 
+def test_a_report_that_cannot_be_written_leaves_no_map_and_no_half_report(tmp_path, north_walk):
+    """The map is written last, once everything else worked: a survey.png the disk refuses (the limit lets the
+    map and survey.json through, not the plot) leaves neither the map nor survey.json."""
+    def small_files_only():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (12_000, 12_000))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    out, report = tmp_path / "site.yaml", tmp_path / "report"
+    result = subprocess.run([sys.executable, "-m", "companion", "survey", str(north_walk), "--camera",
+                             str(north_walk / "camera.yaml"), "--anchors", str(anchors_file(tmp_path / "o.yaml", {"O"})),
+                             "--out", str(out), "--report", str(report)], capture_output=True, text=True, cwd=REPO,
+                            timeout=300, preexec_fn=small_files_only)
+    assert result.returncode == 1, result.stderr
+    assert result.stderr.startswith(f"companion survey: cannot write {report / 'survey.png'}: File too large")
+    assert not out.exists() and list(report.iterdir()) == []
+
+
 def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):
     out = tmp_path / "site.yaml"
     camera = str(north_walk / "camera.yaml")

@@ -78,6 +78,7 @@ def open_recording(path, fps: float | None = None, fps_option: str = "source.fps
     it (the config key, or a command's flag), named in the errors.
     """
     path = Path(path)
+    check_recording_path(path)
     if path.is_dir() and (path / TIMESTAMPS_FILE).exists():
         return _read_sequence_folder(path)
     if path.is_dir():
@@ -87,19 +88,26 @@ def open_recording(path, fps: float | None = None, fps_option: str = "source.fps
         if not fps:
             raise SourceError(f"{path}: an image folder without {TIMESTAMPS_FILE} needs {fps_option}")
         return _evenly_spaced(path, len(files), fps, files=files, video=None)
-    if path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES:
-        capture = cv2.VideoCapture(str(path))
-        count, video_fps = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), capture.get(cv2.CAP_PROP_FPS)
-        capture.release()
-        if count <= 0:
-            raise SourceError(f"{path}: not a readable video")
-        rate = fps or video_fps
-        if not rate or rate <= 0:
-            raise SourceError(f"{path}: the video states no frame rate; set {fps_option}")
-        return _evenly_spaced(path, count, rate, files=None, video=path)
+    capture = cv2.VideoCapture(str(path))
+    count, video_fps = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), capture.get(cv2.CAP_PROP_FPS)
+    capture.release()
+    if count <= 0:
+        raise SourceError(f"{path}: not a readable video")
+    rate = fps or video_fps
+    if not rate or rate <= 0:
+        raise SourceError(f"{path}: the video states no frame rate; set {fps_option}")
+    return _evenly_spaced(path, count, rate, files=None, video=path)
+
+
+def check_recording_path(path) -> None:
+    """SourceError when ``path`` cannot be a recording: missing, or a file that is no video (a map given
+    for a sequence); a folder or a video file passes (``open_recording`` reads it)."""
+    path = Path(path)
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder")
-    raise SourceError(f"{path}: not a sequence folder, image folder or video ({', '.join(sorted(VIDEO_SUFFIXES))})")
+    if not path.is_dir() and path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise SourceError(f"{path}: not a sequence folder, image folder or video "
+                          f"({', '.join(sorted(VIDEO_SUFFIXES))})")
 
 
 def _evenly_spaced(path: Path, count: int, fps: float, files, video) -> Recording:

@@ -92,17 +92,20 @@ def _round(values, digits: int) -> list[float]:
 
 
 def table_row(result: FrameResult, header: bool) -> str:
+    """The pose in the map frame: x, y, z and the heading (the body's forward axis, counter-clockwise from the
+    map's +x seen from above, as the map file states marker headings); --json adds the NED pose sent."""
     head = f"{'frame':>6} {'t_ms':>9} {'seen':>4} {'used':>4} {'status':<20} {'x_m':>7} {'y_m':>7} {'z_m':>6} " \
-           f"{'yaw_deg':>8} {'rms_px':>6} {'sd_m':>6} {'err_m':>6} {'yaw_err':>7}"
+           f"{'hdg_deg':>8} {'rms_px':>6} {'sd_m':>6} {'err_m':>6} {'yaw_err':>7}"
     s, m = result.solution, result.solution.measurement
     notes = (" (amb.)" if s.ambiguous and m is not None else "") + (" +att" if s.used_attitude else "")
     row = f"{result.frame:>6} {result.t_ns / 1e6:>9.1f} {len(result.detected_ids):>4} {len(s.marker_ids):>4} " \
           f"{s.status + notes:<20}"
     if m is not None:
-        yaw = math.degrees(frames.euler_321_from_rotation(m.T_ned_body[:3, :3])[2])
+        forward_map = m.T_map_body[:3, 0]
+        heading = math.degrees(math.atan2(forward_map[1], forward_map[0]))
         sd_m = math.sqrt(float(np.trace(m.covariance_ned[:3, :3])))
         x, y, z = m.T_map_body[:3, 3]
-        row += f" {x:>7.3f} {y:>7.3f} {z:>6.3f} {yaw:>8.2f} {m.reprojection_rms_px:>6.2f} {sd_m:>6.3f}"
+        row += f" {x:>7.3f} {y:>7.3f} {z:>6.3f} {heading:>8.2f} {m.reprojection_rms_px:>6.2f} {sd_m:>6.3f}"
         if result.error_m is not None:
             row += f" {result.error_m:>6.3f} {result.yaw_error_deg:>7.2f}"
     return f"{head}\n{row}" if header else row

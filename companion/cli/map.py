@@ -10,7 +10,7 @@ from companion.capture.source import SourceError
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import MapError, load_map
 from companion.survey.check import MarkerCheck, check_map
-from companion.survey.observations import SurveyError, footage_camera
+from companion.survey.observations import SurveyError, check_footage, footage_camera
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -36,6 +36,7 @@ def main(args) -> int:
     try:
         facility_map = load_map(args.map_path)
         sequences = [Path(s) for s in args.sequences]
+        check_footage(sequences, args.fps)
         camera = footage_camera(sequences, args.camera)
         checks = check_map(sequences, facility_map, camera, fps=args.fps, progress=progress)
     except (SurveyError, MapError, CameraError, SourceError) as error:

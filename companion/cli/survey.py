@@ -11,7 +11,7 @@ from companion.capture.source import SourceError
 from companion.cli.output import OutputError, output_dir, output_file, write_failed
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import MapError, load_map, write_map
-from companion.survey.observations import SurveyError, footage_camera
+from companion.survey.observations import SurveyError, check_footage, footage_camera
 from companion.survey.survey import LOOSE_SD_M, MAX_CORNER_MISFIT, SurveyOptions, SurveyResult, survey
 
 
@@ -44,6 +44,7 @@ def main(args) -> int:
         if args.size_m is not None and not (math.isfinite(args.size_m) and args.size_m > 0):
             raise SurveyError(f"--size-m must be a positive number of metres, got {args.size_m:g}")
         anchors = load_map(args.anchors or args.existing)
+        check_footage([Path(s) for s in args.sequences], args.fps)
         camera = footage_camera([Path(s) for s in args.sequences], args.camera)
         # where the results go, before minutes of survey work
         output_file(Path(args.out), "--out")
@@ -51,12 +52,13 @@ def main(args) -> int:
             output_dir(Path(args.report), "--report")
         options = SurveyOptions(size_m=args.size_m, fps=args.fps, progress=progress)
         result = survey([Path(s) for s in args.sequences], camera, anchors, options, extend=args.existing is not None)
-        _write_map(result, args)
-        if args.report:
+        if args.report:  # first: the map is written last, once everything else worked
             from companion.survey.report import write_report
 
             writing = args.report
             write_report(result, args.report)
+            writing = args.out
+        _write_map(result, args)
     except (SurveyError, MapError, CameraError, SourceError, OutputError) as error:
         print(f"companion survey: {error}", file=sys.stderr)
         return 2

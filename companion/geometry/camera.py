@@ -141,6 +141,15 @@ class CameraModel:
         return ((self.width, self.height) == (other.width, other.height) and np.array_equal(self.K, other.K)
                 and np.array_equal(self.dist, other.dist))
 
+    def frame_size_problem(self, image: np.ndarray) -> str | None:
+        """Why this camera cannot describe ``image`` (another size), or None; for tools that take the camera
+        as calibrated (the daemon scales a camera to frames of the same aspect, ``scaled_to``)."""
+        height, width = image.shape[:2]
+        if (width, height) == (self.width, self.height):
+            return None
+        return (f"the frames are {width}x{height} but the camera file describes a {self.width}x{self.height} "
+                "camera; calibrate this camera at this resolution")
+
     def differences(self, other: "CameraModel") -> list[str]:
         """What ``other`` has otherwise, as "what: ours -> other's" (a tenth of a pixel, of a degree, a
         millimetre, a distortion coefficient's thousandth: below that they are the same camera); [] if nothing."""

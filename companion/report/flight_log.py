@@ -141,7 +141,8 @@ def read_flight(folder) -> FlightLog:
     """Read a recording (or any sequence folder with an estimates.csv)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise ReportError(f"{folder}: no such folder")
+        raise ReportError(f"{folder}: {'not a folder' if folder.exists() else 'no such folder'} (a flight "
+                          "recording is a folder: `companion run --record DIR`)")
     estimates = folder / ESTIMATES_FILE
     if not estimates.is_file():
         raise ReportError(f"{folder}: no {ESTIMATES_FILE} (a flight recorded with `companion run --record "

@@ -10,13 +10,14 @@ so they would cost time and make the uncertainty look smaller than it is.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from companion.capture.replay import ReplaySource, open_recording, sequence_camera
+from companion.capture.replay import ReplaySource, check_recording_path, open_recording, sequence_camera
 from companion.capture.source import SourceError
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel, load_camera
@@ -101,6 +102,18 @@ class Footage:
         return counts
 
 
+def check_footage(sequences: list[Path], fps: float | None) -> None:
+    """SurveyError, before any work, for a walk that is no recording (missing, a map given for a video) or an
+    ``--fps`` that is no frame rate."""
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise SurveyError(f"--fps must be positive, not {fps}")
+    for sequence in sequences:
+        try:
+            check_recording_path(sequence)
+        except SourceError as error:
+            raise SurveyError(str(error)) from None
+
+
 def footage_camera(sequences: list[Path], camera_path: str | None) -> CameraModel:
     """The camera that filmed the footage: the file ``camera_path`` (``--camera``) when given, else the one
     each sequence folder's sequence.yaml describes (a drone's recording, a simulated walk), which must be
@@ -141,7 +154,9 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
         try:
             for frame in source.frames():
                 if first:
-                    check_frame_size(frame.image, camera, sequence)
+                    problem = camera.frame_size_problem(frame.image)
+                    if problem is not None:
+                        raise SurveyError(f"{sequence}: {problem}")
                     first = False
                 frame_count += 1
                 bar.update(1)
@@ -155,13 +170,6 @@ def collect(sequences: list[Path], camera: CameraModel, detector, size_m: Callab
             raise SurveyError(f"{sequence}: the replay failed: {source.error}")
         skipped += source.counters.corrupt
     return Footage(tuple(found), frame_count, skipped)
-
-
-def check_frame_size(image: np.ndarray, camera: CameraModel, sequence) -> None:
-    height, width = image.shape[:2]
-    if (width, height) != (camera.width, camera.height):
-        raise SurveyError(f"{sequence}: the frames are {width}x{height} but the camera file describes a "
-                          f"{camera.width}x{camera.height} camera; calibrate this camera at this resolution")
 
 
 def sightings_of(detections: list[Detection], size_m: Callable[[int], float | None],

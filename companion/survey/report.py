@@ -24,12 +24,17 @@ SD_COLOURS_M = ((0.005, "tab:green"), (0.02, "tab:orange"), (math.inf, "tab:red"
 
 
 def write_report(result: SurveyResult, out_dir) -> tuple[Path, Path]:
-    """Write survey.json and survey.png into ``out_dir`` (created); returns their paths."""
+    """Write survey.json and survey.png into ``out_dir`` (created); returns their paths. Both or neither: a
+    failure or an interruption removes the one already written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     json_path, png_path = out / "survey.json", out / "survey.png"
     write_whole(json_path, json.dumps(report_json(result), indent=2) + "\n")
-    plot(result, png_path)
+    try:
+        plot(result, png_path)
+    except BaseException:
+        json_path.unlink(missing_ok=True)
+        raise
     return json_path, png_path
 
 
