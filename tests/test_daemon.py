@@ -541,6 +541,28 @@ def test_markers_but_no_pose_say_why_in_the_status_line_and_the_log(tmp_path, pe
     assert re.search(r"no pose for 2\.\d s: reprojection \d+", stderr)
 
 
+def test_loop_replays_a_recording_until_stopped_and_needs_a_replay(tmp_path):
+    """The live view's README example: the embedded default's 8 s flight once is over before a browser opens."""
+    command = [sys.executable, "-m", "companion", "run", "--replay", str(HOVER), "--loop"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        process.wait(timeout=4.0)   # the hover is 1 s long
+    except subprocess.TimeoutExpired:
+        pass
+    assert process.poll() is None, "the replay ended"
+    process.send_signal(signal.SIGTERM)
+    code, _, stderr = finish(process)
+    assert code == 0 and "(real time, looping)" in stderr, stderr
+    camera = tmp_path / "camera.yaml"
+    camera.write_text(yaml.safe_dump({"source": {"kind": "v4l2", "device": "/dev/video97"}, "map": str(MAP),
+                                      "camera": yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"]}))
+    refused = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(camera), "--loop"],
+                             capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert "--loop replays a recording over and over: the source of" in refused.stderr
+    assert "is a V4L2 camera, not a replay (give --replay PATH)" in refused.stderr
+
+
 def test_a_config_camera_that_did_not_take_the_replayed_frames_is_named_at_the_start(tmp_path):
     """--replay of a recording under a config with another camera: every pose is off or rejected ('markers
     lost' with markers in view). The start says which camera is used and what differs from the recording's."""

@@ -1,4 +1,4 @@
-"""``companion run [--config FILE] [--replay PATH [--fps FPS]] [--log-level LEVEL] [--record DIR] [--http HOST:PORT]``:
+"""``companion run [--config FILE] [--replay PATH [--fps FPS]] [--loop] [--log-level LEVEL] [--record DIR] [--http HOST:PORT]``:
 start the positioning daemon (``companion.daemon``)."""
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import signal
 import sys
 from pathlib import Path
 
-from companion.daemon.config import Config, ConfigError, default_config_path, http_address, load_config
+from companion.daemon.config import (Config, ConfigError, ReplayConfig, V4L2Config, default_config_path,
+                                     http_address, load_config)
 from companion.daemon.record import RecordParams
 from companion.yaml_input import Where
 from companion.daemon.service import LOG_LEVELS, Daemon, setup_logging
@@ -27,6 +28,8 @@ def configure_parser(parser) -> None:
     parser.add_argument("--fps", type=float, default=None,
                         help="frame rate of a --replay image folder without timestamps.csv, or of a video "
                              "instead of the rate it states")
+    parser.add_argument("--loop", action="store_true",
+                        help="replay the recording over and over (a replay's source.loop), until stopped")
     parser.add_argument("--log-level", choices=LOG_LEVELS, default="info",
                         help="least important messages logged (default info; debug adds every skipped frame "
                              "and retry)")
@@ -59,7 +62,14 @@ def main(args) -> int:
 
 
 def with_options(config: Config, args) -> Config:
-    """The config with ``--record`` and ``--http`` applied over its ``record`` and ``status.http``."""
+    """The config with ``--loop``, ``--record`` and ``--http`` applied over its ``source.loop``, ``record`` and
+    ``status.http``."""
+    if args.loop:
+        if not isinstance(config.source, ReplayConfig):
+            camera = "a V4L2 camera" if isinstance(config.source, V4L2Config) else "a simulated camera"
+            raise ConfigError(f"--loop replays a recording over and over: the source of {config.path} is {camera}, "
+                              "not a replay (give --replay PATH)")
+        config = dataclasses.replace(config, source=dataclasses.replace(config.source, loop=True))
     if args.record is not None:
         record = config.record or RecordParams(path=Path(args.record))
         config = dataclasses.replace(config, record=dataclasses.replace(record, path=Path(args.record)))
