@@ -8,7 +8,7 @@ map and camera readers share. A message names the key in one of three styles
 
 - ``"dotted"``: ``config.yaml: source.kind: must be one of ...``
 - ``"quoted"``: ``drone.yaml: key 'camera.width': ...`` (``section 'camera'`` without a key)
-- ``"labelled"``: ``hall.yaml: marker 7 (H): key 'size_m': ...``
+- ``"labelled"``: ``hall.yaml: markers entry 8 (H): key 'size_m': ...``
 """
 from __future__ import annotations
 

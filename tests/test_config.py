@@ -200,6 +200,29 @@ def test_errors_name_the_file_and_the_key(site, change, key, words):
     assert words in message
 
 
+@pytest.mark.parametrize("content, words", [
+    (None, "key 'camera.calibration_file': {file}: no such file"),
+    ("", "{file}: not an OpenCV FileStorage file: empty or not YAML/XML"),
+    (bytes(range(256)), "{file}: not an OpenCV FileStorage file: empty or not YAML/XML"),
+    ((REPO / "config" / "calibration.yaml").read_text().replace("rows: 3", "rows: 2"),
+     "{file}: key 'camera_matrix': must be an !!opencv-matrix"),
+    ((REPO / "config" / "calibration.yaml").read_text().replace("data: [ 457.", "data: [ abc"),
+     "{file}: key 'camera_matrix': must be an !!opencv-matrix"),
+])
+def test_a_missing_or_malformed_calibration_file_is_one_line_naming_it(site, content, words):
+    """A zero-byte, binary or miscounted calibration raised OpenCV's SystemError / cv2.error (a traceback)."""
+    calibration = site / "config" / "cal.yaml"
+    if isinstance(content, bytes):
+        calibration.write_bytes(content)
+    elif content is not None:
+        calibration.write_text(content)
+    data = base_config()
+    data["camera"] = {"calibration_file": "cal.yaml", "mount": {"facing": "forward"}}
+    with pytest.raises(ValueError) as error:
+        load_config(write(site, data, "camera.yaml"))
+    assert words.format(file=calibration) in str(error.value), str(error.value)
+
+
 def test_errors_inside_the_camera_section_name_the_file(site):
     data = base_config()
     data["camera"] = {"width": 640}

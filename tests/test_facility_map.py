@@ -162,14 +162,14 @@ def test_marker_errors_name_file_marker_and_key(tmp_path, marker, key, words):
         load_map(path)
     message = str(info.value)
     assert str(path) in message
-    assert "marker 1" in message
+    assert "markers entry 2 (" in message   # the second entry, counted as a person counts them
     assert f"'{key}'" in message
     assert words in message
 
 
 def test_duplicate_marker(tmp_path):
     path = write_map(tmp_path, one() + one(symbol=None, id=0, position_m=[5, 5, 1]))
-    with pytest.raises(MapError, match=r"marker 1 \(A\): key 'symbol': duplicate marker 'A'"):
+    with pytest.raises(MapError, match=r"markers entry 2 \(A\): key 'symbol': duplicate marker 'A'"):
         load_map(path)
 
 

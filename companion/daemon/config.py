@@ -356,7 +356,7 @@ def _map(data: dict, where: Where, sequence) -> FacilityMap:
     else:
         raise where.error("missing (a facility map file, unless the replayed sequence names one)", "map")
     if not map_path.is_file():
-        raise where.error(f"{map_path} does not exist", "map")
+        raise where.error(f"{map_path} {'is not a file' if map_path.exists() else 'does not exist'}", "map")
     return load_map(map_path)
 
 

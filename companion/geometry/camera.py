@@ -296,7 +296,10 @@ def _from_calibration_section(section: dict, where: Where):
     inline = [k for k in INTRINSIC_KEYS if k in section]
     if inline:
         raise where.error("intrinsics come from calibration_file; remove the inline value", inline[0])
-    return read_opencv_calibration(where.path(section, "calibration_file"))
+    path = where.path(section, "calibration_file")
+    if not path.is_file():  # named by the config's key, not only by the path it gave
+        raise where.error(f"{path}: {'not a file' if path.exists() else 'no such file'}", "calibration_file")
+    return read_opencv_calibration(path)
 
 
 def read_opencv_calibration(path):
@@ -311,8 +314,9 @@ def read_opencv_calibration(path):
         raise where.error("cannot read calibration file: no such file")
     try:
         storage = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-    except cv2.error as error:
-        raise where.error(f"not an OpenCV FileStorage file: {error.err}") from None
+    except (cv2.error, SystemError) as error:  # an empty or binary file: OpenCV's parser raises SystemError
+        raise where.error(f"not an OpenCV FileStorage file: {getattr(error, 'err', None) or 'empty or not YAML/XML'}"
+                          ) from None
     try:
         K = _matrix_node(storage, "camera_matrix", where)
         dist = _matrix_node(storage, "distortion_coefficients", where).reshape(-1)
@@ -334,9 +338,12 @@ def _matrix_node(storage, key: str, where: Where) -> np.ndarray:
     node = storage.getNode(key)
     if node.empty():
         raise where.error("missing", key)
-    matrix = node.mat()
+    try:
+        matrix = node.mat()
+    except cv2.error:  # rows x cols not the number of values, or values that are not numbers
+        matrix = None
     if matrix is None:
-        raise where.error("must be an !!opencv-matrix", key)
+        raise where.error("must be an !!opencv-matrix (rows x cols numbers in data)", key)
     return np.asarray(matrix, dtype=float)
 
 

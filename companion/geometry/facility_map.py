@@ -270,7 +270,8 @@ def _markers(section, where: Where, dictionary, default_size_m) -> dict[int, Map
 
 
 def _label(index: int, symbol: str | None) -> str:
-    return f"marker {index}" + (f" ({symbol})" if symbol else "")
+    """The list entry counted from 1, as a person counts them in the file ("marker 3" would read as an id)."""
+    return f"markers entry {index + 1}" + (f" ({symbol})" if symbol else "")
 
 
 def _marker(entry, top: Where, index: int, dictionary, default_size_m) -> MapMarker:
