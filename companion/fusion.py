@@ -269,6 +269,10 @@ class PoseFilter:
 
     def _track_step(self, t_ns: int, measurement: PoseMeasurement | None) -> Estimate | None:
         track = self._track
+        # Stale before this frame's pose is weighed: after a gap in the frames the prediction's covariance has
+        # grown enough to pass any jump, which would then reach the autopilot with no reset.
+        if self._is_stale(track, t_ns):
+            return self._lose_track(measurement)
         track.predict_to(t_ns)
         if measurement is not None:
             innovation = track.innovation(measurement)
@@ -279,14 +283,17 @@ class PoseFilter:
                 return track.estimate(self.reset_counter, tracking=True)
             self.counters.rejected += 1
         if self._is_stale(track, t_ns):
-            self.counters.lost += 1
-            self.state = TrackState.ACQUIRING
-            self._track = None
-            # The pose that ran the track out may be the start of a new fix.
-            return self._acquire(measurement) if measurement is not None else None
+            return self._lose_track(measurement)
         self.counters.coasted += 1
         self.state = TrackState.COASTING
         return track.estimate(self.reset_counter, tracking=False)
+
+    def _lose_track(self, measurement: PoseMeasurement | None) -> Estimate | None:
+        """No fix for ``max_coast_s``: acquire again, starting with this frame's pose (if any)."""
+        self.counters.lost += 1
+        self.state = TrackState.ACQUIRING
+        self._track = None
+        return self._acquire(measurement) if measurement is not None else None
 
     def _acquire(self, measurement: PoseMeasurement | None) -> Estimate | None:
         if measurement is None:

@@ -239,6 +239,27 @@ def test_markers_lost_then_seen_elsewhere_resets_instead_of_dragging(tmp_path, p
     assert "companion: markers lost" in texts and "companion: re-acquired (reset 1)" in texts
 
 
+def test_a_jump_across_a_gap_in_the_frames_reaches_the_fc_with_a_reset(tmp_path, peers):
+    """The camera delivers nothing for 2 s while the vehicle flies on 2.8 m: the first poses after the gap
+    are a re-acquisition with reset_counter + 1, not a tracked step (the filter's prediction had grown wide
+    enough over the gap to take the jump as tracking: reset 0, and the EKF was pulled 2.8 m in one sample)."""
+    keep = list(range(0, 60)) + list(range(120, 160))
+    sequence = spliced_sequence(tmp_path, AISLE, keep, gap_after=59, gap_ns=2_000_000_000)
+    truth = Truth(sequence)
+    assert np.linalg.norm(truth.ned[keep.index(120)] - truth.ned[keep.index(59)]) > 2.0, "no jump in this data"
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    code, _, stderr = finish(start_daemon(write_config(tmp_path, sequence, port)))
+    assert code == 0, stderr
+    vision = vision_frames(peer, clock_offset_ns(stderr), truth)
+    before = [f for f, row in vision if truth.frame[row] < 60]
+    after = [f for f, row in vision if truth.frame[row] >= 120]
+    assert before and after
+    assert {f["reset_counter"] for f in before} == {0} and {f["reset_counter"] for f in after} == {1}
+    texts = [r["fields"]["text"] for r in peer.wait_for("STATUSTEXT", count=2)]
+    assert "companion: re-acquired (reset 1)" in texts, texts
+
+
 def test_corrupt_frames_are_skipped_counted_and_the_stream_goes_on(tmp_path, peers):
     sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in read_rows(HOVER / "timestamps.csv")])
     rows = read_rows(sequence / "timestamps.csv")

@@ -162,6 +162,24 @@ def test_reacquisition_after_a_jump_increments_reset_counter_and_snaps():
     assert np.linalg.norm(second.position_ned_m - jumped(t)) < 0.05
 
 
+def test_a_jump_after_a_gap_in_the_frames_is_a_reacquisition_with_a_reset():
+    """No frames for 2 s (a camera that stalled, a dropped stretch of a recording), then the vehicle is 2.8 m
+    away: the prediction's covariance grew enough over the gap to pass the jump as tracking (reset 0)."""
+    pf = PoseFilter(FusionParams(max_coast_s=0.25, confirm_frames=3))
+    still = lambda s: np.array([6.7, -1.9, -1.5])
+    last = run(pf, np.arange(0, 2, 1 / 30), still)[-1]
+    assert last.tracking and last.reset_counter == 0
+    moved = np.array([8.9, -0.2, -1.5])
+    after_gap = [pf.step(int(t * 1e9), measurement(t, moved, 0.3)) for t in (4.0, 4.033, 4.066)]
+    assert pf.counters.lost == 1 and after_gap[0] is None   # lost, then acquired again on its own poses
+    assert after_gap[-1].reset_counter == 1 and np.linalg.norm(after_gap[-1].position_ned_m - moved) < 0.05
+    # a gap in place: acquired again, no reset
+    pf = PoseFilter(FusionParams(max_coast_s=0.25, confirm_frames=3))
+    run(pf, np.arange(0, 2, 1 / 30), still)
+    again = run(pf, [4.0, 4.033, 4.066], still)
+    assert pf.counters.lost == 1 and again[-1].reset_counter == 0
+
+
 def test_reacquisition_in_place_keeps_reset_counter():
     pf = PoseFilter(FusionParams(max_coast_s=0.2, confirm_frames=2))
     still = lambda s: np.array([1.0, 2.0, -1.0])

@@ -124,6 +124,15 @@ def test_no_markers_is_shown_and_the_filter_says_lost_and_reacquired(health):
     assert [text for text, _ in said] == ["tracking markers", "markers lost", "re-acquired (reset 1)"]
 
 
+def test_a_reset_while_tracking_is_said_as_a_reacquisition(health):
+    """After a gap in the frames an unambiguous pose is a fix at once: the filter goes from tracking to
+    tracking, and only its reset counter says the position jumped."""
+    monitor, clock, said = health
+    play(monitor, clock, 10)
+    play(monitor, clock, 5, reset_counter=1)
+    assert [text for text, _ in said] == ["tracking markers", "re-acquired (reset 1)"]
+
+
 def test_markers_lost_with_markers_in_view_says_why_the_pose_stage_gave_none(health):
     """A wrong camera or map loses the track while the markers stay in sight: 'markers lost' alone misleads."""
     monitor, clock, said = health

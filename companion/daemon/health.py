@@ -114,6 +114,7 @@ class Health:
         self._pose_statuses: collections.Counter = collections.Counter()  # since the last pose
         self._track = "acquiring"
         self._acquisitions = 0
+        self._resets = 0   # the filter's reset counter as last seen
         self._reported = "starting"
         self._attitude = "waiting" if attitude_expected else "off"
         self._frames_seen = False
@@ -145,9 +146,14 @@ class Health:
         estimate = record.estimate
         track = "acquiring" if estimate is None else "tracking" if estimate.tracking else "coasting"
         previous, self._track = self._track, track
-        if track == previous:
+        # a track lost and found again within one frame (after a gap in the frames, an unambiguous pose is a
+        # fix at once) shows only as a new reset: said like any re-acquisition
+        reset = estimate is not None and estimate.reset_counter > self._resets
+        if estimate is not None:
+            self._resets = estimate.reset_counter
+        if track == previous and not reset:
             return
-        if previous == "acquiring" and track == "tracking":
+        if track == "tracking" and (previous == "acquiring" or reset):
             self._acquisitions += 1
             if self._acquisitions == 1:
                 self._emit("tracking markers", SEVERITY_INFO, TRACKING)
