@@ -94,13 +94,15 @@ class FusionParams:
                     "initial_velocity_std_m_s", "initial_yaw_rate_std_rad_s")
         for name in positive:
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value > 0):
                 raise FusionError(f"fusion parameter {name} must be a positive number, got {value!r}")
         if not (isinstance(self.gate_probability, (int, float)) and 0 < self.gate_probability <= 1):
             raise FusionError(f"fusion parameter gate_probability must be in (0, 1], got {self.gate_probability!r}")
         if not (isinstance(self.max_coast_s, (int, float)) and 0 <= self.max_coast_s <= 5):
             raise FusionError(f"fusion parameter max_coast_s must be in [0, 5] s, got {self.max_coast_s!r}")
-        if not (isinstance(self.confirm_frames, int) and self.confirm_frames >= 1):
+        if not (isinstance(self.confirm_frames, int) and not isinstance(self.confirm_frames, bool)
+                and self.confirm_frames >= 1):
             raise FusionError(f"fusion parameter confirm_frames must be an integer >= 1, got {self.confirm_frames!r}")
 
 

@@ -228,7 +228,8 @@ def test_roll_and_pitch_pass_through_from_the_newest_pose():
 
 
 @pytest.mark.parametrize("bad", [dict(gate_probability=0), dict(gate_probability=1.5), dict(confirm_frames=0), dict(max_coast_s=-1),
-                                 dict(accel_noise_m_s2=float("nan"))])
+                                 dict(accel_noise_m_s2=float("nan")), dict(confirm_frames=True),
+                                 dict(reset_distance_m=True)])
 def test_bad_parameters_name_the_parameter(bad):
     with pytest.raises(FusionError, match=next(iter(bad))):
         FusionParams(**bad)

@@ -409,6 +409,23 @@ def config_with(section: str, values: dict) -> dict:
     return {"source": {"kind": "v4l2"}, "camera": CAMERA_SECTION, "map": str(REPO / "maps" / "warehouse.yaml"), section: values}
 
 
+@pytest.mark.parametrize("key, value, words", [
+    ("max_tilt_deg", "35", "max_tilt_deg must be in (0, 90], got '35'"),
+    ("max_tilt_deg", float("nan"), "max_tilt_deg must be in (0, 90], got nan"),
+    ("ambiguity_chi2", "abc", "ambiguity_chi2 must be a positive number, got 'abc'"),
+    ("max_markers", "2", "max_markers must be an integer >= 1 or null (all), got '2'"),
+    ("max_markers", True, "max_markers must be an integer >= 1 or null (all), got True"),
+    ("accept_ambiguous_without_prior", "no", "accept_ambiguous_without_prior must be true or false, got 'no'"),
+    ("prior_max_age_s", -1, "prior_max_age_s must be a number >= 0, got -1"),
+])
+def test_every_pose_key_is_checked_when_the_config_is_read(key, value, words):
+    """Unchecked, these crashed the pipeline thread at its first pose (a string max_tilt_deg: TypeError), stopped
+    every pose (nan: 'implausible attitude') or turned a setting on ('no' is true)."""
+    with pytest.raises(ConfigError) as error:
+        config_from_dict(config_with("pose", {key: value}), "site.yaml")
+    assert str(error.value) == f"site.yaml: pose: pose parameter {words}"
+
+
 def test_gate_probability_from_the_config():
     config = config_from_dict(config_with("pose", {"gate_probability": 0.99}), "site.yaml")
     assert config.pose.gate_probability == 0.99

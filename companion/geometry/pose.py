@@ -116,7 +116,7 @@ class PoseParams:
         of its pitch, each (its estimate's error plus the camera mount's).
     distinct_rotation_deg, distinct_position_m: two poses closer than both
         are the same solution.
-    prior_max_age_s: the last accepted pose serves as prior this long.
+    prior_max_age_s: the last accepted pose serves as prior this long (0: never).
     accept_ambiguous_without_prior: return the best ambiguous pose anyway.
     max_markers: use at most this many markers (largest in the image first);
         1 gives single-marker PnP, None uses all (joint PnP).
@@ -146,16 +146,29 @@ class PoseParams:
     }
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.gate_probability, (int, float)) and 0.0 < self.gate_probability <= 1.0):
+        def number(value) -> bool:
+            return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+        if not (number(self.gate_probability) and 0.0 < self.gate_probability <= 1.0):
             raise ValueError(f"pose parameter gate_probability must be in (0, 1], got {self.gate_probability!r}")
-        for name in ("corner_sigma_px", "attitude_sd_deg"):
+        for name in ("corner_sigma_px", "attitude_sd_deg", "max_rms_px", "hypothesis_gate_px", "ambiguity_chi2",
+                     "distinct_rotation_deg", "distinct_position_m"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if not (number(value) and value > 0):
                 raise ValueError(f"pose parameter {name} must be a positive number, got {value!r}")
-        for name in ("model_sigma_px", "map_sd_m", "map_sd_deg"):
+        for name in ("model_sigma_px", "map_sd_m", "map_sd_deg", "prior_max_age_s"):  # prior_max_age_s 0: no prior
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            if not (number(value) and value >= 0):
                 raise ValueError(f"pose parameter {name} must be a number >= 0, got {value!r}")
+        if not (number(self.max_tilt_deg) and 0 < self.max_tilt_deg <= 90):
+            raise ValueError(f"pose parameter max_tilt_deg must be in (0, 90], got {self.max_tilt_deg!r}")
+        if not isinstance(self.accept_ambiguous_without_prior, bool):
+            raise ValueError("pose parameter accept_ambiguous_without_prior must be true or false, got "
+                             f"{self.accept_ambiguous_without_prior!r}")
+        if self.max_markers is not None and not (isinstance(self.max_markers, int) and
+                                                 not isinstance(self.max_markers, bool) and self.max_markers >= 1):
+            raise ValueError(f"pose parameter max_markers must be an integer >= 1 or null (all), got "
+                             f"{self.max_markers!r}")
 
 
 @dataclass(frozen=True)
