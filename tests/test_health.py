@@ -99,6 +99,25 @@ def test_a_lost_source_is_critical_and_names_its_reason(health):
     assert said[-1][0] == "camera lost: camera /dev/video0: cannot open: /dev/video0 does not exist"
 
 
+def test_a_source_back_from_lost_is_not_called_stalled_before_its_first_frame(health):
+    """A replay's files back after 20 s: its lost reason clears before the pipeline has a frame; 'camera
+    stalled: no frame for 20.2 s' (CRITICAL) then 'frames again' 50 ms later was a false alarm."""
+    monitor, clock, said = health
+    play(monitor, clock, 5)
+    for _ in range(200):
+        clock.now_ns += 100_000_000
+        monitor.check(lost_reason="replay: no frames")
+    clock.now_ns += 100_000_000
+    assert monitor.check().state == "tracking"   # back, its first frame not here yet: no alarm
+    play(monitor, clock, 2)
+    assert [text for text, _ in said] == ["tracking markers", "camera lost: replay: no frames",
+                                          "camera delivers frames again"]
+    # back from lost and then silent: a stall after the usual time
+    monitor.check(lost_reason="replay: no frames")
+    clock.now_ns += 600_000_000
+    assert monitor.check().state == "camera stalled"
+
+
 def test_markers_without_a_pose_for_two_seconds_name_the_reasons(health):
     monitor, clock, said = health
     play(monitor, clock, 20, status="uncertain", tracking=None)

@@ -115,6 +115,7 @@ class Health:
         self._track = "acquiring"
         self._acquisitions = 0
         self._resets = 0   # the filter's reset counter as last seen
+        self._lost_ns: int | None = None   # when the source last said it was lost
         self._reported = "starting"
         self._attitude = "waiting" if attitude_expected else "off"
         self._frames_seen = False
@@ -206,12 +207,16 @@ class Health:
             no_pose_since_ns = self._markers_without_pose_ns
             statuses = self._pose_statuses.most_common()
             stall_after_s = self._stall_after_s()
+            if lost_reason is not None:
+                self._lost_ns = now_ns
+            lost_ns = self._lost_ns
         if lost_reason is not None:
             return HealthState("camera lost", _seconds(now_ns - (last_frame_ns or self._started_ns)), (lost_reason,))
         if last_frame_ns is None:
             waited_s = _seconds(now_ns - self._started_ns)
             return HealthState("camera stalled" if waited_s > STALL_MAX_S else "starting", waited_s)
-        silent_s = _seconds(now_ns - last_frame_ns)
+        # a source back from lost gets its stall time to deliver (it was lost, not stalled, until now)
+        silent_s = _seconds(now_ns - max(last_frame_ns, lost_ns or 0))
         if silent_s > stall_after_s:
             return HealthState("camera stalled", silent_s, (f"no frame for {silent_s:.1f} s",))
         # judged on the frames that came: a slow camera between two frames is not "no markers"
