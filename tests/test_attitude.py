@@ -82,9 +82,13 @@ def test_attitude_csv_round_trip_and_streaming_writer(tmp_path):
     ("t_ns,roll_deg,pitch_deg\n0,a,2\n", "line 2: t_ns must be an integer"),
     ("t_ns,roll_deg,pitch_deg\n0,1,95\n", r"pitch within \+-90"),
     ("t_ns,roll_deg,pitch_deg\n10,1,2\n5,1,2\n", "t_ns must rise"),
+    (b"\xf0\x9f\x00\xc5 not text", "cannot read .*not an attitude table"),
 ])
 def test_bad_attitude_csv_is_one_line_naming_the_file(tmp_path, text, words):
-    (tmp_path / "attitude.csv").write_text(text)
+    if isinstance(text, bytes):
+        (tmp_path / "attitude.csv").write_bytes(text)
+    else:
+        (tmp_path / "attitude.csv").write_text(text)
     with pytest.raises(AttitudeFileError, match=words) as error:
         read_attitude_csv(tmp_path / "attitude.csv")
     assert str(error.value).startswith(str(tmp_path / "attitude.csv")) and "\n" not in str(error.value)

@@ -182,9 +182,17 @@ def test_image_folder_needs_a_frame_rate(tmp_path):
     ("frame,t_ns,file\n0,0,a.png\n1,0,b.png\n", "must rise"),
     ("frame,t_ns,file\n0,zero,a.png\n", "integers"),
     ("frame,t_ns,file\n", "no frames"),
+    ("frame,t_ns,file\n0,0,a.png\n0,1,b.png\n", "frame numbers must be >= 0 and rise"),
+    ("frame,t_ns,file\n-1,0,a.png\n", "frame numbers must be >= 0 and rise"),
+    ("frame,t_ns,file\n0,0,a.png\n1,1\n", "must name every frame"),
+    (b"\xf0\x9f\x00\xc5 not text", "cannot read .*not a timestamps table"),
 ])
 def test_bad_timestamps_name_the_file(tmp_path, content, message):
-    (tmp_path / "timestamps.csv").write_text(content)
+    """Every one a SourceError naming the file (a non-UTF-8 file was a bare 'utf-8 codec can't decode')."""
+    if isinstance(content, bytes):
+        (tmp_path / "timestamps.csv").write_bytes(content)
+    else:
+        (tmp_path / "timestamps.csv").write_text(content)
     with pytest.raises(SourceError, match=message) as error:
         open_recording(tmp_path)
     assert "timestamps.csv" in str(error.value)

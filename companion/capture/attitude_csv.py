@@ -41,6 +41,8 @@ def read_attitude_csv(path) -> list[AttitudeSample]:
             samples = [_sample(row, path, reader.line_num) for row in reader if row]
     except OSError as error:
         raise AttitudeFileError(f"{path}: cannot read: {error.strerror}") from None
+    except (UnicodeDecodeError, csv.Error) as error:
+        raise AttitudeFileError(f"{path}: cannot read ({error}): not an attitude table ({','.join(COLUMNS)})") from None
     for a, b in zip(samples, samples[1:]):
         if b.t_ns <= a.t_ns:
             raise AttitudeFileError(f"{path}: t_ns must rise from row to row ({a.t_ns} then {b.t_ns})")

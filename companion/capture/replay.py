@@ -117,21 +117,27 @@ def _evenly_spaced(path: Path, count: int, fps: float, files, video) -> Recordin
 
 def _read_sequence_folder(folder: Path) -> Recording:
     csv_path = folder / TIMESTAMPS_FILE
-    with open(csv_path, newline="") as handle:
-        reader = csv.DictReader(handle)
-        missing = {"frame", "t_ns", "file"} - set(reader.fieldnames or ())
-        if missing:
-            raise SourceError(f"{csv_path}: header lacks {', '.join(sorted(missing))} (want frame,t_ns,file)")
-        rows = list(reader)
+    try:
+        with open(csv_path, newline="") as handle:
+            reader = csv.DictReader(handle)
+            missing = {"frame", "t_ns", "file"} - set(reader.fieldnames or ())
+            if missing:
+                raise SourceError(f"{csv_path}: header lacks {', '.join(sorted(missing))} (want frame,t_ns,file)")
+            rows = list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise SourceError(f"{csv_path}: cannot read ({getattr(error, 'strerror', None) or error}): not a "
+                          "timestamps table (frame,t_ns,file)") from None
     if not rows:
         raise SourceError(f"{csv_path}: no frames")
     try:
         frames = np.array([int(r["frame"]) for r in rows])
         t_ns = np.array([int(r["t_ns"]) for r in rows], dtype=np.int64)
-    except ValueError as error:
+    except (TypeError, ValueError) as error:
         raise SourceError(f"{csv_path}: frame and t_ns must be integers ({error})") from None
     if np.any(np.diff(t_ns) <= 0):
         raise SourceError(f"{csv_path}: t_ns must rise from row to row")
+    if frames[0] < 0 or np.any(np.diff(frames) <= 0):
+        raise SourceError(f"{csv_path}: frame numbers must be >= 0 and rise from row to row")
     names = [r["file"] for r in rows]
     try:
         attitude = sequence_attitude(folder)
