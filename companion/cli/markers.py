@@ -12,10 +12,10 @@ from companion.markers.charuco import DEFAULT_DICTIONARY as CHARUCO_DICTIONARY
 from companion.markers.charuco import CharucoError, CharucoSpec, charuco_pdf
 from companion.markers.dictionary import DictionaryError
 from companion.markers.layout import MarkerLayout
-from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_png_size,
-                                        check_size_mm, fits_one_page, largest_on_one_page_mm, marker_png,
-                                        marker_svg, markers_pdf, num, resolve_marker_ids, sheet_geometry,
-                                        tile_geometry)
+from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_dpi,
+                                        check_png_size, check_printable, check_size_mm, check_svg_size,
+                                        fits_one_page, largest_on_one_page_mm, marker_png, marker_svg, markers_pdf,
+                                        num, resolve_marker_ids, sheet_geometry, tile_geometry)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -30,13 +30,13 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dictionary", choices=("5x5", "6x6", "8x8"), default=DEFAULT_DICTIONARY,
                         help="data grid size (default 6x6)")
     parser.add_argument("--size-mm", type=float, default=35.0,
-                        help="printed side of the inner black square in mm (default 35)")
+                        help="printed side of the inner black square in mm, cells of at least 0.25 mm (default 35)")
     parser.add_argument("--format", choices=("png", "svg", "pdf"), default="png",
                         help="png (one file per marker + JSON sidecar), svg, or pdf sheets (default png)")
     parser.add_argument("--out", type=Path, default=Path("markers"), help="output folder (default ./markers)")
     parser.add_argument("--dpi", type=float, default=300.0,
-                        help="PNG print resolution, stored in the file; the inner square is the nearest whole "
-                             "number of pixels to --size-mm at it (default 300)")
+                        help="PNG print resolution, 72 to 4800, stored in the file; the inner square is the nearest "
+                             "whole number of pixels to --size-mm at it, at least 5 px per cell (default 300)")
     parser.add_argument("--quiet-zone-cells", type=int, default=1,
                         help="white margin around the grid in cells (default 1, as wide as the black border)")
     parser.add_argument("--page", choices=tuple(PAGES_MM), default="a4",
@@ -83,13 +83,15 @@ def generate(args: argparse.Namespace) -> int:
     if args.quiet_zone_cells < 1:
         raise PrintingError(f"--quiet-zone-cells must be at least 1 (the quiet zone must be at least as wide "
                             f"as the black border), not {args.quiet_zone_cells}")
-    if not args.dpi > 0:
-        raise PrintingError(f"--dpi must be positive, not {args.dpi}")
+    check_dpi(args.dpi)
     layout = MarkerLayout(args.parity, args.dictionary)
     ids = resolve_marker_ids(layout, args.symbols, args.all)
     markers = [MarkerPrint(layout, marker_id, size_mm, args.quiet_zone_cells) for marker_id in ids]
+    check_printable(markers[0])
     if args.format == "png":
         check_png_size(markers[0], args.dpi)
+    elif args.format == "svg":
+        check_svg_size(markers[0])
     out_dir: Path = output_dir(args.out, "--out")
 
     if args.format == "pdf":
