@@ -618,3 +618,31 @@ def test_a_charuco_board_too_small_to_print_is_refused(tmp_path, capsys):
                                        "would be 0.0714 mm, at least 0.25 mm (--marker-mm 1.75 or more for the 7 "
                                        "cells of a DICT_5X5_100 marker)\n")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--symbols", "A", "--size-mm", "1e6"], "one 125000 mm cell does not fit a a4 page; use a smaller --size-mm"),
+    (["--all", "--size-mm", "300"], "50 marker(s) of 300 mm would take 600 a4 pages (at most 500); use --format svg, "
+                                    "or fewer or smaller markers"),
+])
+def test_a_refused_pdf_leaves_no_output_folder(tmp_path, capsys, options, message):
+    """The PDF's refusals (a cell larger than the page, too many tiled pages) come before --out is made (it was
+    left behind empty)."""
+    out = tmp_path / "m"
+    assert run_markers(out, *options, "--format", "pdf") == 2
+    assert capsys.readouterr().err == f"companion markers: error: {message}\n"
+    assert not out.exists()
+
+
+def test_an_interrupted_run_removes_the_output_folder_it_made_and_left_empty(tmp_path, monkeypatch, capsys):
+    from companion.cli import markers as markers_cli
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(markers_cli, "markers_pdf", interrupted)
+    assert run_markers(tmp_path / "new", "--symbols", "A", "--format", "pdf") == 130
+    assert capsys.readouterr().err == "companion markers: interrupted\n"
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "old").mkdir()
+    assert run_markers(tmp_path / "old", "--symbols", "A", "--format", "pdf") == 130
+    assert (tmp_path / "old").is_dir()  # a folder that was there stays

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -13,7 +14,7 @@ from companion.markers.charuco import CharucoError, CharucoSpec, charuco_pdf
 from companion.markers.dictionary import DictionaryError
 from companion.markers.layout import MarkerLayout
 from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_dpi,
-                                        check_png_size, check_printable, check_size_mm, check_svg_size,
+                                        check_pdf, check_png_size, check_printable, check_size_mm, check_svg_size,
                                         fits_one_page, largest_on_one_page_mm, marker_png, marker_svg, markers_pdf,
                                         num, resolve_marker_ids, sheet_geometry, tile_geometry)
 
@@ -52,10 +53,25 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     try:
-        return write_charuco(args) if args.charuco else generate(args)
+        with removed_if_left_empty(args.out):
+            return write_charuco(args) if args.charuco else generate(args)
     except (PrintingError, DictionaryError, CharucoError) as error:
         print(f"companion markers: error: {error}", file=sys.stderr)
         return 2
+
+
+@contextlib.contextmanager
+def removed_if_left_empty(folder: Path):
+    """The --out folder, if this run creates it and fails (or is interrupted) before writing in it, removed
+    again: what is refused leaves nothing behind. (Its options are checked before it is made.)"""
+    existed = Path(folder).exists()
+    try:
+        yield
+    except BaseException:
+        with contextlib.suppress(OSError):
+            if not existed:
+                Path(folder).rmdir()  # only if empty
+        raise
 
 
 def parse_squares(text: str) -> tuple[int, int]:
@@ -92,6 +108,8 @@ def generate(args: argparse.Namespace) -> int:
         check_png_size(markers[0], args.dpi)
     elif args.format == "svg":
         check_svg_size(markers[0])
+    else:
+        check_pdf(markers, args.page)
     out_dir: Path = output_dir(args.out, "--out")
 
     if args.format == "pdf":

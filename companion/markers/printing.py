@@ -541,13 +541,27 @@ def draw_tile(sheet: SheetPage, marker: MarkerPrint, geometry: TileGeometry, row
                LABEL_SIZES_PT[1])
 
 
-def tiled_pdf(markers: list[MarkerPrint], page: str) -> bytes:
-    """Each marker on ``tile_geometry`` pages, tile by tile (row by row)."""
+def check_pdf(markers: list[MarkerPrint], page: str) -> None:
+    """The PrintingError ``markers_pdf`` would raise, found without drawing: a cell larger than the page, or
+    more than MAX_TILED_PAGES pages of tiles."""
+    if not fits_one_page(markers, page):
+        tiled_pages(markers, page)
+
+
+def tiled_pages(markers: list[MarkerPrint], page: str) -> TileGeometry:
+    """``tile_geometry`` of the markers, if they take at most MAX_TILED_PAGES pages."""
     geometry = tile_geometry(markers[0], page)
     n_pages = geometry.per_marker * len(markers)
     if n_pages > MAX_TILED_PAGES:
         raise PrintingError(f"{len(markers)} marker(s) of {num(markers[0].size_mm)} mm would take {n_pages} {page} "
                             f"pages (at most {MAX_TILED_PAGES}); use --format svg, or fewer or smaller markers")
+    return geometry
+
+
+def tiled_pdf(markers: list[MarkerPrint], page: str) -> bytes:
+    """Each marker on ``tile_geometry`` pages, tile by tile (row by row)."""
+    geometry = tiled_pages(markers, page)
+    n_pages = geometry.per_marker * len(markers)
     out, canvas = _pdf_canvas(markers, geometry.page_mm)
     sheet = SheetPage(canvas, *geometry.page_mm)
     page_index = 0
