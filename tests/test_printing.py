@@ -646,3 +646,15 @@ def test_an_interrupted_run_removes_the_output_folder_it_made_and_left_empty(tmp
     (tmp_path / "old").mkdir()
     assert run_markers(tmp_path / "old", "--symbols", "A", "--format", "pdf") == 130
     assert (tmp_path / "old").is_dir()  # a folder that was there stays
+
+
+@pytest.mark.parametrize("format", ["png", "svg"])
+def test_a_charuco_board_in_another_format_than_pdf_is_refused(tmp_path, capsys, format):
+    """--charuco --format png wrote a PDF without saying so."""
+    out = tmp_path / "board"
+    assert cli.main(["markers", "--charuco", "--format", format, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"companion markers: error: --format {format}: a --charuco board is written "
+                                       "as a PDF only (leave out --format)\n")
+    assert not out.exists()
+    assert cli.main(["markers", "--charuco", "--format", "pdf", "--out", str(out)]) == 0
+    assert [path.name for path in out.iterdir()] == ["charuco-8x11-22mm-16mm-a4.pdf"]

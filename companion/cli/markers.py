@@ -32,8 +32,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="data grid size (default 6x6)")
     parser.add_argument("--size-mm", type=float, default=35.0,
                         help="printed side of the inner black square in mm, cells of at least 0.25 mm (default 35)")
-    parser.add_argument("--format", choices=("png", "svg", "pdf"), default="png",
-                        help="png (one file per marker + JSON sidecar), svg, or pdf sheets (default png)")
+    parser.add_argument("--format", choices=("png", "svg", "pdf"), default=None,
+                        help="png (one file per marker + JSON sidecar), svg, or pdf sheets (default png; a "
+                             "--charuco board is a PDF only)")
     parser.add_argument("--out", type=Path, default=Path("markers"), help="output folder (default ./markers)")
     parser.add_argument("--dpi", type=float, default=300.0,
                         help="PNG print resolution, 72 to 4800, stored in the file; the inner square is the nearest "
@@ -85,6 +86,8 @@ def parse_squares(text: str) -> tuple[int, int]:
 
 def write_charuco(args: argparse.Namespace) -> int:
     """The ChArUco board PDF: ``charuco-8x11-22mm-16mm-a4.pdf`` in --out."""
+    if args.format not in (None, "pdf"):
+        raise PrintingError(f"--format {args.format}: a --charuco board is written as a PDF only (leave out --format)")
     spec = CharucoSpec(*args.charuco, args.square_mm, args.marker_mm, args.aruco_dictionary)
     document = charuco_pdf(spec, args.page)
     path = output_dir(args.out, "--out") / f"{spec.file_stem()}-{args.page}.pdf"
@@ -95,6 +98,7 @@ def write_charuco(args: argparse.Namespace) -> int:
 
 
 def generate(args: argparse.Namespace) -> int:
+    args.format = args.format or "png"
     size_mm = check_size_mm(args.size_mm)
     if args.quiet_zone_cells < 1:
         raise PrintingError(f"--quiet-zone-cells must be at least 1 (the quiet zone must be at least as wide "
