@@ -22,29 +22,30 @@ from companion.mavlink.link import LinkError, LinkParams, MavlinkLink
 # A tool, not the daemon: a component id of its own (MAV_COMP_ID_ONBOARD_COMPUTER), so that a running
 # daemon (component 197) is no duplicate of it.
 CHECK_COMPONENT_ID = 191
+MAX_TIMEOUT_S = 3600.0  # an hour: waiting longer for a flight controller is a mistyped number
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("connection", help="udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial "
                                            "device with its baud rate, e.g. /dev/ttyAMA0,921600")
     parser.add_argument("--config", metavar="FILE", help="judge against this daemon config (lever arm, messages)")
-    parser.add_argument("--system-id", type=int, default=1, help="the vehicle's system id (default 1)")
+    parser.add_argument("--system-id", type=int, default=1, help="the vehicle's system id, 1 to 254 (default 1)")
     parser.add_argument("--latency-ms", type=float, default=None,
-                        help="the daemon's measured median capture->send latency, to judge the vision delay")
+                        help="the daemon's measured median capture->send latency, to judge the vision delay "
+                             f"(more than 0, at most {fc_params.MAX_DELAY_MS:g})")
     parser.add_argument("--timeout-s", type=float, default=15.0,
-                        help="how long to wait for the flight controller and its answers (default 15)")
+                        help="how long to wait for the flight controller and its answers (default 15, at most "
+                             f"{MAX_TIMEOUT_S:g})")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
+        check_numbers(args)
         expected = expectations(args.config, args.latency_ms)
         params = LinkParams(connection=args.connection, system_id=args.system_id, component_id=CHECK_COMPONENT_ID,
                             origin_retry_s=1.0)
     except (LinkError, ValueError) as error:
         print(f"companion check-fc: {error}", file=sys.stderr)
-        return 2
-    if not args.timeout_s > 0:
-        print(f"companion check-fc: --timeout-s must be positive, not {args.timeout_s}", file=sys.stderr)
         return 2
     logging.getLogger("companion.mavlink").setLevel(logging.ERROR)  # the table says what matters
     result, down_reason = read_parameters(params, args.timeout_s)
@@ -66,6 +67,18 @@ def main(args: argparse.Namespace) -> int:
     degrading = [c for c in fc_params.problems(checks) if c not in blocking]
     print(f"{len(blocking)} parameter(s) block vision fusion, {len(degrading)} degrade it")
     return 1 if blocking else 0
+
+
+def check_numbers(args: argparse.Namespace) -> None:
+    """A ValueError naming the option for a number out of its range (NaN and infinity included)."""
+    if not 1 <= args.system_id <= 254:
+        raise ValueError(f"--system-id must be 1 to 254 (255 is a ground station), not {args.system_id}")
+    latency_ms = args.latency_ms
+    if latency_ms is not None and not 0 < latency_ms <= fc_params.MAX_DELAY_MS:
+        raise ValueError(f"--latency-ms must be more than 0 and at most {fc_params.MAX_DELAY_MS:g} ms (where "
+                         f"VISO_DELAY_MS and EKF2_EV_DELAY end), not {latency_ms:g}")
+    if not 0 < args.timeout_s <= MAX_TIMEOUT_S:
+        raise ValueError(f"--timeout-s must be more than 0 and at most {MAX_TIMEOUT_S:g} s, not {args.timeout_s:g}")
 
 
 def expectations(config_path: str | None, latency_ms: float | None) -> fc_params.Expected:
