@@ -23,7 +23,7 @@ import numpy as np
 
 from companion.capture.replay import TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files, open_recording
 from companion.capture.source import SourceError
-from companion.cli.output import output_dir, output_file, write_failed
+from companion.cli.output import output_dir, output_file, removed_if_left_empty, write_failed
 from companion.files import write_whole
 from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
                                             CharucoBoard, calibrate, capture_live, recorded_views,
@@ -96,28 +96,18 @@ def main(args: argparse.Namespace) -> int:
         board = make_board(args)
         # where the results go, before the work, not after it
         output_file(args.out, "--out")
-        if args.save_views is not None:
-            output_dir(args.save_views, "--save-views")
-        if args.device is not None:
-            if args.images:
-                raise CalibrationError("give images or --device, not both")
-            calibration = calibrate_device(args, board)
-            paths_count = None
-        else:
-            if not args.images:
-                raise CalibrationError("give images or videos (files or folders), or --device for a live camera")
-            paths, recordings = split_inputs(args.images)
-            images = {str(p): cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths}
-            unreadable = [name for name, image in images.items() if image is None]
-            if unreadable:
-                raise CalibrationError(f"cannot read image(s): {', '.join(unreadable)}")
-            for recording in recordings:
-                images.update(views_of_recording(recording, board, args))
-            if recordings and not images:
-                raise CalibrationError(f"{', '.join(map(str, recordings))}: the board never rested in view (a view: "
-                                       f"its corners still for {CaptureGoal.still_frames} frames, somewhere new)")
-            calibration = calibrate(images, board)
-            paths_count = len(images)
+        with removed_if_left_empty(args.save_views):
+            if args.save_views is not None:
+                output_dir(args.save_views, "--save-views")
+            if args.device is not None:
+                if args.images:
+                    raise CalibrationError("give images or --device, not both")
+                calibration, views = calibrate_device(args, board)
+                paths_count = None
+            else:
+                calibration, views, paths_count = calibrate_files(args, board)
+            # the views saved with a calibration only: a refused or interrupted run writes nothing
+            save_views(views, args.save_views)
         write_calibration(args.out, calibration)
     except (CalibrationError, CharucoError) as error:
         print(f"companion calibrate: {error}", file=sys.stderr)
@@ -126,6 +116,26 @@ def main(args: argparse.Namespace) -> int:
         return write_failed("calibrate", error, args.out)
     print_result(calibration, paths_count, args.out)
     return 0
+
+
+def calibrate_files(args: argparse.Namespace, board) -> tuple[Calibration, dict[str, np.ndarray], int]:
+    """The calibration of the images and recordings given, the views taken from the recordings, and how many
+    views it was given (the images and those views)."""
+    if not args.images:
+        raise CalibrationError("give images or videos (files or folders), or --device for a live camera")
+    paths, recordings = split_inputs(args.images)
+    images = {str(p): cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths}
+    unreadable = [name for name, image in images.items() if image is None]
+    if unreadable:
+        raise CalibrationError(f"cannot read image(s): {', '.join(unreadable)}")
+    views = {}
+    for recording in recordings:
+        views.update(views_of_recording(recording, board))
+    images.update(views)
+    if recordings and not images:
+        raise CalibrationError(f"{', '.join(map(str, recordings))}: the board never rested in view (a view: "
+                               f"its corners still for {CaptureGoal.still_frames} frames, somewhere new)")
+    return calibrate(images, board), views, len(images)
 
 
 def make_board(args: argparse.Namespace):
@@ -140,8 +150,9 @@ def make_board(args: argparse.Namespace):
                                     args.aruco_dictionary))
 
 
-def calibrate_device(args: argparse.Namespace, board) -> Calibration:
-    """Live capture from a V4L2 camera, progress on stdout, Ctrl-C to stop with the views so far."""
+def calibrate_device(args: argparse.Namespace, board) -> tuple[Calibration, dict[str, np.ndarray]]:
+    """Live capture from a V4L2 camera, progress on stdout, Ctrl-C to stop with the views so far; the
+    calibration and the views taken."""
     if not isinstance(board, CharucoBoard):
         raise CalibrationError("live capture (--device) needs a ChArUco board, not --board")
     from companion.capture.v4l2 import device_path, device_problem, opencv_warnings, v4l2_source
@@ -153,18 +164,15 @@ def calibrate_device(args: argparse.Namespace, board) -> Calibration:
     goal = CaptureGoal(min_views=args.min_views, coverage=args.coverage)
     print(f"hold the {board.describe()} still in view; a view is taken each time it rests somewhere new "
           f"(goal: {goal.min_views} views, {100 * goal.coverage:.0f} % of the image covered; Ctrl-C to stop)")
-    with running(source) as stop:
+    with ctrl_c_stops() as stop, started(source):
         if not source.connected.wait(timeout=5.0):
             raise CalibrationError(source.lost_reason or f"{path}: cannot open the camera: {device_problem(path)}")
-        calibration, images = capture_live(source, board, goal, stop, on_event=lambda e: print(e.message,
-                                                                                                 flush=True))
-    save_views(images, args.save_views)
-    return calibration
+        return capture_live(source, board, goal, stop, on_event=lambda e: print(e.message, flush=True))
 
 
-def views_of_recording(path: Path, board, args: argparse.Namespace) -> dict[str, np.ndarray]:
-    """The still views of the board in a video or sequence folder, named '<file> view01', ... (saved with
-    ``--save-views``); progress on stdout."""
+def views_of_recording(path: Path, board) -> dict[str, np.ndarray]:
+    """The still views of the board in a video or sequence folder, named '<file> view01', ...; progress on
+    stdout. Ctrl-C stops the command (KeyboardInterrupt): a recording is not live, nothing is written."""
     if not isinstance(board, CharucoBoard):
         raise CalibrationError(f"{path}: views from a video need a ChArUco board, not --board")
     try:
@@ -172,26 +180,32 @@ def views_of_recording(path: Path, board, args: argparse.Namespace) -> dict[str,
         source = ReplaySource(open_recording(path, fps=None if path.is_dir() else 30.0), realtime=False)
     except SourceError as error:
         raise CalibrationError(str(error)) from None
-    with running(source) as stop:
-        views = recorded_views(source, board, stop=stop,
+    with started(source):
+        views = recorded_views(source, board,
                                on_event=lambda event: print(f"{path.name}: {event.message}", flush=True))
     skipped = f", {source.counters.corrupt} unreadable skipped" if source.counters.corrupt else ""
     print(f"{path.name}: {len(views)} views in {source.counters.captured} frames{skipped}")
-    views = {f"{path.name} {name}": image for name, image in views.items()}
-    save_views(views, args.save_views)
-    return views
+    return {f"{path.name} {name}": image for name, image in views.items()}
 
 
 @contextlib.contextmanager
-def running(source):
-    """The source started, and an event Ctrl-C sets (stop with the views so far); closed, the handler put back."""
+def started(source):
+    """The source started, and closed at the end."""
+    source.start()
+    try:
+        yield source
+    finally:
+        source.close()
+
+
+@contextlib.contextmanager
+def ctrl_c_stops():
+    """An event Ctrl-C sets (live capture stops with the views so far); the handler put back at the end."""
     stop = threading.Event()
     previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
-    source.start()
     try:
         yield stop
     finally:
-        source.close()
         signal.signal(signal.SIGINT, previous)
 
 

@@ -2,12 +2,11 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 from pathlib import Path
 
-from companion.cli.output import output_dir
+from companion.cli.output import output_dir, removed_if_left_empty
 from companion.files import write_whole
 from companion.markers.charuco import DEFAULT_DICTIONARY as CHARUCO_DICTIONARY
 from companion.markers.charuco import CharucoError, CharucoSpec, charuco_pdf
@@ -59,20 +58,6 @@ def main(args: argparse.Namespace) -> int:
     except (PrintingError, DictionaryError, CharucoError) as error:
         print(f"companion markers: error: {error}", file=sys.stderr)
         return 2
-
-
-@contextlib.contextmanager
-def removed_if_left_empty(folder: Path):
-    """The --out folder, if this run creates it and fails (or is interrupted) before writing in it, removed
-    again: what is refused leaves nothing behind. (Its options are checked before it is made.)"""
-    existed = Path(folder).exists()
-    try:
-        yield
-    except BaseException:
-        with contextlib.suppress(OSError):
-            if not existed:
-                Path(folder).rmdir()  # only if empty
-        raise
 
 
 def parse_squares(text: str) -> tuple[int, int]:
