@@ -91,6 +91,52 @@ def test_cli_rejects_a_missing_folder(tmp_path):
     assert run.returncode == 2 and "no such file or directory" in run.stderr
 
 
+# ------------------------------------------------------------ the command's options
+
+@pytest.fixture
+def images(tmp_path) -> Path:
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for name in ("one.png", "two.png"):
+        cv2.imwrite(str(folder / name), np.full((120, 160), 200, np.uint8))
+    return folder
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--coverage", "2"], "--coverage must be more than 0 and at most 1 (the share of the image covered: 0.7 is 70 %), "
+                          "not 2"),
+    (["--coverage", "nan"], "--coverage must be more than 0 and at most 1 (the share of the image covered: 0.7 is "
+                            "70 %), not nan"),
+    (["--min-views", "0"], "--min-views must be 5 to 50 (a calibration needs 5 views, capture stops at 50), not 0"),
+    (["--min-views", "80"], "--min-views must be 5 to 50 (a calibration needs 5 views, capture stops at 50), not 80"),
+    (["--width", "-5"], "--width must be a positive number of pixels, not -5"),
+    (["--height", "0"], "--height must be a positive number of pixels, not 0"),
+    (["--square-mm", "inf"], "--square-mm must be a positive number of millimetres, not inf"),
+    (["--board", "9x6", "--marker-mm", "16"], "--marker-mm: for a ChArUco board only, not a chessboard (--board)"),
+])
+def test_an_option_out_of_range_is_refused_before_the_camera_is_opened(tmp_path, capsys, options, message):
+    """--coverage 2 ('200 % of the image covered') was a goal never met, --min-views 0 and --width -5 were taken."""
+    out = tmp_path / "camera.yaml"
+    assert cli.main(["calibrate", "--device", "/dev/video97", *options, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == f"companion calibrate: {message}\n"
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--coverage", "0.5"], "--coverage: for live capture (--device) only, not images or videos"),
+    (["--min-views", "20", "--width", "1280", "--height", "720"], "--min-views, --width, --height: for live capture "
+                                                                  "(--device) only, not images or videos"),
+    (["--save-views", "{tmp}/views"], "--save-views: for views taken live (--device) or from videos, not images "
+                                      "(they are the views)"),
+])
+def test_a_live_capture_option_with_images_is_refused_not_ignored(tmp_path, images, capsys, options, message):
+    out = tmp_path / "camera.yaml"
+    options = [option.format(tmp=tmp_path) for option in options]
+    assert cli.main(["calibrate", str(images), *options, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == f"companion calibrate: {message}\n"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["images"]  # no camera file, no views folder
+
+
 # ------------------------------------------------------------ Ctrl-C
 
 LENS = (np.array([[478.0, 0.0, 322.5], [0.0, 478.0, 236.0], [0.0, 0.0, 1.0]]), np.array([-0.10, 0.02, 0, 0, 0]))

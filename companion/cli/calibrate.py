@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import signal
 import sys
@@ -25,7 +26,7 @@ from companion.capture.replay import TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySour
 from companion.capture.source import SourceError
 from companion.cli.output import output_dir, output_file, removed_if_left_empty, write_failed
 from companion.files import write_whole
-from companion.geometry.calibration import (PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
+from companion.geometry.calibration import (MIN_VIEWS, PARAMETERS, Board, Calibration, CalibrationError, CaptureGoal,
                                             CharucoBoard, calibrate, capture_live, recorded_views,
                                             write_calibration)
 from companion.markers.charuco import DEFAULT_DICTIONARY, CharucoError, CharucoSpec
@@ -74,25 +75,28 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="a plain chessboard of COLSxROWS inner corners instead, seen whole in every view")
     parser.add_argument("--square-mm", type=float, default=None,
                         help="printed square side in mm (default 22 for --charuco, 25 for a chessboard)")
-    parser.add_argument("--marker-mm", type=float, default=CharucoSpec.marker_mm,
+    parser.add_argument("--marker-mm", type=float, default=None,
                         help=f"ChArUco marker side in mm (default {CharucoSpec.marker_mm:g})")
-    parser.add_argument("--aruco-dictionary", default=DEFAULT_DICTIONARY,
+    parser.add_argument("--aruco-dictionary", default=None,
                         help=f"OpenCV dictionary of the ChArUco markers (default {DEFAULT_DICTIONARY})")
     parser.add_argument("--out", type=Path, default=Path("camera.yaml"),
                         help="output calibration YAML (default camera.yaml)")
-    live = parser.add_argument_group("live capture (--device)")
+    live = parser.add_argument_group("live capture (--device only; --save-views also for videos)")
     live.add_argument("--save-views", type=Path, default=None, metavar="DIR",
                       help="save the views taken (live or from videos) as PNGs (to calibrate again from the folder)")
-    live.add_argument("--min-views", type=int, default=CaptureGoal.min_views,
-                      help=f"views before stopping (default {CaptureGoal.min_views})")
-    live.add_argument("--coverage", type=float, default=CaptureGoal.coverage,
-                      help=f"share of the image the corners must cover (default {CaptureGoal.coverage:g})")
-    live.add_argument("--width", type=int, default=None, help="camera mode width")
-    live.add_argument("--height", type=int, default=None, help="camera mode height")
+    live.add_argument("--min-views", type=int, default=None,
+                      help=f"views before stopping, {MIN_VIEWS} to {CaptureGoal.max_views} "
+                           f"(default {CaptureGoal.min_views})")
+    live.add_argument("--coverage", type=float, default=None,
+                      help=f"share of the image the corners must cover, more than 0 and at most 1 "
+                           f"(default {CaptureGoal.coverage:g})")
+    live.add_argument("--width", type=int, default=None, help="camera mode width (pixels)")
+    live.add_argument("--height", type=int, default=None, help="camera mode height (pixels)")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
+        check_options(args)
         board = make_board(args)
         # where the results go, before the work, not after it
         output_file(args.out, "--out")
@@ -100,8 +104,6 @@ def main(args: argparse.Namespace) -> int:
             if args.save_views is not None:
                 output_dir(args.save_views, "--save-views")
             if args.device is not None:
-                if args.images:
-                    raise CalibrationError("give images or --device, not both")
                 calibration, views = calibrate_device(args, board)
                 paths_count = None
             else:
@@ -118,12 +120,41 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_options(args: argparse.Namespace) -> None:
+    """The input given, the numbers in their ranges, and no option that does not apply to the input (said, not
+    ignored): before any work."""
+    if args.device is not None and args.images:
+        raise CalibrationError("give images or --device, not both")
+    if args.device is None and not args.images:
+        raise CalibrationError("give images or videos (files or folders), or --device for a live camera")
+    if args.min_views is not None and not MIN_VIEWS <= args.min_views <= CaptureGoal.max_views:
+        raise CalibrationError(f"--min-views must be {MIN_VIEWS} to {CaptureGoal.max_views} (a calibration needs "
+                               f"{MIN_VIEWS} views, capture stops at {CaptureGoal.max_views}), not {args.min_views}")
+    if args.coverage is not None and not 0 < args.coverage <= 1:
+        raise CalibrationError(f"--coverage must be more than 0 and at most 1 (the share of the image covered: "
+                               f"0.7 is 70 %), not {args.coverage:g}")
+    for option, value in (("--width", args.width), ("--height", args.height)):
+        if value is not None and value < 1:
+            raise CalibrationError(f"{option} must be a positive number of pixels, not {value}")
+    if args.device is None:
+        live = [option for option, value in (("--min-views", args.min_views), ("--coverage", args.coverage),
+                                             ("--width", args.width), ("--height", args.height)) if value is not None]
+        if live:
+            raise CalibrationError(f"{', '.join(live)}: for live capture (--device) only, not images or videos")
+    if args.board is not None:
+        charuco = [option for option, value in (("--marker-mm", args.marker_mm),
+                                                ("--aruco-dictionary", args.aruco_dictionary)) if value is not None]
+        if charuco:
+            raise CalibrationError(f"{', '.join(charuco)}: for a ChArUco board only, not a chessboard (--board)")
+
+
 def calibrate_files(args: argparse.Namespace, board) -> tuple[Calibration, dict[str, np.ndarray], int]:
     """The calibration of the images and recordings given, the views taken from the recordings, and how many
     views it was given (the images and those views)."""
-    if not args.images:
-        raise CalibrationError("give images or videos (files or folders), or --device for a live camera")
     paths, recordings = split_inputs(args.images)
+    if args.save_views is not None and not recordings:
+        raise CalibrationError("--save-views: for views taken live (--device) or from videos, not images (they are "
+                               "the views)")
     images = {str(p): cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in paths}
     unreadable = [name for name, image in images.items() if image is None]
     if unreadable:
@@ -141,13 +172,14 @@ def calibrate_files(args: argparse.Namespace, board) -> tuple[Calibration, dict[
 def make_board(args: argparse.Namespace):
     """--board: a chessboard; otherwise the ChArUco board (--charuco, default 8x11 as printed by default)."""
     square_mm = args.square_mm
-    if square_mm is not None and not square_mm > 0:
-        raise CalibrationError(f"--square-mm must be positive, not {square_mm}")
+    if square_mm is not None and not 0 < square_mm < math.inf:
+        raise CalibrationError(f"--square-mm must be a positive number of millimetres, not {square_mm:g}")
     if args.board is not None:
         return Board(*args.board, (square_mm or 25.0) / 1000.0)
     columns, rows = args.charuco or (8, 11)
-    return CharucoBoard(CharucoSpec(columns, rows, square_mm or CharucoSpec.square_mm, args.marker_mm,
-                                    args.aruco_dictionary))
+    return CharucoBoard(CharucoSpec(columns, rows, square_mm or CharucoSpec.square_mm,
+                                    CharucoSpec.marker_mm if args.marker_mm is None else args.marker_mm,
+                                    args.aruco_dictionary or DEFAULT_DICTIONARY))
 
 
 def calibrate_device(args: argparse.Namespace, board) -> tuple[Calibration, dict[str, np.ndarray]]:
@@ -161,7 +193,8 @@ def calibrate_device(args: argparse.Namespace, board) -> tuple[Calibration, dict
         raise CalibrationError(device_problem(args.device))
     opencv_warnings(shown=False)
     source = v4l2_source(args.device, args.width, args.height)
-    goal = CaptureGoal(min_views=args.min_views, coverage=args.coverage)
+    given = {"min_views": args.min_views, "coverage": args.coverage}
+    goal = CaptureGoal(**{name: value for name, value in given.items() if value is not None})
     print(f"hold the {board.describe()} still in view; a view is taken each time it rests somewhere new "
           f"(goal: {goal.min_views} views, {100 * goal.coverage:.0f} % of the image covered; Ctrl-C to stop)")
     with ctrl_c_stops() as stop, started(source):
