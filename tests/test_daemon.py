@@ -658,6 +658,53 @@ def test_check_fc_with_nothing_listening_is_a_clear_error_that_says_why(connecti
     assert len(message.splitlines()) == 1 and "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize("connection, message", [
+    ("tcp:127.0.0.1:{port}", "no flight controller on {connection}: cannot open: [Errno 111] Connection refused "
+                             "(tried for 3 s)"),
+    ("/dev/ttyACM97,115200", "no flight controller on {connection}: cannot open: [Errno 2] could not open port "
+                             "/dev/ttyACM97: [Errno 2] No such file or directory: '/dev/ttyACM97' (tried for 3 s)"),
+])
+def test_check_fc_stops_soon_when_the_transport_refuses(connection, message):
+    """A closed TCP port or a missing serial device is said after a few tries, not at --timeout-s (it was
+    retried for the whole timeout); the run is bounded only so that the old behaviour fails, not hangs."""
+    connection = connection.format(port=free_port())
+    result = subprocess.run([sys.executable, "-m", "companion", "check-fc", connection, "--timeout-s", "600"],
+                            capture_output=True, text=True, timeout=60)
+    assert (result.returncode, result.stderr) == (2, f"companion check-fc: {message.format(connection=connection)}\n")
+
+
+def test_check_fc_waits_for_a_silent_udp_peer_to_the_timeout():
+    """Datagrams to nobody are no refusal: the wait goes on past the refused transport's few tries."""
+    connection = f"udpout:127.0.0.1:{free_port()}"
+    result = subprocess.run([sys.executable, "-m", "companion", "check-fc", connection, "--timeout-s", "4"],
+                            capture_output=True, text=True, timeout=60)
+    assert (result.returncode, result.stderr) == (2, f"companion check-fc: no flight controller answered on "
+                                                     f"{connection} within 4 s\n")
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--timeout-s", "inf", "--timeout-s must be more than 0 and at most 3600 s, not inf"),
+    ("--timeout-s", "0", "--timeout-s must be more than 0 and at most 3600 s, not 0"),
+    ("--latency-ms", "nan", "--latency-ms must be more than 0 and at most 250 ms (where VISO_DELAY_MS and "
+                            "EKF2_EV_DELAY end), not nan"),
+    ("--latency-ms", "-5", "--latency-ms must be more than 0 and at most 250 ms (where VISO_DELAY_MS and "
+                           "EKF2_EV_DELAY end), not -5"),
+    ("--latency-ms", "400", "--latency-ms must be more than 0 and at most 250 ms (where VISO_DELAY_MS and "
+                            "EKF2_EV_DELAY end), not 400"),
+    ("--system-id", "0", "--system-id must be 1 to 254 (255 is a ground station), not 0"),
+])
+def test_check_fc_refuses_a_number_out_of_range_before_it_connects(peers, option, value, message):
+    """With a flight controller answering: --timeout-s inf was an OverflowError traceback, --latency-ms nan a
+    ValueError one once the FC answered, --latency-ms -5 was judged against 'VISO_DELAY_MS -5'."""
+    port = free_port()
+    served = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 1, "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_YAW": 6,
+              "EK3_SRC1_VELXY": 0, "VISO_DELAY_MS": 10, "VISO_POS_X": 0, "VISO_POS_Y": 0, "VISO_POS_Z": 0}
+    peers(port, "--params", json.dumps(served))
+    result = subprocess.run([sys.executable, "-m", "companion", "check-fc", f"udpout:127.0.0.1:{port}", option, value],
+                            capture_output=True, text=True, timeout=60)
+    assert (result.returncode, result.stdout, result.stderr) == (2, "", f"companion check-fc: {message}\n")
+
+
 def test_a_second_daemon_on_the_same_vehicle_refuses_to_run(tmp_path):
     """Two daemons with the same ids through one router to the FC: the second exits with a
     clear error and never sends vision; the first goes on."""

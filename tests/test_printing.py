@@ -143,7 +143,7 @@ def test_png_of_a_larger_marker_and_quiet_zone_keeps_the_size(tmp_path):
 
 
 def test_a_png_too_large_to_make_is_refused_before_any_work(tmp_path, capsys):
-    for size, lower_dpi in (("3000", "--dpi 50 or less"), ("1e6", "")):
+    for size, lower_dpi in (("1000", "--dpi 152 or less"), ("3000", ""), ("1e6", "")):
         assert run_markers(tmp_path, "--symbols", "A", "--size-mm", size) == 2
         err = capsys.readouterr().err
         assert "--format svg or --format pdf" in err and lower_dpi in err, err
@@ -570,3 +570,91 @@ def test_an_output_folder_that_cannot_be_written_is_one_line(tmp_path, capsys, o
 def test_quiet_zone_narrower_than_the_border_is_refused(tmp_path, capsys):
     assert run_markers(tmp_path, "--symbols", "A", "--quiet-zone-cells", "0") == 2
     assert "--quiet-zone-cells" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--dpi", "inf"], "--dpi must be 72 to 4800 (what printers print at), not inf"),
+    (["--dpi", "nan", "--format", "svg"], "--dpi must be 72 to 4800 (what printers print at), not nan"),
+    (["--dpi", "1e-9"], "--dpi must be 72 to 4800 (what printers print at), not 1e-09"),
+    (["--dpi", "20000"], "--dpi must be 72 to 4800 (what printers print at), not 20000"),
+    (["--size-mm", "inf", "--format", "svg"], "--size-mm must be a positive number of millimetres (the inner black "
+                                              "square's side), not inf"),
+    (["--size-mm", "0.01"], "--size-mm 0.01 is too small to print: its cells would be 0.00125 mm, at least 0.25 mm "
+                            "(--size-mm 2 or more for 8 cells across the inner square)"),
+    (["--size-mm", "0.01", "--format", "pdf"], "--size-mm 0.01 is too small to print: its cells would be 0.00125 mm, "
+                                               "at least 0.25 mm (--size-mm 2 or more for 8 cells across the inner square)"),
+    (["--size-mm", "3", "--dpi", "300"], "a 3 mm marker at 300 dpi has 4.38 px per cell (at least 5): use --size-mm "
+                                         "3.4 or more, or --dpi 339"),
+    (["--size-mm", "10", "--dpi", "72"], "a 10 mm marker at 72 dpi has 3.5 px per cell (at least 5): use --size-mm "
+                                         "14.2 or more, or --dpi 102"),
+    (["--size-mm", "1e6", "--format", "svg"], "a 1000000 mm marker with 1 quiet-zone cell(s) is a 2000000 mm square SVG "
+                                              "(at most 10000 mm): use a smaller --size-mm or --quiet-zone-cells"),
+    (["--quiet-zone-cells", "100000", "--format", "svg"], "a 35 mm marker with 100000 quiet-zone cell(s) is a "
+                                                          "875061.25 mm square SVG (at most 10000 mm): use a smaller "
+                                                          "--size-mm or --quiet-zone-cells"),
+])
+def test_a_marker_that_cannot_be_printed_is_refused_with_the_limits(tmp_path, capsys, options, message):
+    """A --dpi printers do not print at, or a marker too small for its cells to print (a 0.677 mm PNG, an 8 m
+    one at 1e-9 dpi: both written before) or too large for a print, is one line naming the limit, exit 2."""
+    out = tmp_path / "m"
+    assert run_markers(out, "--symbols", "A", *options) == 2
+    assert capsys.readouterr().err == f"companion markers: error: {message}\n"
+    assert not out.exists()
+
+
+def test_the_smallest_marker_and_the_dpi_limits_print(tmp_path):
+    """The limits the errors name are accepted: 5 px per cell at 300 dpi, and 72 and 4800 dpi."""
+    for size, dpi, inner_px in (("3.4", "300", 40), ("35", "72", 99), ("20", "4800", 3780)):
+        out = tmp_path / dpi
+        assert run_markers(out, "--symbols", "A", "--size-mm", size, "--dpi", dpi) == 0
+        assert json.loads((out / "marker-A-p2.json").read_text())["inner_px"] == inner_px
+    assert run_markers(tmp_path / "svg", "--symbols", "A", "--size-mm", "2", "--format", "svg") == 0
+
+
+def test_a_charuco_board_too_small_to_print_is_refused(tmp_path, capsys):
+    out = tmp_path / "board"
+    assert cli.main(["markers", "--charuco", "--square-mm", "1", "--marker-mm", "0.5", "--out", str(out)]) == 2
+    assert capsys.readouterr().err == ("companion markers: error: --marker-mm 0.5 is too small to print: its cells "
+                                       "would be 0.0714 mm, at least 0.25 mm (--marker-mm 1.75 or more for the 7 "
+                                       "cells of a DICT_5X5_100 marker)\n")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--symbols", "A", "--size-mm", "1e6"], "one 125000 mm cell does not fit a a4 page; use a smaller --size-mm"),
+    (["--all", "--size-mm", "300"], "50 marker(s) of 300 mm would take 600 a4 pages (at most 500); use --format svg, "
+                                    "or fewer or smaller markers"),
+])
+def test_a_refused_pdf_leaves_no_output_folder(tmp_path, capsys, options, message):
+    """The PDF's refusals (a cell larger than the page, too many tiled pages) come before --out is made (it was
+    left behind empty)."""
+    out = tmp_path / "m"
+    assert run_markers(out, *options, "--format", "pdf") == 2
+    assert capsys.readouterr().err == f"companion markers: error: {message}\n"
+    assert not out.exists()
+
+
+def test_an_interrupted_run_removes_the_output_folder_it_made_and_left_empty(tmp_path, monkeypatch, capsys):
+    from companion.cli import markers as markers_cli
+
+    def interrupted(*_):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(markers_cli, "markers_pdf", interrupted)
+    assert run_markers(tmp_path / "new", "--symbols", "A", "--format", "pdf") == 130
+    assert capsys.readouterr().err == "companion markers: interrupted\n"
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "old").mkdir()
+    assert run_markers(tmp_path / "old", "--symbols", "A", "--format", "pdf") == 130
+    assert (tmp_path / "old").is_dir()  # a folder that was there stays
+
+
+@pytest.mark.parametrize("format", ["png", "svg"])
+def test_a_charuco_board_in_another_format_than_pdf_is_refused(tmp_path, capsys, format):
+    """--charuco --format png wrote a PDF without saying so."""
+    out = tmp_path / "board"
+    assert cli.main(["markers", "--charuco", "--format", format, "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"companion markers: error: --format {format}: a --charuco board is written "
+                                       "as a PDF only (leave out --format)\n")
+    assert not out.exists()
+    assert cli.main(["markers", "--charuco", "--format", "pdf", "--out", str(out)]) == 0
+    assert [path.name for path in out.iterdir()] == ["charuco-8x11-22mm-16mm-a4.pdf"]

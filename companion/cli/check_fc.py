@@ -15,6 +15,7 @@ import argparse
 import logging
 import sys
 import threading
+import time
 
 from companion.mavlink import fc_params
 from companion.mavlink.link import LinkError, LinkParams, MavlinkLink
@@ -22,34 +23,41 @@ from companion.mavlink.link import LinkError, LinkParams, MavlinkLink
 # A tool, not the daemon: a component id of its own (MAV_COMP_ID_ONBOARD_COMPUTER), so that a running
 # daemon (component 197) is no duplicate of it.
 CHECK_COMPONENT_ID = 191
+MAX_TIMEOUT_S = 3600.0  # an hour: waiting longer for a flight controller is a mistyped number
+# A transport that refuses to open this long (nothing listens on the TCP port, no such serial device; a few
+# tries) is said then, not at --timeout-s; a silent UDP peer is waited for to the end.
+REFUSED_GIVE_UP_S = 3.0
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("connection", help="udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT or a serial "
                                            "device with its baud rate, e.g. /dev/ttyAMA0,921600")
     parser.add_argument("--config", metavar="FILE", help="judge against this daemon config (lever arm, messages)")
-    parser.add_argument("--system-id", type=int, default=1, help="the vehicle's system id (default 1)")
+    parser.add_argument("--system-id", type=int, default=1, help="the vehicle's system id, 1 to 254 (default 1)")
     parser.add_argument("--latency-ms", type=float, default=None,
-                        help="the daemon's measured median capture->send latency, to judge the vision delay")
+                        help="the daemon's measured median capture->send latency, to judge the vision delay "
+                             f"(more than 0, at most {fc_params.MAX_DELAY_MS:g})")
     parser.add_argument("--timeout-s", type=float, default=15.0,
-                        help="how long to wait for the flight controller and its answers (default 15)")
+                        help="how long to wait for the flight controller and its answers (default 15, at most "
+                             f"{MAX_TIMEOUT_S:g})")
 
 
 def main(args: argparse.Namespace) -> int:
     try:
+        check_numbers(args)
         expected = expectations(args.config, args.latency_ms)
         params = LinkParams(connection=args.connection, system_id=args.system_id, component_id=CHECK_COMPONENT_ID,
                             origin_retry_s=1.0)
     except (LinkError, ValueError) as error:
         print(f"companion check-fc: {error}", file=sys.stderr)
         return 2
-    if not args.timeout_s > 0:
-        print(f"companion check-fc: --timeout-s must be positive, not {args.timeout_s}", file=sys.stderr)
-        return 2
     logging.getLogger("companion.mavlink").setLevel(logging.ERROR)  # the table says what matters
-    result, down_reason = read_parameters(params, args.timeout_s)
+    result, down_reason, refused = read_parameters(params, args.timeout_s)
     if result is None:
-        # a refused port or a missing serial device is retried to the end (a SITL or a USB FC may be starting)
+        if refused:
+            print(f"companion check-fc: no flight controller on {args.connection}: {down_reason} (tried for "
+                  f"{REFUSED_GIVE_UP_S:g} s)", file=sys.stderr)
+            return 2
         why = f" ({down_reason})" if down_reason else ""
         print(f"companion check-fc: no flight controller answered on {args.connection} within "
               f"{args.timeout_s:g} s{why}", file=sys.stderr)
@@ -68,6 +76,18 @@ def main(args: argparse.Namespace) -> int:
     return 1 if blocking else 0
 
 
+def check_numbers(args: argparse.Namespace) -> None:
+    """A ValueError naming the option for a number out of its range (NaN and infinity included)."""
+    if not 1 <= args.system_id <= 254:
+        raise ValueError(f"--system-id must be 1 to 254 (255 is a ground station), not {args.system_id}")
+    latency_ms = args.latency_ms
+    if latency_ms is not None and not 0 < latency_ms <= fc_params.MAX_DELAY_MS:
+        raise ValueError(f"--latency-ms must be more than 0 and at most {fc_params.MAX_DELAY_MS:g} ms (where "
+                         f"VISO_DELAY_MS and EKF2_EV_DELAY end), not {latency_ms:g}")
+    if not 0 < args.timeout_s <= MAX_TIMEOUT_S:
+        raise ValueError(f"--timeout-s must be more than 0 and at most {MAX_TIMEOUT_S:g} s, not {args.timeout_s:g}")
+
+
 def expectations(config_path: str | None, latency_ms: float | None) -> fc_params.Expected:
     """What the daemon sends: from a config when given (its errors name the file and key)."""
     if config_path is None:
@@ -81,9 +101,10 @@ def expectations(config_path: str | None, latency_ms: float | None) -> fc_params
                               latency_ms=latency_ms)
 
 
-def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, dict, int] | None, str | None]:
+def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, dict, int] | None, str | None, bool]:
     """(autopilot, {name: value or None}, FC system id) read through a non-streaming link, None on timeout;
-    and why the link was down at the end (``MavlinkLink.down_reason``: it never opened), or None."""
+    why the link was down at the end (``MavlinkLink.down_reason``: it never opened), or None; and whether the
+    wait ended early, the transport refusing to open (``wait_for_parameters``)."""
     got: list = []
     done = threading.Event()
     link = MavlinkLink(params, stream=False)
@@ -95,7 +116,20 @@ def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, di
     link.on_parameters = on_parameters
     link.start()
     try:
-        done.wait(timeout_s)
+        refused = wait_for_parameters(done, link, timeout_s)
     finally:
         link.close()
-    return (got[0] if got else None), link.down_reason
+    return (got[0] if got else None), link.down_reason, refused
+
+
+def wait_for_parameters(done: threading.Event, link: MavlinkLink, timeout_s: float) -> bool:
+    """Wait until ``done`` is set or ``timeout_s`` passed; True when given up after REFUSED_GIVE_UP_S because
+    the link's transport never opened (every try refused)."""
+    start = time.monotonic()
+    while not done.wait(0.1):
+        waited = time.monotonic() - start
+        if waited >= timeout_s:
+            return False
+        if waited >= REFUSED_GIVE_UP_S and link.counters.connects == 0 and link.down_reason is not None:
+            return True
+    return False

@@ -6,16 +6,16 @@ import json
 import sys
 from pathlib import Path
 
-from companion.cli.output import output_dir
+from companion.cli.output import output_dir, removed_if_left_empty
 from companion.files import write_whole
 from companion.markers.charuco import DEFAULT_DICTIONARY as CHARUCO_DICTIONARY
 from companion.markers.charuco import CharucoError, CharucoSpec, charuco_pdf
 from companion.markers.dictionary import DictionaryError
 from companion.markers.layout import MarkerLayout
-from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_png_size,
-                                        check_size_mm, fits_one_page, largest_on_one_page_mm, marker_png,
-                                        marker_svg, markers_pdf, num, resolve_marker_ids, sheet_geometry,
-                                        tile_geometry)
+from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_dpi,
+                                        check_pdf, check_png_size, check_printable, check_size_mm, check_svg_size,
+                                        fits_one_page, largest_on_one_page_mm, marker_png, marker_svg, markers_pdf,
+                                        num, resolve_marker_ids, sheet_geometry, tile_geometry)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -30,13 +30,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dictionary", choices=("5x5", "6x6", "8x8"), default=DEFAULT_DICTIONARY,
                         help="data grid size (default 6x6)")
     parser.add_argument("--size-mm", type=float, default=35.0,
-                        help="printed side of the inner black square in mm (default 35)")
-    parser.add_argument("--format", choices=("png", "svg", "pdf"), default="png",
-                        help="png (one file per marker + JSON sidecar), svg, or pdf sheets (default png)")
+                        help="printed side of the inner black square in mm, cells of at least 0.25 mm (default 35)")
+    parser.add_argument("--format", choices=("png", "svg", "pdf"), default=None,
+                        help="png (one file per marker + JSON sidecar), svg, or pdf sheets (default png; a "
+                             "--charuco board is a PDF only)")
     parser.add_argument("--out", type=Path, default=Path("markers"), help="output folder (default ./markers)")
     parser.add_argument("--dpi", type=float, default=300.0,
-                        help="PNG print resolution, stored in the file; the inner square is the nearest whole "
-                             "number of pixels to --size-mm at it (default 300)")
+                        help="PNG print resolution, 72 to 4800, stored in the file; the inner square is the nearest "
+                             "whole number of pixels to --size-mm at it, at least 5 px per cell (default 300)")
     parser.add_argument("--quiet-zone-cells", type=int, default=1,
                         help="white margin around the grid in cells (default 1, as wide as the black border)")
     parser.add_argument("--page", choices=tuple(PAGES_MM), default="a4",
@@ -52,7 +53,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     try:
-        return write_charuco(args) if args.charuco else generate(args)
+        with removed_if_left_empty(args.out):
+            return write_charuco(args) if args.charuco else generate(args)
     except (PrintingError, DictionaryError, CharucoError) as error:
         print(f"companion markers: error: {error}", file=sys.stderr)
         return 2
@@ -69,6 +71,8 @@ def parse_squares(text: str) -> tuple[int, int]:
 
 def write_charuco(args: argparse.Namespace) -> int:
     """The ChArUco board PDF: ``charuco-8x11-22mm-16mm-a4.pdf`` in --out."""
+    if args.format not in (None, "pdf"):
+        raise PrintingError(f"--format {args.format}: a --charuco board is written as a PDF only (leave out --format)")
     spec = CharucoSpec(*args.charuco, args.square_mm, args.marker_mm, args.aruco_dictionary)
     document = charuco_pdf(spec, args.page)
     path = output_dir(args.out, "--out") / f"{spec.file_stem()}-{args.page}.pdf"
@@ -79,17 +83,22 @@ def write_charuco(args: argparse.Namespace) -> int:
 
 
 def generate(args: argparse.Namespace) -> int:
+    args.format = args.format or "png"
     size_mm = check_size_mm(args.size_mm)
     if args.quiet_zone_cells < 1:
         raise PrintingError(f"--quiet-zone-cells must be at least 1 (the quiet zone must be at least as wide "
                             f"as the black border), not {args.quiet_zone_cells}")
-    if not args.dpi > 0:
-        raise PrintingError(f"--dpi must be positive, not {args.dpi}")
+    check_dpi(args.dpi)
     layout = MarkerLayout(args.parity, args.dictionary)
     ids = resolve_marker_ids(layout, args.symbols, args.all)
     markers = [MarkerPrint(layout, marker_id, size_mm, args.quiet_zone_cells) for marker_id in ids]
+    check_printable(markers[0])
     if args.format == "png":
         check_png_size(markers[0], args.dpi)
+    elif args.format == "svg":
+        check_svg_size(markers[0])
+    else:
+        check_pdf(markers, args.page)
     out_dir: Path = output_dir(args.out, "--out")
 
     if args.format == "pdf":

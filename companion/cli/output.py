@@ -7,6 +7,7 @@ is then written whole or not at all (``companion.files.write_whole``).
 """
 from __future__ import annotations
 
+import contextlib
 import sys
 import tempfile
 from pathlib import Path
@@ -27,6 +28,20 @@ def output_dir(path: Path, option: str) -> Path:
         raise OutputError(f"{option} {path}: cannot create the folder: {error.strerror}") from None
     _probe(path, option, path)
     return path
+
+
+@contextlib.contextmanager
+def removed_if_left_empty(folder: Path | None):
+    """A folder this block creates (``output_dir``), removed again when the block fails or is interrupted before
+    anything was written in it: a refused or interrupted command leaves no empty folder behind."""
+    existed = folder is None or Path(folder).exists()
+    try:
+        yield
+    except BaseException:
+        if not existed:
+            with contextlib.suppress(OSError):
+                Path(folder).rmdir()  # only if empty
+        raise
 
 
 def output_file(path: Path, option: str) -> Path:

@@ -27,7 +27,7 @@ import numpy as np
 from reportlab.lib.units import mm as PT_PER_MM  # 72 / 25.4 points per millimetre
 from reportlab.pdfgen.canvas import Canvas
 
-from companion.markers.printing import PAGE_MARGIN_MM, PAGES_MM, SCALE_BAR_MM, SheetPage, cell_runs, num
+from companion.markers.printing import MIN_CELL_MM, PAGE_MARGIN_MM, PAGES_MM, SCALE_BAR_MM, SheetPage, cell_runs, num
 
 DEFAULT_DICTIONARY = "DICT_5X5_100"
 LABEL_PT = 8.0
@@ -114,9 +114,19 @@ def marker_cells(spec: CharucoSpec, marker_id: int) -> np.ndarray:
     return (image < 128).astype(np.uint8)
 
 
+def check_printable(spec: CharucoSpec) -> None:
+    """A CharucoError, with the smallest --marker-mm that prints, for marker cells below MIN_CELL_MM."""
+    cells = spec.aruco_dictionary().markerSize + 2
+    if spec.marker_mm / cells < MIN_CELL_MM:
+        raise CharucoError(f"--marker-mm {num(spec.marker_mm)} is too small to print: its cells would be "
+                           f"{spec.marker_mm / cells:.3g} mm, at least {MIN_CELL_MM:g} mm (--marker-mm "
+                           f"{num(MIN_CELL_MM * cells)} or more for the {cells} cells of a {spec.dictionary} marker)")
+
+
 def charuco_pdf(spec: CharucoSpec, page: str = "a4") -> bytes:
     """One page: the board at exact scale, centred, with its description, the calibrate options and a
     50 mm scale bar below it. Vector shapes, drawn as the RS marker sheets are (``SheetPage``)."""
+    check_printable(spec)
     page_w, page_h = PAGES_MM[page]
     board_w, board_h = spec.columns * spec.square_mm, spec.rows * spec.square_mm
     usable_w, usable_h = page_w - 2 * PAGE_MARGIN_MM, page_h - 2 * PAGE_MARGIN_MM - FOOTER_MM

@@ -12,9 +12,11 @@ Sizes: ``--size-mm`` is the printed side of the inner black square (the
   413 px: cells of 51 and 52 px, ``companion.markers.layout.marker_image``).
   Next to it a JSON sidecar with the geometry in the PNG's pixel coordinates
   (pixel centres at integers, so the black square's outer edge is at half
-  pixels). A PNG side beyond ``MAX_PNG_SIDE_PX`` is refused (use SVG or PDF).
+  pixels). A PNG side beyond ``MAX_PNG_SIDE_PX`` is refused (use SVG or PDF), and
+  so is one with fewer than ``MIN_PX_PER_CELL`` pixels per cell, or a ``--dpi``
+  outside ``MIN_DPI``..``MAX_DPI`` (what printers print at).
 * SVG: vector, width and height in mm, cells as rectangles (horizontal runs
-  merged), circles as circles.
+  merged), circles as circles; at most ``MAX_SVG_SIDE_MM`` across.
 * PDF: sheets of markers at exact scale on A4, Letter or A3 with crop marks,
   the symbol, id, parity and inner-square size below each, and a 50 mm scale
   bar; drawn with reportlab as vector shapes, labels sized by Helvetica's
@@ -22,10 +24,14 @@ Sizes: ``--size-mm`` is the printed side of the inner black square (the
   (``tile_geometry``): each page holds whole cells of it, with crop marks at
   the tile's corners and alignment ticks at every cell boundary along its
   edges; cut along the marks and butt the tiles edge to edge.
+
+In every format a cell is at least ``MIN_CELL_MM`` (``check_printable``): a
+printer cannot print a smaller one, nor the corner circles inside it.
 """
 from __future__ import annotations
 
 import io
+import math
 import struct
 import zlib
 from dataclasses import dataclass
@@ -43,6 +49,14 @@ MM_PER_INCH = 25.4
 PAGES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 420.0)}
 # A PNG side beyond this (144 MB of pixels) is refused: large markers are for SVG or PDF.
 MAX_PNG_SIDE_PX = 12_000
+# A PNG cell of fewer pixels cannot draw the corner circles (0.8 cell across) round.
+MIN_PX_PER_CELL = 5
+# What printers print at: 72 dpi (screen) up to 4800 dpi (photo printers).
+MIN_DPI, MAX_DPI = 72.0, 4800.0
+# The smallest printed cell in any format: 6 dots of a 600 dpi laser printer.
+MIN_CELL_MM = 0.25
+# An SVG wider than this (10 m) is no print: a larger marker is a sign shop's job, from a smaller SVG scaled up.
+MAX_SVG_SIDE_MM = 10_000.0
 MAX_TILED_PAGES = 500
 DEFAULT_DICTIONARY = "6x6"
 
@@ -122,6 +136,21 @@ def check_size_mm(size_mm: float) -> float:
     return size_mm
 
 
+def check_dpi(dpi: float) -> float:
+    if not MIN_DPI <= dpi <= MAX_DPI:
+        raise PrintingError(f"--dpi must be {MIN_DPI:g} to {MAX_DPI:g} (what printers print at), not {dpi:g}")
+    return dpi
+
+
+def check_printable(marker: MarkerPrint) -> None:
+    """A PrintingError, with the smallest --size-mm that prints, for cells below MIN_CELL_MM."""
+    if marker.cell_mm < MIN_CELL_MM:
+        smallest = MIN_CELL_MM * marker.layout.inner_cells
+        raise PrintingError(f"--size-mm {num(marker.size_mm)} is too small to print: its cells would be "
+                            f"{marker.cell_mm:.3g} mm, at least {MIN_CELL_MM:g} mm (--size-mm {num(smallest)} or more "
+                            f"for {marker.layout.inner_cells} cells across the inner square)")
+
+
 # --------------------------------------------------------------------- PNG
 
 def png_px_per_m(dpi: float) -> int:
@@ -143,13 +172,29 @@ def png_side_px(marker: MarkerPrint, dpi: float) -> int:
 
 
 def check_png_size(marker: MarkerPrint, dpi: float) -> None:
-    """A PrintingError, suggesting SVG/PDF or the highest DPI that fits, for a PNG beyond MAX_PNG_SIDE_PX."""
+    """A PrintingError, suggesting SVG/PDF or the highest DPI that fits, for a PNG beyond MAX_PNG_SIDE_PX; with
+    the smallest --size-mm or the lowest --dpi that draws it, for one of fewer than MIN_PX_PER_CELL px per cell."""
     side_px = png_side_px(marker, dpi)
     if side_px > MAX_PNG_SIDE_PX:
         max_dpi = int(dpi * MAX_PNG_SIDE_PX / side_px)
-        lower = f", or --dpi {max_dpi} or less" if max_dpi >= 1 else ""
+        lower = f", or --dpi {max_dpi} or less" if max_dpi >= MIN_DPI else ""
         raise PrintingError(f"a {num(marker.size_mm)} mm marker at {num(dpi)} dpi is a {side_px} px square PNG "
                             f"(at most {MAX_PNG_SIDE_PX}): use --format svg or --format pdf (vector, any size){lower}")
+    px_per_cell = png_px_per_cell(marker, png_px_per_m(dpi))
+    if px_per_cell < MIN_PX_PER_CELL:
+        inner_px = MIN_PX_PER_CELL * marker.layout.inner_cells
+        smallest_mm = math.ceil(10 * inner_px * MM_PER_INCH / dpi) / 10
+        higher = f", or --dpi {math.ceil(inner_px * MM_PER_INCH / marker.size_mm)}"
+        higher = higher if inner_px * MM_PER_INCH / marker.size_mm <= MAX_DPI else ""
+        raise PrintingError(f"a {num(marker.size_mm)} mm marker at {num(dpi)} dpi has {px_per_cell:.3g} px per cell "
+                            f"(at least {MIN_PX_PER_CELL}): use --size-mm {num(smallest_mm)} or more{higher}")
+
+
+def check_svg_size(marker: MarkerPrint) -> None:
+    if marker.outer_mm > MAX_SVG_SIDE_MM:
+        raise PrintingError(f"a {num(marker.size_mm)} mm marker with {marker.quiet_zone_cells} quiet-zone cell(s) is a "
+                            f"{num(marker.outer_mm)} mm square SVG (at most {num(MAX_SVG_SIDE_MM)} mm): use a smaller "
+                            "--size-mm or --quiet-zone-cells")
 
 
 def png_with_phys(png: bytes, px_per_m: int) -> bytes:
@@ -496,13 +541,27 @@ def draw_tile(sheet: SheetPage, marker: MarkerPrint, geometry: TileGeometry, row
                LABEL_SIZES_PT[1])
 
 
-def tiled_pdf(markers: list[MarkerPrint], page: str) -> bytes:
-    """Each marker on ``tile_geometry`` pages, tile by tile (row by row)."""
+def check_pdf(markers: list[MarkerPrint], page: str) -> None:
+    """The PrintingError ``markers_pdf`` would raise, found without drawing: a cell larger than the page, or
+    more than MAX_TILED_PAGES pages of tiles."""
+    if not fits_one_page(markers, page):
+        tiled_pages(markers, page)
+
+
+def tiled_pages(markers: list[MarkerPrint], page: str) -> TileGeometry:
+    """``tile_geometry`` of the markers, if they take at most MAX_TILED_PAGES pages."""
     geometry = tile_geometry(markers[0], page)
     n_pages = geometry.per_marker * len(markers)
     if n_pages > MAX_TILED_PAGES:
         raise PrintingError(f"{len(markers)} marker(s) of {num(markers[0].size_mm)} mm would take {n_pages} {page} "
                             f"pages (at most {MAX_TILED_PAGES}); use --format svg, or fewer or smaller markers")
+    return geometry
+
+
+def tiled_pdf(markers: list[MarkerPrint], page: str) -> bytes:
+    """Each marker on ``tile_geometry`` pages, tile by tile (row by row)."""
+    geometry = tiled_pages(markers, page)
+    n_pages = geometry.per_marker * len(markers)
     out, canvas = _pdf_canvas(markers, geometry.page_mm)
     sheet = SheetPage(canvas, *geometry.page_mm)
     page_index = 0
