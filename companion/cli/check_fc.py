@@ -15,7 +15,6 @@ import argparse
 import logging
 import sys
 import threading
-import time
 
 from companion.mavlink import fc_params
 from companion.mavlink.link import LinkError, LinkParams, MavlinkLink
@@ -24,9 +23,6 @@ from companion.mavlink.link import LinkError, LinkParams, MavlinkLink
 # daemon (component 197) is no duplicate of it.
 CHECK_COMPONENT_ID = 191
 MAX_TIMEOUT_S = 3600.0  # an hour: waiting longer for a flight controller is a mistyped number
-# A transport that refuses to open this long (nothing listens on the TCP port, no such serial device; a few
-# tries) is said then, not at --timeout-s; a silent UDP peer is waited for to the end.
-REFUSED_GIVE_UP_S = 3.0
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -52,12 +48,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion check-fc: {error}", file=sys.stderr)
         return 2
     logging.getLogger("companion.mavlink").setLevel(logging.ERROR)  # the table says what matters
-    result, down_reason, refused = read_parameters(params, args.timeout_s)
+    result, down_reason = read_parameters(params, args.timeout_s)
     if result is None:
-        if refused:
-            print(f"companion check-fc: no flight controller on {args.connection}: {down_reason} (tried for "
-                  f"{REFUSED_GIVE_UP_S:g} s)", file=sys.stderr)
-            return 2
+        # a refused port or a missing serial device is retried to the end (a SITL or a USB FC may be starting)
         why = f" ({down_reason})" if down_reason else ""
         print(f"companion check-fc: no flight controller answered on {args.connection} within "
               f"{args.timeout_s:g} s{why}", file=sys.stderr)
@@ -101,10 +94,9 @@ def expectations(config_path: str | None, latency_ms: float | None) -> fc_params
                               latency_ms=latency_ms)
 
 
-def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, dict, int] | None, str | None, bool]:
+def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, dict, int] | None, str | None]:
     """(autopilot, {name: value or None}, FC system id) read through a non-streaming link, None on timeout;
-    why the link was down at the end (``MavlinkLink.down_reason``: it never opened), or None; and whether the
-    wait ended early, the transport refusing to open (``wait_for_parameters``)."""
+    and why the link was down at the end (``MavlinkLink.down_reason``: it never opened), or None."""
     got: list = []
     done = threading.Event()
     link = MavlinkLink(params, stream=False)
@@ -116,20 +108,7 @@ def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, di
     link.on_parameters = on_parameters
     link.start()
     try:
-        refused = wait_for_parameters(done, link, timeout_s)
+        done.wait(timeout_s)
     finally:
         link.close()
-    return (got[0] if got else None), link.down_reason, refused
-
-
-def wait_for_parameters(done: threading.Event, link: MavlinkLink, timeout_s: float) -> bool:
-    """Wait until ``done`` is set or ``timeout_s`` passed; True when given up after REFUSED_GIVE_UP_S because
-    the link's transport never opened (every try refused)."""
-    start = time.monotonic()
-    while not done.wait(0.1):
-        waited = time.monotonic() - start
-        if waited >= timeout_s:
-            return False
-        if waited >= REFUSED_GIVE_UP_S and link.counters.connects == 0 and link.down_reason is not None:
-            return True
-    return False
+    return (got[0] if got else None), link.down_reason
