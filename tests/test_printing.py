@@ -658,3 +658,14 @@ def test_a_charuco_board_in_another_format_than_pdf_is_refused(tmp_path, capsys,
     assert not out.exists()
     assert cli.main(["markers", "--charuco", "--format", "pdf", "--out", str(out)]) == 0
     assert [path.name for path in out.iterdir()] == ["charuco-8x11-22mm-16mm-a4.pdf"]
+
+
+@pytest.mark.parametrize("parity", ["2", "4"])
+def test_the_marker_figures_of_the_docs_are_what_the_generator_writes_now(tmp_path, parity):
+    """docs/img/make_figures.py writes docs/img/marker-A-p*.png and .json with `companion markers`: the committed
+    ones went stale once (832 px at 301.9 dpi, while docs/marker-spec.md described 826 px at 299.9994 dpi)."""
+    docs = Path(__file__).resolve().parents[1] / "docs" / "img"
+    assert cli.main(["markers", "--symbols", "A", "--parity", parity, "--out", str(tmp_path)]) == 0
+    name = f"marker-A-p{parity}"
+    assert json.loads((tmp_path / f"{name}.json").read_text()) == json.loads((docs / f"{name}.json").read_text())
+    assert np.array_equal(cv2.imread(str(tmp_path / f"{name}.png")), cv2.imread(str(docs / f"{name}.png")))
