@@ -279,6 +279,23 @@ def test_corrupt_frames_are_skipped_counted_and_the_stream_goes_on(tmp_path, pee
     assert max(frames) == int(rows[-1]["frame"]) and len(frames & set(range(21, len(rows)))) >= 5
 
 
+def test_frames_that_change_size_mid_run_are_skipped_counted_and_said_once(tmp_path, peers):
+    """The intrinsics describe the first frames' size: frames of another size (a camera that changed its mode,
+    a mixed image folder) were posed with them, 'no pose: reprojection' and nothing said about the size."""
+    sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in read_rows(HOVER / "timestamps.csv")])
+    rows = read_rows(sequence / "timestamps.csv")
+    for row in rows[10:20]:
+        image = cv2.imread(str(sequence / row["file"]), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(sequence / row["file"]), cv2.resize(image, (320, 240)))
+    port = free_port()
+    peers(port, "--origin-reply", "on_set")
+    code, _, stderr = finish(start_daemon(write_config(tmp_path, sequence, port)))
+    assert code == 0, stderr
+    assert stderr.count("camera frames 320x240, not 640x480: skipped") == 1, stderr
+    assert re.search(r"frames 21, .* resized 10\b", stderr), stderr
+    assert "reprojection" not in stderr
+
+
 def test_sigterm_mid_run_with_the_peer_going_away_and_coming_back(tmp_path, peers):
     """One looping run: systemd notify, the FC vanishing and returning (origin again
     before vision), then SIGTERM: a clean exit with nothing sent afterwards."""

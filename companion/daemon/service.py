@@ -144,7 +144,9 @@ class Daemon:
         self.notifier = Notifier()
         self.stop_event = threading.Event()
         self.failed = False
-        self._frame_size_checked = False
+        self._frame_shape: tuple[int, int] | None = None   # (height, width) of the first frame, the one in use
+        self._resized_frames = 0
+        self._sizes_said: set[tuple[int, int]] = set()
         self._fc_parameters: tuple[int, dict, float] | None = None  # (autopilot, values, when they came)
         self._pipeline_alive_s = time.monotonic()
         self._pipeline_thread = threading.Thread(target=self._run_pipeline, name="pipeline", daemon=True)
@@ -243,9 +245,12 @@ class Daemon:
                         self.failed |= self.source.error is not None
                         break
                     continue
-                if not self._frame_size_checked and not self._adopt_frame_size(frame):
+                if self._frame_shape is None and not self._adopt_frame_size(frame):
                     self.failed = True
                     break
+                if frame.image.shape[:2] != self._frame_shape:
+                    self._skip_resized(frame)
+                    continue
                 self.pipeline.process(frame)
         except Exception:
             log.exception("pipeline failed")
@@ -256,7 +261,7 @@ class Daemon:
     def _adopt_frame_size(self, frame: Frame) -> bool:
         """The first frame against the calibration: the same size, or scaled intrinsics (the same
         aspect ratio: said in the log); False (logged) when the calibration cannot describe it."""
-        self._frame_size_checked = True
+        self._frame_shape = frame.image.shape[:2]
         height, width = frame.image.shape[:2]
         camera = self.config.camera
         if (width, height) == (camera.width, camera.height):
@@ -271,6 +276,17 @@ class Daemon:
         self.pipeline.detector = make_detector(self.config, scaled)
         self.pipeline.solver = PoseSolver(self.config.facility_map, scaled, self.config.pose)
         return True
+
+    def _skip_resized(self, frame: Frame) -> None:
+        """A frame of another size than the first (a camera that changed its mode, a mixed image folder): the
+        intrinsics describe the first size only, so it is skipped and counted; said once per new size."""
+        self._resized_frames += 1
+        height, width = frame.image.shape[:2]
+        if (width, height) not in self._sizes_said:
+            self._sizes_said.add((width, height))
+            first_height, first_width = self._frame_shape
+            self._say(f"camera frames {width}x{height}, not {first_width}x{first_height}: skipped",
+                      SEVERITY_WARNING, "camera")
 
     def _say(self, text: str, severity: int, topic: str | None = None) -> None:
         """A health message: to the log and, as STATUSTEXT, to the flight controller (topic: see Health)."""
@@ -400,9 +416,9 @@ class Daemon:
 
     def _print_summary(self) -> None:
         stats, source = self.pipeline.stats, self.source.counters
-        log.info("frames %d, sent %d, dropped %d, corrupt %d, repeated %d, camera reopens %d, link %s",
-                 stats.frames, stats.sent, source.dropped, source.corrupt, source.repeated, source.reopens,
-                 dict(self.link.counters.sent))
+        log.info("frames %d, sent %d, dropped %d, corrupt %d, repeated %d, resized %d, camera reopens %d, link %s",
+                 stats.frames, stats.sent, source.dropped, source.corrupt, source.repeated, self._resized_frames,
+                 source.reopens, dict(self.link.counters.sent))
         for name, median_ms, p99_ms in stats.stage_table():
             log.info("stage %-14s median %7.2f ms  p99 %7.2f ms", name, median_ms, p99_ms)
 
