@@ -136,8 +136,6 @@ def _read_sequence_folder(folder: Path) -> Recording:
         raise SourceError(f"{csv_path}: frame and t_ns must be integers ({error})") from None
     if np.any(np.diff(t_ns) <= 0):
         raise SourceError(f"{csv_path}: t_ns must rise from row to row")
-    if frames[0] < 0 or np.any(np.diff(frames) <= 0):
-        raise SourceError(f"{csv_path}: frame numbers must be >= 0 and rise from row to row")
     names = [r["file"] for r in rows]
     try:
         attitude = sequence_attitude(folder)
