@@ -581,7 +581,9 @@ def test_markers_but_no_pose_say_why_in_the_status_line_and_the_log(tmp_path, pe
 
 def test_loop_replays_a_recording_until_stopped_and_needs_a_replay(tmp_path):
     """The live view's README example: the embedded default's 8 s flight once is over before a browser opens."""
-    command = [sys.executable, "-m", "companion", "run", "--replay", str(HOVER), "--loop"]
+    # a port of its own: the embedded default's 14550 is another test's flight controller
+    config = write_config(tmp_path, HOVER, free_port())
+    command = [sys.executable, "-m", "companion", "run", "--config", str(config), "--replay", str(HOVER), "--loop"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         process.wait(timeout=4.0)   # the hover is 1 s long
