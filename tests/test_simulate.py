@@ -7,10 +7,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from companion import cli
 from companion.geometry import frames
 from companion.sim import degrade
+from companion.sim import raster
 from companion.sim import simulate
 from companion.sim import trajectory as tj
 from companion.geometry.camera import CameraModel, load_camera
@@ -374,6 +376,41 @@ def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
     rc = cli.main(["simulate", str(tmp_path / "z"), "--map", str(MAP), "--occluders", "-1"])
     assert rc == 2
     assert "--occluders must be 0 or more, got -1" in capsys.readouterr().err
+
+
+def test_a_render_too_large_for_memory_is_refused_up_front(tmp_path, capsys):
+    """--supersample 1..8, a frame of at most 12 million pixels and a supersampled canvas of at most 40 million
+    (about 1.2 GB to draw), each refused in one line before anything is written. Before: --supersample 100 grew
+    to 24 GB and was killed, a 100000x100000 camera file raised MemoryError."""
+    def camera_file(name, section):
+        path = tmp_path / name
+        path.write_text(yaml.safe_dump({"camera": section}))
+        return path
+
+    huge = camera_file("huge.yaml", {"width": 100000, "height": 100000, "hfov_deg": 70})
+    full_hd = camera_file("full-hd.yaml", {"width": 1920, "height": 1080, "hfov_deg": 70})
+    # a strong barrel lens: its pinhole canvas is 992x804 for the 640x480 frame
+    fisheye = camera_file("fisheye.yaml", {"width": 640, "height": 480, "fx_px": 300, "fy_px": 300, "cx_px": 319.5,
+                                           "cy_px": 239.5, "distortion": [-0.4, 0.1, 0, 0, 0]})
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--duration", "0.2", "--fps", "10", "--no-progress"]
+    for extra, message in (
+            (["--supersample", "100"], "--supersample must be 1..8, not 100"),
+            (["--camera", str(huge)], f"--camera {huge} at --supersample 1: a 100000x100000 frame is 10000 million "
+                                      "pixels: more than the 12 million the renderer allows"),
+            (["--camera", str(full_hd), "--supersample", "5"],
+             f"--camera {full_hd} at --supersample 5: a 1920x1080 frame at supersample 5 is drawn on 9600x5400 "
+             "pixels, 52 million: more than the 40 million (about 1.2 GB of memory) the renderer allows"),
+            (["--camera", str(fisheye), "--supersample", "8"],
+             f"--camera {fisheye} at --supersample 8: a 640x480 frame at supersample 8 is drawn on 7936x6432 pixels "
+             "(the lens distortion's canvas is 992x804), 51 million: more than the 40 million")):
+        assert cli.main([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert err.startswith(f"companion simulate: {message}") and err.count("\n") == 1, err
+        assert not out.exists()
+    # what fits: 1920x1080 at supersample 4 is 33 million, the default camera at 8 is 20 million
+    raster.check_render_size(1920, 1080, 4)
+    raster.check_render_size(640, 480, 8)
 
 
 def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, camera, capsys):

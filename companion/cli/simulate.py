@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 
@@ -11,6 +12,7 @@ from companion.cli.output import output_dir
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.sim import trajectory as trajectories
+from companion.sim.raster import MAX_SUPERSAMPLE, RenderError, check_render_size
 from companion.sim.simulate import (DEFAULT_CAMERA, DEFAULT_DEGRADATIONS, VIDEO_CODECS, AttitudeNoise, SimulationError,
                                     Simulator, build_world, frame_times_ns, write_sequence)
 
@@ -28,7 +30,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="video codec: mp4v (small, lossy; default) or ffv1 (lossless, large)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar on stderr (default: on for more than 60 frames)")
-    parser.add_argument("--supersample", type=int, default=1, help="anti-aliasing factor (default 1)")
+    parser.add_argument("--supersample", type=int, default=1,
+                        help=f"anti-aliasing factor 1..{MAX_SUPERSAMPLE} (default 1; costs its square in time "
+                             "and memory)")
 
     t = parser.add_argument_group("trajectory (a CSV or a pattern)")
     t.add_argument("--trajectory", help="CSV of t_ns,x_m,y_m,z_m,qw,qx,qy,qz (T_map_body); "
@@ -113,11 +117,29 @@ def check_pattern_options(args) -> None:
     require(finite(args.period) and args.period > 0, "--period", "a positive number of seconds", args.period)
     require(finite(args.drift) and args.drift >= 0, "--drift", "0 or more metres", args.drift)
     require(all(finite(v) and v >= 0 for v in args.size), "--size", "two numbers >= 0", args.size)
-    require(args.supersample >= 1, "--supersample", "1 or more", args.supersample)
+    require(1 <= args.supersample <= MAX_SUPERSAMPLE, "--supersample", f"1..{MAX_SUPERSAMPLE}", args.supersample)
+
+
+def camera_from_args(args) -> CameraModel:
+    """The --camera file's camera (or the default one), known to fit the renderer at --supersample."""
+    camera = load_camera(args.camera) if args.camera else CameraModel.from_config(DEFAULT_CAMERA,
+                                                                                  "<default camera>")
+    with named_camera(args):
+        check_render_size(camera.width, camera.height, args.supersample)
+    return camera
+
+
+@contextlib.contextmanager
+def named_camera(args):
+    """A RenderError (the frame too large to draw) as a SimulationError naming the camera and --supersample."""
+    try:
+        yield
+    except RenderError as error:
+        camera = f"--camera {args.camera}" if args.camera else "the default camera"
+        raise SimulationError(f"{camera} at --supersample {args.supersample}: {error}") from None
 
 
 def trajectory_from_args(args, facility_map: FacilityMap) -> trajectories.Trajectory:
-    check_pattern_options(args)
     if args.trajectory:
         return trajectories.read_trajectory_csv(args.trajectory)
     centre = args.center
@@ -142,9 +164,9 @@ def trajectory_from_args(args, facility_map: FacilityMap) -> trajectories.Trajec
 
 def main(args) -> int:
     try:
+        check_pattern_options(args)
         facility_map = load_map(args.map)
-        camera = load_camera(args.camera) if args.camera else CameraModel.from_config(DEFAULT_CAMERA,
-                                                                                      "<default camera>")
+        camera = camera_from_args(args)
         traj = trajectory_from_args(args, facility_map)
         if not (math.isfinite(args.fps) and args.fps > 0):
             raise SimulationError(f"--fps must be positive, got {args.fps}")
@@ -156,7 +178,8 @@ def main(args) -> int:
             vignette_strength=args.vignette, exposure_wander=args.exposure_wander)
         attitude = AttitudeNoise(args.attitude_rate, args.attitude_noise, args.attitude_bias) if args.attitude else None
         world = build_world(facility_map, args.seed)
-        simulator = Simulator(world, camera, traj, degradations, args.seed, args.supersample, args.occluders)
+        with named_camera(args):  # a distorting lens draws on a larger canvas than its frame
+            simulator = Simulator(world, camera, traj, degradations, args.seed, args.supersample, args.occluders)
         options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
         frame_count = len(frame_times_ns(traj.duration_s, args.fps))
         output_dir(args.out, "OUT")
