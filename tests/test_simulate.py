@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import cv2
@@ -375,7 +376,62 @@ def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
     assert "jpeg_quality must be 0 (off) or 1..100, got 150" in capsys.readouterr().err
     rc = cli.main(["simulate", str(tmp_path / "z"), "--map", str(MAP), "--occluders", "-1"])
     assert rc == 2
-    assert "--occluders must be 0 or more, got -1" in capsys.readouterr().err
+    assert "--occluders must be 0..100, not -1" in capsys.readouterr().err
+
+
+WAYPOINTS = "3.2,5.6,1.5,-55;6.0,5.2,1.7,-65"
+STANDING_STILL = "3.2,5.6,1.5,-55;3.2,5.6,1.5,-55"
+BAD_NUMBERS = [
+    # (options, the start of the one line after "companion simulate: "); {csv}: a trajectory with a nan in it
+    (["--heading", "nan"], "--heading must be -360..360 degrees, not nan"),
+    (["--center", "nan,4.6,1.6"], "--center must be x,y,z within +-100000 m, not nan,4.6,1.6"),
+    (["--trajectory", "{csv}"], "{csv}:3: x_m is 'nan', not a finite number"),
+    (["--pattern", "waypoints", "--waypoints", WAYPOINTS, "--max-accel", "nan"],
+     "--max-accel must be 0.01..50 m/s^2, not nan"),
+    (["--pattern", "path", "--waypoints", WAYPOINTS, "--speed", "nan"], "--speed must be 0.01..50 m/s, not nan"),
+    (["--pattern", "path", "--waypoints", WAYPOINTS, "--speed", "-1"], "--speed must be 0.01..50 m/s, not -1.0"),
+    (["--pattern", "path", "--waypoints", "3.2,5.6,1.5,-55;inf,5.2,1.7,-65"],
+     "--waypoints must be x,y,z within +-100000 m and a heading within +-360 degrees, each, not inf,5.2,1.7,-65 "
+     "(waypoint 2)"),
+    (["--pattern", "path", "--waypoints", STANDING_STILL],
+     "--waypoints: waypoints 1 and 2 are both at 3.2,5.6,1.5: a path flies through its waypoints without stopping"),
+    (["--pattern", "waypoints", "--waypoints", STANDING_STILL],
+     "--waypoints: every waypoint is 3.2,5.6,1.5,-55: there is nothing to fly"),
+    (["--pattern", "lawnmower", "--start", "3,4,1.5", "--end", "8,4,1.5", "--passes", "0"],
+     "--passes must be 1..1000, not 0"),
+    (["--duration", "inf"], "--duration must be a positive number of seconds, not inf"),
+    (["--fps", "inf"], "--fps must be positive, got inf"),
+    (["--drift", "nan"], "--drift must be 0..100000 m, not nan"),
+    (["--seed", "-1"], "--seed must be 0 or more, not -1"),
+    (["--occluders", "101"], "--occluders must be 0..100, not 101"),
+    (["--blur", "inf"], "--blur: optics_blur_sigma_px must be 0..50, got inf"),
+    (["--exposure-ms", "nan"], "--exposure-ms: exposure_ms must be 0..1000, got nan"),
+    (["--read-noise", "inf"], "--read-noise: read_noise_dn must be 0..255, got inf"),
+    (["--exposure-wander", "inf"], "--exposure-wander: exposure_wander must be 0..5, got inf"),
+    (["--attitude-rate", "inf"], "--attitude-rate: attitude rate must be positive and at most 1000 Hz, got inf"),
+    (["--attitude-noise", "nan"], "--attitude-noise: attitude noise must be 0..45 degrees, got nan"),
+]
+
+
+@pytest.mark.parametrize("options, message", BAD_NUMBERS, ids=[" ".join(o[:2]) + (" " + o[-2] if len(o) > 2 else "")
+                                                               for o, _ in BAD_NUMBERS])
+def test_a_number_that_is_not_finite_or_out_of_range_is_named(tmp_path, capsys, options, message):
+    """Every number of the options and of a trajectory CSV is finite and in its range, and a flight moves: one
+    line naming the option (or file, line and column), exit 2, nothing written, no warning. Before: NaN headings,
+    centres, CSV values and accelerations made a sequence of NaN poses with exit 0, '--speed nan' said only
+    'cannot convert float NaN to integer', two equal waypoints leaked a RuntimeWarning and wrote a NaN frame."""
+    csv_path = tmp_path / "flight.csv"
+    csv_path.write_text("t_ns,x_m,y_m,z_m,qw,qx,qy,qz\n0,3.4,4.6,1.6,1,0,0,0\n100000000,nan,4.6,1.6,1,0,0,0\n")
+    out = tmp_path / "seq"
+    options = [o.replace("{csv}", str(csv_path)) for o in options]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code = cli.main(["simulate", str(out), "--map", str(MAP), "--duration", "0.2", "--fps", "5", "--no-progress",
+                         *options])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.startswith(f"companion simulate: {message.replace('{csv}', str(csv_path))}") and err.count("\n") == 1, err
+    assert not out.exists()
 
 
 def test_a_render_too_large_for_memory_is_refused_up_front(tmp_path, capsys):

@@ -425,9 +425,10 @@ def frame_times_ns(duration_s: float, fps: float) -> list[int]:
 class AttitudeNoise:
     """How the simulated flight controller's attitude (attitude.csv) departs from the truth.
 
-    rate_hz: samples per second (on their own clock, not the frames').
+    rate_hz: samples per second (on their own clock, not the frames'), at most 1000.
     noise_deg: standard deviation of independent Gaussian noise on each roll
-        and each pitch sample; bias_deg: added to every roll and every pitch.
+        and each pitch sample, 0..45; bias_deg: added to every roll and every
+        pitch, -45..45.
     """
 
     rate_hz: float = 50.0
@@ -435,10 +436,10 @@ class AttitudeNoise:
     bias_deg: float = 0.0
 
     def __post_init__(self):
-        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
-            raise SimulationError(f"attitude rate must be positive, got {self.rate_hz}")
-        if not (math.isfinite(self.noise_deg) and self.noise_deg >= 0):
-            raise SimulationError(f"attitude noise must be 0 or more degrees, got {self.noise_deg}")
+        if not 0 < self.rate_hz <= 1000:
+            raise SimulationError(f"attitude rate must be positive and at most 1000 Hz, got {self.rate_hz}")
+        if not 0 <= self.noise_deg <= 45:
+            raise SimulationError(f"attitude noise must be 0..45 degrees, got {self.noise_deg}")
         if not (math.isfinite(self.bias_deg) and abs(self.bias_deg) <= 45):
             raise SimulationError(f"attitude bias must be within +-45 degrees, got {self.bias_deg}")
 
