@@ -469,6 +469,59 @@ def test_a_render_too_large_for_memory_is_refused_up_front(tmp_path, capsys):
     raster.check_render_size(640, 480, 8)
 
 
+def folder_contents(folder: Path) -> dict[str, bytes]:
+    return {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+
+@pytest.mark.parametrize("failure, status, message", [
+    (KeyboardInterrupt(), 130, "interrupted"),
+    (OSError(28, "No space left on device"), 1, "{out}: No space left on device")], ids=["ctrl-c", "disk full"])
+def test_a_render_that_stops_half_way_leaves_the_earlier_sequence_as_it_was(tmp_path, monkeypatch, capsys, failure,
+                                                                            status, message):
+    """A new sequence is written beside the earlier one and replaces it only once complete: Ctrl-C or a failure
+    on the third frame leaves the earlier sequence whole and no partial folder. Before, the earlier sequence was
+    deleted first, and an interrupted run left an empty folder."""
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--fps", "10", "--no-progress"]
+    assert cli.main([*base, "--duration", "0.4"]) == 0
+    earlier = folder_contents(out)
+    assert len(earlier) == 5 + 6  # 5 frames, sequence.yaml, map.yaml and 4 CSVs
+    render_frame = simulate.Simulator.render_frame
+
+    def stop_at_the_third_frame(simulator, index, t_ns):
+        if index == 2:
+            raise failure
+        return render_frame(simulator, index, t_ns)
+
+    monkeypatch.setattr(simulate.Simulator, "render_frame", stop_at_the_third_frame)
+    capsys.readouterr()
+    assert cli.main([*base, "--duration", "0.9"]) == status
+    assert capsys.readouterr().err == f"companion simulate: {message.replace('{out}', str(out))}\n"
+    assert folder_contents(out) == earlier
+    assert [path.name for path in tmp_path.iterdir()] == ["seq"]
+    monkeypatch.undo()
+    assert cli.main([*base, "--duration", "0.9"]) == 0
+    assert len(simulate.read_sequence(out).t_ns) == 10 and [path.name for path in tmp_path.iterdir()] == ["seq"]
+
+
+def test_a_sequence_folder_holding_anything_else_is_refused_not_replaced(tmp_path, capsys):
+    """The whole folder is replaced by a new sequence: a file of the user's in it is refused (named), not
+    deleted with it; the folder is left as it was. Before, a folder with sequence.yaml was accepted whatever
+    else it held."""
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--fps", "10", "--duration", "0.2", "--no-progress"]
+    assert cli.main(base) == 0
+    (out / "notes.txt").write_text("camera was cleaned before this run")
+    (out / "frames" / "marked.png").write_bytes((out / "frames" / "000001.png").read_bytes())
+    before = folder_contents(out)
+    capsys.readouterr()
+    assert cli.main(base) == 2
+    assert capsys.readouterr().err == (f"companion simulate: {out}: holds frames/marked.png, notes.txt besides the "
+                                       "sequence companion simulate wrote, which a new one replaces: move them away, "
+                                       "or give a new or empty folder\n")
+    assert folder_contents(out) == before
+
+
 def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, camera, capsys):
     def shown(total, progress):
         with simulate.frames_progress_bar(total, progress) as bar:
