@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -502,6 +504,34 @@ def test_a_render_that_stops_half_way_leaves_the_earlier_sequence_as_it_was(tmp_
     monkeypatch.undo()
     assert cli.main([*base, "--duration", "0.9"]) == 0
     assert len(simulate.read_sequence(out).t_ns) == 10 and [path.name for path in tmp_path.iterdir()] == ["seq"]
+
+
+TERMINATED_AT_THE_THIRD_FRAME = """
+import os, signal, sys
+from companion import cli
+from companion.sim import simulate
+render_frame = simulate.Simulator.render_frame
+def terminated_at_the_third_frame(simulator, index, t_ns):
+    if index == 2:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return render_frame(simulator, index, t_ns)
+simulate.Simulator.render_frame = terminated_at_the_third_frame
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_a_render_stopped_by_sigterm_is_removed_as_an_interrupted_one(tmp_path):
+    """SIGTERM (`timeout`, a cancelled job) on the third frame: exit 130 as for Ctrl-C, the earlier sequence as it
+    was, no partial folder. Before, the process died at once and left its partial folder beside the sequence."""
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--fps", "10", "--no-progress"]
+    assert cli.main([*base, "--duration", "0.4"]) == 0
+    earlier = folder_contents(out)
+    result = subprocess.run([sys.executable, "-c", TERMINATED_AT_THE_THIRD_FRAME, *base, "--duration", "0.9"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 130 and result.stderr == "companion simulate: interrupted\n", result
+    assert folder_contents(out) == earlier
+    assert [path.name for path in tmp_path.iterdir()] == ["seq"]
 
 
 def test_a_sequence_folder_holding_anything_else_is_refused_not_replaced(tmp_path, capsys):

@@ -4,7 +4,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import signal
 import sys
+import threading
 
 import numpy as np
 
@@ -242,6 +244,23 @@ def named_options(options: str):
         raise SimulationError(f"{options}: {error}") from None
 
 
+@contextlib.contextmanager
+def sigterm_interrupts():
+    """SIGTERM (`timeout`, a cancelled job, `kill`) stops the render as Ctrl-C does: the unfinished sequence
+    is removed (by default the process would die and leave it beside OUT)."""
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is not threading.main_thread():  # only the main thread takes signals
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(args) -> int:
     try:
         check_options(args)
@@ -256,8 +275,9 @@ def main(args) -> int:
         options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
         frame_count = len(frame_times_ns(traj.duration_s, args.fps))
         output_dir(args.out, "OUT")
-        out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
-                             {"options": options}, args.codec, attitude)
+        with sigterm_interrupts():
+            out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
+                                 {"options": options}, args.codec, attitude)
     except ValueError as error:
         print(f"companion simulate: {error}", file=sys.stderr)
         return 2
