@@ -2,15 +2,20 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+import warnings
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from companion import cli
 from companion.geometry import frames
 from companion.sim import degrade
+from companion.sim import raster
 from companion.sim import simulate
 from companion.sim import trajectory as tj
 from companion.geometry.camera import CameraModel, load_camera
@@ -373,7 +378,178 @@ def test_cli_writes_a_sequence_and_reports_bad_options(tmp_path, capsys):
     assert "jpeg_quality must be 0 (off) or 1..100, got 150" in capsys.readouterr().err
     rc = cli.main(["simulate", str(tmp_path / "z"), "--map", str(MAP), "--occluders", "-1"])
     assert rc == 2
-    assert "--occluders must be 0 or more, got -1" in capsys.readouterr().err
+    assert "--occluders must be 0..100, not -1" in capsys.readouterr().err
+
+
+WAYPOINTS = "3.2,5.6,1.5,-55;6.0,5.2,1.7,-65"
+STANDING_STILL = "3.2,5.6,1.5,-55;3.2,5.6,1.5,-55"
+BAD_NUMBERS = [
+    # (options, the start of the one line after "companion simulate: "); {csv}: a trajectory with a nan in it
+    (["--heading", "nan"], "--heading must be -360..360 degrees, not nan"),
+    (["--center", "nan,4.6,1.6"], "--center must be x,y,z within +-100000 m, not nan,4.6,1.6"),
+    (["--trajectory", "{csv}"], "{csv}:3: x_m is 'nan', not a finite number"),
+    (["--pattern", "waypoints", "--waypoints", WAYPOINTS, "--max-accel", "nan"],
+     "--max-accel must be 0.01..50 m/s^2, not nan"),
+    (["--pattern", "path", "--waypoints", WAYPOINTS, "--speed", "nan"], "--speed must be 0.01..50 m/s, not nan"),
+    (["--pattern", "path", "--waypoints", WAYPOINTS, "--speed", "-1"], "--speed must be 0.01..50 m/s, not -1.0"),
+    (["--pattern", "path", "--waypoints", "3.2,5.6,1.5,-55;inf,5.2,1.7,-65"],
+     "--waypoints must be x,y,z within +-100000 m and a heading within +-360 degrees, each, not inf,5.2,1.7,-65 "
+     "(waypoint 2)"),
+    (["--pattern", "path", "--waypoints", STANDING_STILL],
+     "--waypoints: waypoints 1 and 2 are both at 3.2,5.6,1.5: a path flies through its waypoints without stopping"),
+    (["--pattern", "waypoints", "--waypoints", STANDING_STILL],
+     "--waypoints: every waypoint is 3.2,5.6,1.5,-55: there is nothing to fly"),
+    (["--pattern", "lawnmower", "--start", "3,4,1.5", "--end", "8,4,1.5", "--passes", "0"],
+     "--passes must be 1..1000, not 0"),
+    (["--duration", "inf"], "--duration must be a positive number of seconds, not inf"),
+    (["--fps", "inf"], "--fps must be positive, got inf"),
+    (["--drift", "nan"], "--drift must be 0..100000 m, not nan"),
+    (["--seed", "-1"], "--seed must be 0 or more, not -1"),
+    (["--occluders", "101"], "--occluders must be 0..100, not 101"),
+    (["--blur", "inf"], "--blur: optics_blur_sigma_px must be 0..50, got inf"),
+    (["--exposure-ms", "nan"], "--exposure-ms: exposure_ms must be 0..1000, got nan"),
+    (["--read-noise", "inf"], "--read-noise: read_noise_dn must be 0..255, got inf"),
+    (["--exposure-wander", "inf"], "--exposure-wander: exposure_wander must be 0..5, got inf"),
+    (["--attitude-rate", "inf"], "--attitude-rate: attitude rate must be positive and at most 1000 Hz, got inf"),
+    (["--attitude-noise", "nan"], "--attitude-noise: attitude noise must be 0..45 degrees, got nan"),
+]
+
+
+@pytest.mark.parametrize("options, message", BAD_NUMBERS, ids=[" ".join(o[:2]) + (" " + o[-2] if len(o) > 2 else "")
+                                                               for o, _ in BAD_NUMBERS])
+def test_a_number_that_is_not_finite_or_out_of_range_is_named(tmp_path, capsys, options, message):
+    """Every number of the options and of a trajectory CSV is finite and in its range, and a flight moves: one
+    line naming the option (or file, line and column), exit 2, nothing written, no warning. Before: NaN headings,
+    centres, CSV values and accelerations made a sequence of NaN poses with exit 0, '--speed nan' said only
+    'cannot convert float NaN to integer', two equal waypoints leaked a RuntimeWarning and wrote a NaN frame."""
+    csv_path = tmp_path / "flight.csv"
+    csv_path.write_text("t_ns,x_m,y_m,z_m,qw,qx,qy,qz\n0,3.4,4.6,1.6,1,0,0,0\n100000000,nan,4.6,1.6,1,0,0,0\n")
+    out = tmp_path / "seq"
+    options = [o.replace("{csv}", str(csv_path)) for o in options]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code = cli.main(["simulate", str(out), "--map", str(MAP), "--duration", "0.2", "--fps", "5", "--no-progress",
+                         *options])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.startswith(f"companion simulate: {message.replace('{csv}', str(csv_path))}") and err.count("\n") == 1, err
+    assert not out.exists()
+
+
+def test_a_render_too_large_for_memory_is_refused_up_front(tmp_path, capsys):
+    """--supersample 1..8, a frame of at most 12 million pixels and a supersampled canvas of at most 40 million
+    (about 1.2 GB to draw), each refused in one line before anything is written. Before: --supersample 100 grew
+    to 24 GB and was killed, a 100000x100000 camera file raised MemoryError."""
+    def camera_file(name, section):
+        path = tmp_path / name
+        path.write_text(yaml.safe_dump({"camera": section}))
+        return path
+
+    huge = camera_file("huge.yaml", {"width": 100000, "height": 100000, "hfov_deg": 70})
+    full_hd = camera_file("full-hd.yaml", {"width": 1920, "height": 1080, "hfov_deg": 70})
+    # a strong barrel lens: its pinhole canvas is 992x804 for the 640x480 frame
+    fisheye = camera_file("fisheye.yaml", {"width": 640, "height": 480, "fx_px": 300, "fy_px": 300, "cx_px": 319.5,
+                                           "cy_px": 239.5, "distortion": [-0.4, 0.1, 0, 0, 0]})
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--duration", "0.2", "--fps", "10", "--no-progress"]
+    for extra, message in (
+            (["--supersample", "100"], "--supersample must be 1..8, not 100"),
+            (["--camera", str(huge)], f"--camera {huge} at --supersample 1: a 100000x100000 frame is 10000 million "
+                                      "pixels: more than the 12 million the renderer allows"),
+            (["--camera", str(full_hd), "--supersample", "5"],
+             f"--camera {full_hd} at --supersample 5: a 1920x1080 frame at supersample 5 is drawn on 9600x5400 "
+             "pixels, 52 million: more than the 40 million (about 1.2 GB of memory) the renderer allows"),
+            (["--camera", str(fisheye), "--supersample", "8"],
+             f"--camera {fisheye} at --supersample 8: a 640x480 frame at supersample 8 is drawn on 7936x6432 pixels "
+             "(the lens distortion's canvas is 992x804), 51 million: more than the 40 million")):
+        assert cli.main([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert err.startswith(f"companion simulate: {message}") and err.count("\n") == 1, err
+        assert not out.exists()
+    # what fits: 1920x1080 at supersample 4 is 33 million, the default camera at 8 is 20 million
+    raster.check_render_size(1920, 1080, 4)
+    raster.check_render_size(640, 480, 8)
+
+
+def folder_contents(folder: Path) -> dict[str, bytes]:
+    return {str(path.relative_to(folder)): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+
+@pytest.mark.parametrize("failure, status, message", [
+    (KeyboardInterrupt(), 130, "interrupted"),
+    (OSError(28, "No space left on device"), 1, "{out}: No space left on device")], ids=["ctrl-c", "disk full"])
+def test_a_render_that_stops_half_way_leaves_the_earlier_sequence_as_it_was(tmp_path, monkeypatch, capsys, failure,
+                                                                            status, message):
+    """A new sequence is written beside the earlier one and replaces it only once complete: Ctrl-C or a failure
+    on the third frame leaves the earlier sequence whole and no partial folder. Before, the earlier sequence was
+    deleted first, and an interrupted run left an empty folder."""
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--fps", "10", "--no-progress"]
+    assert cli.main([*base, "--duration", "0.4"]) == 0
+    earlier = folder_contents(out)
+    assert len(earlier) == 5 + 6  # 5 frames, sequence.yaml, map.yaml and 4 CSVs
+    render_frame = simulate.Simulator.render_frame
+
+    def stop_at_the_third_frame(simulator, index, t_ns):
+        if index == 2:
+            raise failure
+        return render_frame(simulator, index, t_ns)
+
+    monkeypatch.setattr(simulate.Simulator, "render_frame", stop_at_the_third_frame)
+    capsys.readouterr()
+    assert cli.main([*base, "--duration", "0.9"]) == status
+    assert capsys.readouterr().err == f"companion simulate: {message.replace('{out}', str(out))}\n"
+    assert folder_contents(out) == earlier
+    assert [path.name for path in tmp_path.iterdir()] == ["seq"]
+    monkeypatch.undo()
+    assert cli.main([*base, "--duration", "0.9"]) == 0
+    assert len(simulate.read_sequence(out).t_ns) == 10 and [path.name for path in tmp_path.iterdir()] == ["seq"]
+
+
+TERMINATED_AT_THE_THIRD_FRAME = """
+import os, signal, sys
+from companion import cli
+from companion.sim import simulate
+render_frame = simulate.Simulator.render_frame
+def terminated_at_the_third_frame(simulator, index, t_ns):
+    if index == 2:
+        os.kill(os.getpid(), signal.SIGTERM)
+    return render_frame(simulator, index, t_ns)
+simulate.Simulator.render_frame = terminated_at_the_third_frame
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+def test_a_render_stopped_by_sigterm_is_removed_as_an_interrupted_one(tmp_path):
+    """SIGTERM (`timeout`, a cancelled job) on the third frame: exit 130 as for Ctrl-C, the earlier sequence as it
+    was, no partial folder. Before, the process died at once and left its partial folder beside the sequence."""
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--fps", "10", "--no-progress"]
+    assert cli.main([*base, "--duration", "0.4"]) == 0
+    earlier = folder_contents(out)
+    result = subprocess.run([sys.executable, "-c", TERMINATED_AT_THE_THIRD_FRAME, *base, "--duration", "0.9"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 130 and result.stderr == "companion simulate: interrupted\n", result
+    assert folder_contents(out) == earlier
+    assert [path.name for path in tmp_path.iterdir()] == ["seq"]
+
+
+def test_a_sequence_folder_holding_anything_else_is_refused_not_replaced(tmp_path, capsys):
+    """The whole folder is replaced by a new sequence: a file of the user's in it is refused (named), not
+    deleted with it; the folder is left as it was. Before, a folder with sequence.yaml was accepted whatever
+    else it held."""
+    out = tmp_path / "seq"
+    base = ["simulate", str(out), "--map", str(MAP), "--fps", "10", "--duration", "0.2", "--no-progress"]
+    assert cli.main(base) == 0
+    (out / "notes.txt").write_text("camera was cleaned before this run")
+    (out / "frames" / "marked.png").write_bytes((out / "frames" / "000001.png").read_bytes())
+    before = folder_contents(out)
+    capsys.readouterr()
+    assert cli.main(base) == 2
+    assert capsys.readouterr().err == (f"companion simulate: {out}: holds frames/marked.png, notes.txt besides the "
+                                       "sequence companion simulate wrote, which a new one replaces: move them away, "
+                                       "or give a new or empty folder\n")
+    assert folder_contents(out) == before
 
 
 def test_progress_bar_shows_for_long_renders_or_when_asked(tmp_path, world, camera, capsys):

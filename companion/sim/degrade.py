@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -17,6 +17,13 @@ import numpy as np
 
 class DegradationError(ValueError):
     """A degradation knob out of its range, or an image step that failed; the message names it."""
+
+
+# The largest value of each knob (``Degradations``; every knob but the motion's angle is 0 or more): beyond,
+# the image is nothing but blur, glare or noise, and a blur's kernel outgrows the memory.
+KNOB_LIMITS = {"exposure_ms": 1000.0, "motion_length_px": 1000.0, "optics_blur_sigma_px": 50.0,
+               "exposure_gain": 100.0, "exposure_wander": 5.0, "vignette_strength": 1.0, "read_noise_dn": 255.0,
+               "shot_noise_gain": 255.0, "jpeg_quality": 100}
 
 
 def gaussian_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -48,9 +55,11 @@ def motion_blur_kernel(length_px: float, angle_rad: float) -> np.ndarray:
 
 
 def motion_blur(image: np.ndarray, length_px: float, angle_rad: float) -> np.ndarray:
-    """Linear motion blur: the image smeared over ``length_px`` along ``angle_rad``."""
+    """Linear motion blur: the image smeared over ``length_px`` along ``angle_rad`` (at most its diagonal:
+    a longer smear looks the same, and its kernel would outgrow the memory)."""
     if length_px < 0.5:
         return image.copy()
+    length_px = min(length_px, math.hypot(*image.shape[:2]))
     return cv2.filter2D(image, -1, motion_blur_kernel(length_px, angle_rad), borderType=cv2.BORDER_REPLICATE)
 
 
@@ -161,6 +170,7 @@ class Degradations:
     vignette_strength: corner darkening, 0..1 (0 = off).
     read_noise_dn, shot_noise_gain: sensor noise (both 0 = off).
     jpeg_quality: JPEG round trip at this quality, 1..100 (0 = off).
+    Each knob is a finite number from 0 to its ``KNOB_LIMITS`` (the angle any finite number).
     """
 
     motion_blur: bool = False
@@ -176,14 +186,13 @@ class Degradations:
     jpeg_quality: int = 0
 
     def __post_init__(self):
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name not in ("motion_blur", "motion_angle_rad") and not value >= 0:
-                raise DegradationError(f"degradations: {f.name} must be >= 0, got {value}")
-        if self.vignette_strength > 1:
-            raise DegradationError(f"degradations: vignette_strength must be 0..1, got {self.vignette_strength}")
-        if self.jpeg_quality > 100:
-            raise DegradationError(f"degradations: jpeg_quality must be 0 (off) or 1..100, got {self.jpeg_quality}")
+        for name, limit in KNOB_LIMITS.items():
+            value = getattr(self, name)
+            if not 0 <= value <= limit:  # NaN too
+                rule = "0 (off) or 1..100" if name == "jpeg_quality" else f"0..{limit:g}"
+                raise DegradationError(f"degradations: {name} must be {rule}, got {value}")
+        if not math.isfinite(self.motion_angle_rad):
+            raise DegradationError(f"degradations: motion_angle_rad must be a finite number, got {self.motion_angle_rad}")
 
     def at(self, t_s: float, seed: int) -> "Degradations":
         """The degradations of the frame captured at ``t_s``: the exposure wander (fixed by ``seed``)

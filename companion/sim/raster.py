@@ -44,6 +44,15 @@ LENS_INTERPOLATION = cv2.INTER_LANCZOS4
 MARKER_LIFT_M = 0.001  # a marker sits this far in front of its backing board
 OCCLUSION_DEPTH_M = 1e-5  # a quad this far behind an opaque surface, in its image, is hidden by it
 OCCLUSION_MARGIN_PX = 2.0  # a hidden quad stays this far inside its occluder's edges (anti-aliasing: 1 px)
+MAX_SUPERSAMPLE = 8  # beyond, the canvas samples a marker cell (16 texels) finer than its texture holds
+# Memory, so that no camera file or option can ask for more than fits (measured on 640x480 at supersample
+# 1-16 and a 6000x6000 lens): drawing takes about 30 bytes a canvas pixel (the frame supersampled, with the
+# lens's margin: colour, depth, labels, a quad's shade, coverage and depth), the lens map about 70 bytes a
+# frame pixel while it is made. 40 million canvas pixels is about 1.2 GB (640x480 at supersample 8 is 20
+# million, 1920x1080 at 4 is 33 million); 12 million frame pixels (4000x3000) about 0.9 GB.
+MAX_CANVAS_PIXELS = 40_000_000
+MAX_FRAME_PIXELS = 12_000_000
+CANVAS_BYTES_PER_PIXEL = 30
 
 
 class RenderError(ValueError):
@@ -174,13 +183,33 @@ class Rendering:
     label: np.ndarray | None
 
 
+def check_render_size(width: int, height: int, supersample: int, lens_canvas: tuple[int, int] | None = None) -> None:
+    """RenderError unless a ``width`` x ``height`` frame is at most ``MAX_FRAME_PIXELS`` and, at
+    ``supersample``, is drawn on at most ``MAX_CANVAS_PIXELS``; ``lens_canvas``: the (unsupersampled)
+    canvas a distorting lens needs, drawn instead of the frame."""
+    if width * height > MAX_FRAME_PIXELS:
+        raise RenderError(f"a {width}x{height} frame is {width * height / 1e6:.0f} million pixels: more than the "
+                          f"{MAX_FRAME_PIXELS // 1_000_000} million the renderer allows")
+    canvas_w, canvas_h = lens_canvas or (width, height)
+    pixels = canvas_w * canvas_h * supersample**2
+    if pixels <= MAX_CANVAS_PIXELS:
+        return
+    lens = f" (the lens distortion's canvas is {canvas_w}x{canvas_h})" if lens_canvas else ""
+    raise RenderError(f"a {width}x{height} frame at supersample {supersample} is drawn on "
+                      f"{canvas_w * supersample}x{canvas_h * supersample} pixels{lens}, {pixels / 1e6:.0f} million: "
+                      f"more than the {MAX_CANVAS_PIXELS // 1_000_000} million (about "
+                      f"{MAX_CANVAS_PIXELS * CANVAS_BYTES_PER_PIXEL / 1e9:.1f} GB of memory) the renderer allows")
+
+
 class Renderer:
     """Renders textured quads as one camera sees them.
 
     K: (3, 3) intrinsics; dist: OpenCV distortion coefficients (k,) (4, 5, 8,
     12 or 14 values, or empty); width, height: image size in pixels.
     supersample: render at this integer factor and average down
-    (anti-aliasing; 1 is usually enough with a little optics blur).
+    (anti-aliasing; 1 is usually enough with a little optics blur), 1 to
+    ``MAX_SUPERSAMPLE``. The frame is at most ``MAX_FRAME_PIXELS``, the
+    supersampled canvas at most ``MAX_CANVAS_PIXELS`` (``check_render_size``).
 
     The canvas is an ideal pinhole image large enough to hold every ray the
     distorted image sees; distortion is applied by one ``cv2.remap`` whose
@@ -192,8 +221,9 @@ class Renderer:
         self.dist = np.asarray(dist if dist is not None else [], dtype=float).ravel()
         self.width, self.height = int(width), int(height)
         self.supersample = int(supersample)
-        if self.width <= 0 or self.height <= 0 or self.supersample < 1:
-            raise RenderError(f"bad image size {width}x{height} or supersample {supersample}")
+        if self.width <= 0 or self.height <= 0 or not 1 <= self.supersample <= MAX_SUPERSAMPLE:
+            raise RenderError(f"bad image size {width}x{height} or supersample {supersample} (1..{MAX_SUPERSAMPLE})")
+        check_render_size(self.width, self.height, self.supersample)  # before the lens map, as large as the image
         self.distorted = bool(np.any(self.dist != 0.0))
         if self.distorted:
             self._undistort_map, canvas_K, canvas_size = self._distortion_map()
@@ -207,6 +237,8 @@ class Renderer:
         self.canvas_K = S @ canvas_K
         self.canvas_size = (canvas_size[0] * s, canvas_size[1] * s)
         self._canvas_K_inv = np.linalg.inv(self.canvas_K)
+        if self.distorted:
+            check_render_size(self.width, self.height, s, canvas_size)
 
     @classmethod
     def from_camera(cls, camera, supersample: int = 1) -> "Renderer":

@@ -18,13 +18,18 @@ conventions) describe::
     ``AttitudeNoise``; ``companion.capture.attitude_csv``)
 
 Simulating again into the same folder replaces all of that (no stale frame
-of a longer earlier run is left); a folder holding anything else is refused.
+of a longer earlier run is left) once the new sequence is complete: until
+then it is written in a hidden folder beside it, removed if the run fails or
+is interrupted. A folder holding anything else is refused.
 """
 from __future__ import annotations
 
 import csv
 import math
+import os
+import secrets
 import shutil
+import stat
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -425,9 +430,10 @@ def frame_times_ns(duration_s: float, fps: float) -> list[int]:
 class AttitudeNoise:
     """How the simulated flight controller's attitude (attitude.csv) departs from the truth.
 
-    rate_hz: samples per second (on their own clock, not the frames').
+    rate_hz: samples per second (on their own clock, not the frames'), at most 1000.
     noise_deg: standard deviation of independent Gaussian noise on each roll
-        and each pitch sample; bias_deg: added to every roll and every pitch.
+        and each pitch sample, 0..45; bias_deg: added to every roll and every
+        pitch, -45..45.
     """
 
     rate_hz: float = 50.0
@@ -435,10 +441,10 @@ class AttitudeNoise:
     bias_deg: float = 0.0
 
     def __post_init__(self):
-        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
-            raise SimulationError(f"attitude rate must be positive, got {self.rate_hz}")
-        if not (math.isfinite(self.noise_deg) and self.noise_deg >= 0):
-            raise SimulationError(f"attitude noise must be 0 or more degrees, got {self.noise_deg}")
+        if not 0 < self.rate_hz <= 1000:
+            raise SimulationError(f"attitude rate must be positive and at most 1000 Hz, got {self.rate_hz}")
+        if not 0 <= self.noise_deg <= 45:
+            raise SimulationError(f"attitude noise must be 0..45 degrees, got {self.noise_deg}")
         if not (math.isfinite(self.bias_deg) and abs(self.bias_deg) <= 45):
             raise SimulationError(f"attitude bias must be within +-45 degrees, got {self.bias_deg}")
 
@@ -457,31 +463,68 @@ def attitude_samples(traj: trajectories.Trajectory, T_ned_map: np.ndarray, noise
     return samples
 
 
-def prepare_folder(out: Path) -> None:
-    """Make ``out`` ready for a sequence: created, or emptied of an earlier simulation's output.
-    SimulationError for a file, or a folder with other content (nothing is deleted then)."""
+def check_folder(out: Path) -> None:
+    """SimulationError unless ``out`` is new, an empty folder, or an earlier simulation's sequence holding
+    nothing else (all of it is replaced: nothing of the user's may be lost with it)."""
     if out.exists() and not out.is_dir():
         raise SimulationError(f"{out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()):
-        info = out / "sequence.yaml"
-        earlier = info.is_file() and read_yaml(info, SimulationError, "sequence info").get("generator") == GENERATOR
-        if not earlier:
-            raise SimulationError(f"{out}: not empty and not a sequence written by {GENERATOR}: give a new or "
-                                  "empty folder")
-        remove_generated(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    info = out / "sequence.yaml"
+    earlier = info.is_file() and read_yaml(info, SimulationError, "sequence info").get("generator") == GENERATOR
+    if not earlier:
+        raise SimulationError(f"{out}: not empty and not a sequence written by {GENERATOR}: give a new or "
+                              "empty folder")
+    foreign = _foreign_files(out)
+    if foreign:
+        shown = ", ".join(str(path.relative_to(out)) for path in foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise SimulationError(f"{out}: holds {shown} besides the sequence {GENERATOR} wrote, which a new one "
+                              "replaces: move them away, or give a new or empty folder")
 
 
-def remove_generated(out: Path) -> None:
-    """Delete what ``write_sequence`` writes in ``out`` (its files, its frames and their folder once empty)."""
-    for name in GENERATED_FILES:
-        (out / name).unlink(missing_ok=True)
+def _foreign_files(out: Path) -> list[Path]:
+    """What is in the sequence folder ``out`` that ``write_sequence`` does not write, sorted."""
+    foreign = [path for path in out.iterdir() if path.name not in GENERATED_FILES and path.name != "frames"]
     frames_dir = out / "frames"
-    if frames_dir.is_dir():
-        for frame in frames_dir.glob("[0-9]*.png"):
-            frame.unlink()
-        if not any(frames_dir.iterdir()):
-            frames_dir.rmdir()
+    if frames_dir.is_dir() and not frames_dir.is_symlink():
+        foreign += [path for path in frames_dir.iterdir() if not _is_frame(path)]
+    elif frames_dir.exists() or frames_dir.is_symlink():
+        foreign.append(frames_dir)
+    return sorted(foreign)
+
+
+def _is_frame(path: Path) -> bool:
+    return path.suffix == ".png" and path.stem.isdigit() and path.is_file() and not path.is_symlink()
+
+
+def _new_folder_beside(target: Path) -> Path:
+    """A new hidden folder beside ``target`` (the same file system, so renamed onto it at once), with the
+    permissions ``mkdir`` gives it (``target``'s when it exists)."""
+    folder = target.with_name(f".{target.name}.{secrets.token_hex(4)}")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        folder.mkdir()
+    except OSError as error:
+        raise SimulationError(f"{target}: cannot make the new sequence's folder beside it in {target.parent}: "
+                              f"{error.strerror}") from None
+    if target.is_dir():
+        os.chmod(folder, stat.S_IMODE(target.stat().st_mode))
+    return folder
+
+
+def _replace_folder(target: Path, new: Path) -> None:
+    """Put the folder ``new`` where ``target`` is; the earlier ``target`` stays until ``new`` is in its place."""
+    if not target.exists():
+        os.rename(new, target)
+        return
+    earlier = target.with_name(f".{target.name}.{secrets.token_hex(4)}")
+    os.rename(target, earlier)
+    try:
+        os.rename(new, target)
+    except BaseException:
+        os.rename(earlier, target)
+        raise
+    shutil.rmtree(earlier)
 
 
 VIDEO_CODECS = {"mp4v": "small, lossy (MPEG-4 part 2)", "ffv1": "lossless, large"}
@@ -495,17 +538,23 @@ def write_sequence(out_dir, simulator: Simulator, fps: float, map_path: str, vid
     video: one ``video.avi`` in ``codec`` ("mp4v" or "ffv1") instead of PNG frames.
     progress: a progress bar on stderr (None: for more than ``PROGRESS_MIN_FRAMES`` frames).
     attitude: how attitude.csv departs from the truth; None writes no attitude.csv.
-    A sequence that cannot be finished (a full disk, Ctrl-C) is removed, not left half written: an
-    OSError then names the file (or the folder) that could not be written.
+    The sequence is written into a new hidden folder beside ``out_dir`` (``.NAME.XXXXXXXX``), which
+    replaces ``out_dir`` (an earlier sequence, ``check_folder``) once complete. A sequence that cannot be
+    finished (a full disk, Ctrl-C) is removed and leaves ``out_dir`` as it was: an OSError then names the
+    file (or the folder) that could not be written, as it would be in ``out_dir``.
     """
     out = Path(out_dir)
-    prepare_folder(out)
+    check_folder(out)
+    target = out.resolve()  # a link's folder, not the link; "." by its name
+    new = _new_folder_beside(target)
     try:
-        _write_sequence(out, simulator, fps, map_path, video, progress, extra_info, codec, attitude)
+        _write_sequence(new, simulator, fps, map_path, video, progress, extra_info, codec, attitude)
+        _replace_folder(target, new)
     except BaseException as error:
-        remove_generated(out)
+        shutil.rmtree(new, ignore_errors=True)
         if isinstance(error, OSError):  # a full disk's write error names no file; a copy's names both
-            raise OSError(error.errno, error.strerror, str(error.filename2 or error.filename or out)) from error
+            where = str(error.filename2 or error.filename or new).replace(str(new), str(out), 1)
+            raise OSError(error.errno, error.strerror, where) from error
         raise
     return out
 

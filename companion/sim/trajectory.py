@@ -28,6 +28,10 @@ from companion.geometry import frames
 
 GRAVITY_M_S2 = 9.81
 CSV_COLUMNS = ("t_ns", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")
+SAME_PLACE_M = 1e-3  # waypoints nearer each other than this are at one place
+# A path's spline and speed profile are tabulated at 2 mm and 1 ms up to this many samples (a 2 km path, a
+# 1000 s flight), more coarsely beyond: a long flight costs no more memory than that.
+MAX_PATH_SAMPLES = 1_000_000
 
 
 class TrajectoryError(ValueError):
@@ -156,7 +160,36 @@ def _check_points(points) -> np.ndarray:
     wp = np.asarray(points, dtype=float)
     if wp.ndim != 2 or wp.shape[1] != 4 or len(wp) < 2:
         raise TrajectoryError(f"waypoints must be at least two rows of x,y,z,heading_deg, got shape {wp.shape}")
+    if not np.isfinite(wp).all():
+        row = int(np.argmin(np.isfinite(wp).all(axis=1)))
+        raise TrajectoryError(f"waypoint {row + 1} ({_row_text(wp[row])}) is not four finite numbers")
     return wp
+
+
+def _check_limits(speed_m_s: float, max_accel_m_s2: float) -> None:
+    if not (math.isfinite(speed_m_s) and speed_m_s > 0 and math.isfinite(max_accel_m_s2) and max_accel_m_s2 > 0):
+        raise TrajectoryError(f"speed_m_s and max_accel_m_s2 must be positive, got {speed_m_s}, {max_accel_m_s2}")
+
+
+def _check_path_moves(wp: np.ndarray) -> None:
+    """A path flown through its waypoints without stopping cannot stay or turn on the spot."""
+    steps = np.linalg.norm(np.diff(wp[:, :3], axis=0), axis=1)
+    if (steps < SAME_PLACE_M).any():
+        i = int(np.argmax(steps < SAME_PLACE_M))
+        raise TrajectoryError(f"waypoints {i + 1} and {i + 2} are both at {_row_text(wp[i, :3])}: a path flies "
+                              "through its waypoints without stopping, so each must be somewhere else than the "
+                              "one before (the waypoints pattern stops, and turns on the spot)")
+
+
+def _check_flight_moves(wp: np.ndarray, headings: np.ndarray) -> None:
+    """Waypoints flown stop by stop must go somewhere or turn: not all one place and heading."""
+    if np.ptp(wp[:, :3], axis=0).max() < SAME_PLACE_M and np.ptp(headings) < 0.01:
+        raise TrajectoryError(f"every waypoint is {_row_text(wp[0])}: there is nothing to fly (a hover holds a "
+                              "position)")
+
+
+def _row_text(values) -> str:
+    return ",".join(f"{v:g}" for v in values)
 
 
 def waypoints(points: Sequence[Sequence[float]], speed_m_s: float = 1.0, pause_s: float = 0.0,
@@ -168,9 +201,9 @@ def waypoints(points: Sequence[Sequence[float]], speed_m_s: float = 1.0, pause_s
     ``pause_s`` hovers at each waypoint.
     """
     wp = _check_points(points)
-    if speed_m_s <= 0 or max_accel_m_s2 <= 0:
-        raise TrajectoryError(f"speed_m_s and max_accel_m_s2 must be positive, got {speed_m_s}, {max_accel_m_s2}")
+    _check_limits(speed_m_s, max_accel_m_s2)
     headings = np.degrees(np.unwrap(np.radians(wp[:, 3])))
+    _check_flight_moves(wp, headings)
     legs = []
     for a, b, ha, hb in zip(wp[:-1, :3], wp[1:, :3], headings[:-1], headings[1:]):
         d = float(np.linalg.norm(b - a))
@@ -201,13 +234,13 @@ def smooth_path(points: Sequence[Sequence[float]], speed_m_s: float = 1.0,
     same spline over the distance flown.
     """
     wp = _check_points(points)
-    if speed_m_s <= 0 or max_accel_m_s2 <= 0:
-        raise TrajectoryError(f"speed_m_s and max_accel_m_s2 must be positive, got {speed_m_s}, {max_accel_m_s2}")
+    _check_limits(speed_m_s, max_accel_m_s2)
+    _check_path_moves(wp)
     wp[:, 3] = np.degrees(np.unwrap(np.radians(wp[:, 3])))
     chords = np.maximum(np.linalg.norm(np.diff(wp[:, :3], axis=0), axis=1), 1e-3)
     knots = np.concatenate([[0.0], np.cumsum(chords)])
     # dense samples of the spline, then arc length along them
-    u = np.linspace(0.0, knots[-1], max(int(knots[-1] / 0.002), 200))
+    u = np.linspace(0.0, knots[-1], min(max(int(knots[-1] / 0.002), 200), MAX_PATH_SAMPLES))
     dense = _catmull_rom(knots, wp, u)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense[:, :3], axis=0), axis=1))])
     length = float(arc[-1])
@@ -218,14 +251,16 @@ def smooth_path(points: Sequence[Sequence[float]], speed_m_s: float = 1.0,
         cruise_speed = math.sqrt(length * max_accel_m_s2 / 1.875)
         ramp_s = 1.875 * cruise_speed / max_accel_m_s2
     duration = length / cruise_speed + ramp_s
-    t_grid = np.linspace(0.0, duration, int(duration * 1000) + 2)
+    t_grid = np.linspace(0.0, duration, min(int(duration * 1000) + 2, MAX_PATH_SAMPLES))
     speed = cruise_speed * np.minimum(_min_jerk_array(t_grid / ramp_s), _min_jerk_array((duration - t_grid) / ramp_s))
     distance = np.concatenate([[0.0], np.cumsum((speed[1:] + speed[:-1]) / 2 * np.diff(t_grid))])
     distance *= length / distance[-1]
 
+    columns = [np.ascontiguousarray(dense[:, k]) for k in range(4)]  # np.interp copies a strided column each call
+
     def state(t: float) -> np.ndarray:
         s = float(np.interp(t, t_grid, distance))
-        return np.array([np.interp(s, arc, dense[:, k]) for k in range(4)])
+        return np.array([np.interp(s, arc, column) for column in columns])
 
     return PathTrajectory(lambda t: state(t)[:3], lambda t: float(state(t)[3]), float(duration), {
         "pattern": "path", "points": wp.tolist(), "speed_m_s": speed_m_s, "max_accel_m_s2": max_accel_m_s2})
@@ -261,8 +296,11 @@ def lawnmower(start_m: Sequence[float], end_m: Sequence[float], sweep_m: float, 
     """
     a, b = np.asarray(start_m, float).reshape(3), np.asarray(end_m, float).reshape(3)
     along = b - a
-    if np.linalg.norm(along[:2]) < 1e-6 or passes < 1:
-        raise TrajectoryError("lawnmower needs start and end apart in x/y and at least one pass")
+    if np.linalg.norm(along[:2]) < 1e-6:
+        raise TrajectoryError(f"start and end are both at x,y {_row_text(a[:2])}: a lawnmower's passes run "
+                              "between them, so they must be apart in x/y")
+    if passes < 1:
+        raise TrajectoryError(f"a lawnmower needs at least one pass, not {passes}")
     left = np.array([-along[1], along[0], 0.0]) / np.linalg.norm(along[:2])
     points = []
     for k in range(passes):
@@ -330,10 +368,7 @@ def read_trajectory_csv(path) -> SampledTrajectory:
         raise TrajectoryError(f"{path}: missing column(s) {', '.join(missing)}; need {','.join(CSV_COLUMNS)}")
     times, poses = [], []
     for line, row in enumerate(rows, start=2):
-        try:
-            values = [float(row[c]) for c in CSV_COLUMNS]
-        except (TypeError, ValueError):
-            raise TrajectoryError(f"{path}:{line}: non-numeric value in {row}") from None
+        values = [_csv_number(path, line, row, column) for column in CSV_COLUMNS]
         try:
             R = frames.rotation_from_quaternion(values[4:8])
         except ValueError as error:
@@ -344,6 +379,19 @@ def read_trajectory_csv(path) -> SampledTrajectory:
     if len(t) < 2 or np.any(np.diff(t) <= 0):
         raise TrajectoryError(f"{path}: t_ns must increase strictly over at least two rows")
     return SampledTrajectory(t, np.asarray(poses), {"pattern": "csv", "file": path})
+
+
+def _csv_number(path: str, line: int, row: dict, column: str) -> float:
+    """The finite number in ``column`` of a CSV row; TrajectoryError naming the file, line and column."""
+    text = row[column]
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        value = None
+    if value is None or not math.isfinite(value):
+        shown = "missing" if text is None else repr(text)
+        raise TrajectoryError(f"{path}:{line}: {column} is {shown}, not a finite number")
+    return value
 
 
 def write_trajectory_csv(path, trajectory: Trajectory, fps: float) -> None:
