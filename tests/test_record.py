@@ -10,10 +10,13 @@ from __future__ import annotations
 import csv
 import datetime
 import math
+import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -300,3 +303,48 @@ def test_a_nearly_full_disk_stops_the_recording_cleanly(tmp_path):
     assert info["stopped"].startswith("disk nearly full (") and info["frames"] < 31
     assert daemon.pipeline.stats.frames == 31
     assert len(open_recording(tmp_path / "flight").t_ns) == info["frames"]
+
+
+# ------------------------------------------------------ faults while recording
+
+def wait_for(condition, what: str, timeout_s: float = 60.0) -> None:
+    """Wait until ``condition()`` holds (polled; the deadline is only a guard against a hang)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"gave up waiting for {what}"
+        time.sleep(0.05)
+
+
+def test_a_recording_folder_removed_mid_run_is_said_once_and_vision_goes_on(tmp_path):
+    """`rm -rf` of the folder being recorded: the recording stops, one line says why (no traceback from the
+    record thread), and the daemon keeps positioning until it is stopped."""
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
+                          map=str(MAP))
+    log_path, status_path = tmp_path / "stderr.txt", tmp_path / "stdout.txt"
+
+    def last_sent() -> int:
+        return ([0] + [int(n) for n in re.findall(r"sent (\d+)", status_path.read_text())])[-1]
+
+    with open(log_path, "w") as log_file, open(status_path, "w") as status_file:
+        daemon = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config),
+                                   "--record", str(folder)], stdout=status_file, stderr=log_file)
+        try:
+            # some frames on disk (the tables are flushed every second), then the folder goes
+            wait_for(lambda: (folder / "timestamps.csv").is_file()
+                     and len((folder / "timestamps.csv").read_text().splitlines()) > 3, "recorded frames")
+            shutil.rmtree(folder)
+            wait_for(lambda: "removed" in log_path.read_text() or "Traceback" in log_path.read_text(),
+                     "the daemon to notice", timeout_s=30.0)
+            # vision goes on: the status line's count of fixes sent still rises
+            sent_then = last_sent()
+            wait_for(lambda: last_sent() > sent_then, "more fixes sent", timeout_s=30.0)
+        finally:
+            daemon.send_signal(signal.SIGINT)
+            daemon.wait(timeout=30)
+    log = log_path.read_text()
+    assert daemon.returncode == 0, log
+    assert "Traceback" not in log and "Exception in thread" not in log, log
+    said = [line for line in log.splitlines() if str(folder) in line]
+    assert len(said) == 2 and "recording to" in said[0] and "removed" in said[1], log
+    assert not folder.exists()

@@ -29,6 +29,7 @@ import csv
 import datetime
 import logging
 import math
+import os
 import queue
 import shutil
 import threading
@@ -81,6 +82,7 @@ DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "qual
 MAX_QUEUED_ROWS = 2000
 SIZE_CHECK_EVERY_FRAMES = 15
 FLUSH_INTERVAL_S = 1.0
+FOLDER_GONE = "the folder was removed"
 
 
 class RecordError(ValueError):
@@ -204,8 +206,10 @@ class Recorder:
             shutil.copyfile(map_path, self.folder / MAP_FILE)
             if groundtruth is not None and groundtruth.is_file():
                 shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
+            folder = os.stat(self.folder)
         except OSError as error:
             raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
+        self._folder_id = (folder.st_dev, folder.st_ino)
         self.camera = camera
         self.source = source
         self.attitude_of_frames = attitude_of_frames
@@ -218,6 +222,7 @@ class Recorder:
         self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
         self._image_budget = threading.Semaphore(params.queue_frames)
         self._stopped = threading.Event()   # no more rows taken (limit reached, error, close)
+        self._said_folder_gone = False
         self._writer: cv2.VideoWriter | None = None
         self._files = {}
         self._csv = {}
@@ -296,11 +301,30 @@ class Recorder:
                         handle.flush()
                     next_flush_s = time.monotonic() + FLUSH_INTERVAL_S
         except OSError as error:
-            self._stop(f"write failed: {error.strerror or error}")
-            log.error("recording stopped: %s (%s)", self.stop_reason, self.folder)
+            if self._folder_gone():
+                self._stop(FOLDER_GONE)
+                self._say_folder_gone()
+            else:
+                self._stop(f"write failed: {error.strerror or error}")
+                log.error("recording stopped: %s (%s)", self.stop_reason, self.folder)
         finally:
             self._drain()
             self._finish()
+
+    def _folder_gone(self) -> bool:
+        """Whether the recording's folder is no longer there (removed, or replaced by another)."""
+        try:
+            folder = os.stat(self.folder)
+        except OSError:
+            return True
+        return (folder.st_dev, folder.st_ino) != self._folder_id
+
+    def _say_folder_gone(self) -> None:
+        """Said once: what was recorded went with the folder; nothing more is written."""
+        if not self._said_folder_gone:
+            self._said_folder_gone = True
+            log.error("recording stopped: %s was removed while recording; %d frames were lost with it "
+                      "(the daemon goes on)", self.folder, self.counters.frames)
 
     def _limit_reached(self) -> bool:
         return self._stopped.is_set() and self.stop_reason != "the daemon stopped"
@@ -361,6 +385,10 @@ class Recorder:
 
     def _check_limits(self, t_ns: int) -> None:
         duration_s = (t_ns - self._t0_ns) * 1e-9
+        if self.counters.rows % SIZE_CHECK_EVERY_FRAMES == 0 and self._folder_gone():
+            self._stop(FOLDER_GONE)
+            self._say_folder_gone()
+            return
         if duration_s >= self.params.max_duration_s:
             self._stop(f"duration limit reached ({self.params.max_duration_s:g} s)")
         elif self.counters.rows % SIZE_CHECK_EVERY_FRAMES == 0:
@@ -399,11 +427,17 @@ class Recorder:
         if self._writer is not None:
             self._writer.release()
             self._writer = None
+        gone = self._folder_gone()
         for name, handle in self._files.items():
             try:
                 handle.close()
             except OSError as error:   # the last rows could not be flushed (disk full)
-                log.error("recording: %s: %s", self.folder / name, error.strerror or error)
+                if not gone:
+                    log.error("recording: %s: %s", self.folder / name, error.strerror or error)
+        if gone:   # nothing to finish: what was written went with the folder
+            self._stop(FOLDER_GONE)
+            self._say_folder_gone()
+            return
         attitude = self.folder / ATTITUDE_FILE
         if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
             attitude.unlink()   # no attitude from the link: no file
