@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import datetime
 import math
+import os
 import re
 import shutil
 import signal
@@ -255,6 +256,76 @@ def test_record_section_errors_name_the_key(tmp_path, section, message):
     with pytest.raises(ConfigError, match=message.replace(".", r"\.").replace("(", r"\(")):
         config_from_dict({"source": {"kind": "replay", "path": str(HOVER)}, "map": str(MAP), "record": section},
                          tmp_path / "daemon.yaml")
+
+
+def test_a_missing_record_path_names_the_file_once(tmp_path):
+    with pytest.raises(ConfigError) as raised:
+        config_from_dict({"source": {"kind": "replay", "path": str(HOVER)}, "map": str(MAP),
+                          "record": {"codec": "ffv1"}}, tmp_path / "daemon.yaml")
+    assert str(raised.value) == f"{tmp_path / 'daemon.yaml'}: record.path: missing"
+
+
+def run_in_child(argv: list[str], as_nobody: bool) -> tuple[int, str]:
+    """``companion ARGV`` in a forked child of this process, as the user nobody when ``as_nobody`` and
+    this is root (without exec: this interpreter needs nothing more from the disk than the config and
+    the recording); returns its exit status and its stderr."""
+    import importlib
+    import tempfile
+
+    from companion.cli import main
+    importlib.import_module("companion.cli.run")   # before the fork: the child may not read the code
+    with tempfile.TemporaryFile("w+") as stderr:
+        pid = os.fork()
+        if pid == 0:
+            code = 99
+            try:
+                sys.stderr = stderr
+                if as_nobody and os.geteuid() == 0:
+                    os.setgroups([])
+                    os.setgid(65534)
+                    os.setuid(65534)
+                code = main(argv)
+            except BaseException as error:   # noqa: BLE001  the test reads it
+                print(f"child failed: {error!r}", file=stderr)
+            finally:
+                stderr.flush()
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        stderr.seek(0)
+        return os.waitstatus_to_exitcode(status), stderr.read()
+
+
+@pytest.mark.parametrize("blocked", ["unsearchable", "read-only", "too long"])
+@pytest.mark.parametrize("given", ["config", "--record"])
+def test_a_record_path_that_cannot_be_written_is_one_line_naming_the_key(given, blocked):
+    """A record path in a folder the daemon's user cannot enter or write in (or a name the file system
+    refuses): one line naming record.path (or --record) and the folder, exit 2, no traceback."""
+    import tempfile
+    top = Path(tempfile.mkdtemp(dir="/tmp"))   # pytest's tmp_path is root's alone
+    try:
+        os.chmod(top, 0o755)
+        sequence = shutil.copytree(HOVER, top / "hover")
+        flight_map = shutil.copyfile(MAP, top / "warehouse.yaml")
+        parent = top / "parent"
+        parent.mkdir()
+        folder = parent / ("x" * 300 if blocked == "too long" else "flight")
+        os.chmod(parent, {"unsearchable": 0o000, "read-only": 0o555, "too long": 0o755}[blocked])
+        if os.geteuid() != 0 and blocked != "too long" and os.access(parent, os.W_OK):
+            pytest.skip("this user writes anywhere")
+        config = write_config(top, {"kind": "replay", "path": str(sequence)}, map=str(flight_map),
+                              **({"record": str(folder)} if given == "config" else {}))
+        os.chmod(config, 0o644)
+        code, stderr = run_in_child(["run", "--config", str(config),
+                                     *(["--record", str(folder)] if given == "--record" else [])],
+                                    as_nobody=blocked != "too long")
+    finally:
+        os.chmod(top / "parent", 0o755)
+        shutil.rmtree(top)
+    why = "File name too long" if blocked == "too long" else "Permission denied"
+    where = f"{config}: record.path" if given == "config" else "--record"
+    assert code == 2, stderr
+    assert stderr.count("\n") == 1 and stderr.rstrip().endswith(f"ERROR companion: {where}: cannot write {folder}: {why}"), \
+        stderr
 
 
 def test_recorder_refuses_a_file_in_the_way(tmp_path):

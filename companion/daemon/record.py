@@ -86,7 +86,13 @@ FOLDER_GONE = "the folder was removed"
 
 
 class RecordError(ValueError):
-    """A recording that cannot start (folder not empty, codec unavailable): names the folder."""
+    """A recording that cannot start (the folder is not empty, or cannot be written): ``problem`` names the
+    folder; the message puts the key that gives it first (``record.path: ...``; ``companion run`` names the
+    config file with it, or ``--record``)."""
+
+    def __init__(self, problem: str):
+        super().__init__(f"record.path: {problem}")
+        self.problem = problem
 
 
 @dataclass(frozen=True)
@@ -198,17 +204,17 @@ class Recorder:
                  groundtruth: Path | None = None, source: str = "", attitude_of_frames: bool = False):
         self.params = params
         self.folder = expand_folder(params.path)
-        if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
-            raise RecordError(f"record: {self.folder} already exists and is not an empty folder; "
-                              "choose a new one (a {time} in the path makes one per run)")
-        try:
+        try:   # an unreadable parent makes even exists() fail (PermissionError): the same one line
+            if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
+                raise RecordError(f"{self.folder} already exists and is not an empty folder; "
+                                  "choose a new one (a {time} in the path makes one per run)")
             self.folder.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(map_path, self.folder / MAP_FILE)
             if groundtruth is not None and groundtruth.is_file():
                 shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
             folder = os.stat(self.folder)
         except OSError as error:
-            raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
+            raise RecordError(f"cannot write {self.folder}: {error.strerror or error}") from None
         self._folder_id = (folder.st_dev, folder.st_ino)
         self.camera = camera
         self.source = source
@@ -231,7 +237,7 @@ class Recorder:
             self._open_tables()
             self._write_info()
         except OSError as error:
-            raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
+            raise RecordError(f"cannot write {self.folder}: {error.strerror or error}") from None
 
     # ------------------------------------------------------ pipeline thread
 
