@@ -358,22 +358,57 @@ def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
     assert [int(t) for t in open_recording(tmp_path / "flight").t_ns] == [0, 33_000_000, 66_000_000]
 
 
-def test_a_nearly_full_disk_stops_the_recording_cleanly(tmp_path):
-    """The disk's real free space, with the floor set above it: the recording stops at its first check,
-    says why, and leaves a folder that replays."""
+def test_a_disk_without_room_refuses_the_recording_at_the_start_and_vision_goes_on(tmp_path):
+    """Less than min_free_mb free when the daemon starts (the disk's real free space, with the floor set
+    above it): the recording is not started, one line says why, no folder is made; every frame is still
+    processed and sent."""
+    folder = tmp_path / "flight"
     floor_mb = shutil.disk_usage(tmp_path).free / 1e6 + 1000.0
-    config = config_from_dict({
-        "source": {"kind": "replay", "path": str(HOVER), "realtime": False},
-        "map": str(MAP),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0},
-        "record": {"path": str(tmp_path / "flight"), "min_free_mb": floor_mb},
-    }, tmp_path / "daemon.yaml")
-    daemon = Daemon(config)
-    assert daemon.run() == 0
-    info = yaml.safe_load((tmp_path / "flight" / "sequence.yaml").read_text())
-    assert info["stopped"].startswith("disk nearly full (") and info["frames"] < 31
-    assert daemon.pipeline.stats.frames == 31
-    assert len(open_recording(tmp_path / "flight").t_ns) == info["frames"]
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP),
+                          record={"path": str(folder), "min_free_mb": floor_mb})
+    run = run_companion(config)
+    assert run.returncode == 0, run.stderr
+    said = [line for line in run.stderr.splitlines() if "recording" in line or str(folder) in line]
+    assert len(said) == 1 and re.search(
+        r"WARNING companion: recording not started: [0-9.]+ MB free on the disk of " + re.escape(
+            f"{folder}, less than record.min_free_mb ({floor_mb:g} MB); the daemon goes on without it") + "$",
+        said[0]), said
+    assert not folder.exists()
+    assert re.search(r"frames 31, sent [1-9]", run.stderr), run.stderr
+
+
+def test_a_recording_that_holds_no_frame_is_removed(tmp_path, caplog):
+    """Nothing to replay: what the recorder wrote goes, and the folder if it made it (one it was given
+    empty stays, empty)."""
+    camera = CameraModel.from_config(yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover")
+    given = tmp_path / "given"
+    given.mkdir()
+    for folder in (tmp_path / "new" / "flight", given):
+        recorder = Recorder(RecordParams(path=folder), camera, MAP)
+        recorder.start()
+        assert (folder / "sequence.yaml").is_file()
+        recorder.close()
+    assert not (tmp_path / "new" / "flight").exists() and (tmp_path / "new").is_dir()
+    assert given.is_dir() and list(given.iterdir()) == []
+    said = [r.getMessage() for r in caplog.records if "no frame recorded" in r.getMessage()]
+    assert said == [f"recording: no frame recorded (the daemon stopped); {tmp_path / 'new' / 'flight'} removed",
+                    f"recording: no frame recorded (the daemon stopped); {given} left empty"]
+
+
+def test_a_table_the_disk_took_part_of_is_cut_after_its_last_whole_row(tmp_path):
+    """A full disk stops a flush anywhere, in a row or in the header: what is left is whole rows."""
+    from companion.daemon.record import count_rows, cut_after_last_line
+    table = tmp_path / "estimates.csv"
+    table.write_bytes(b"frame,t_ns,file\r\n0,0,\r\n1,33,\r\n2,6")
+    cut_after_last_line(table)
+    assert table.read_bytes() == b"frame,t_ns,file\r\n0,0,\r\n1,33,\r\n" and count_rows(table) == 2
+    table.write_bytes(b"frame,t_n")
+    cut_after_last_line(table)
+    assert table.read_bytes() == b"" and count_rows(table) == 0
+    long = b"x" * 100_000 + b"\n" + b"y" * 100_000   # the end is read back in blocks
+    table.write_bytes(long)
+    cut_after_last_line(table)
+    assert table.stat().st_size == 100_001
 
 
 # ------------------------------------------------------ faults while recording

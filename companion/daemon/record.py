@@ -21,7 +21,10 @@ a bounded budget (``queue_frames``); when the writer thread falls behind (a
 slow disk) the image is dropped and counted, its estimate row is still
 written, and the pipeline never waits. The recording stops by itself at
 ``max_duration_s`` or ``max_size_mb``, when the disk is nearly full (logged
-once, with the reason), on a write error, or when the daemon stops.
+once, with the reason), on a write error, or when the daemon stops; it is not
+started on a disk with less than ``min_free_mb`` free. A recording that stops,
+whatever the reason, leaves whole rows only (a row the disk took part of is cut
+off); one that holds no frame is removed. A recording failure never stops the daemon.
 """
 from __future__ import annotations
 
@@ -44,6 +47,7 @@ import yaml
 from companion.capture.attitude_csv import ATTITUDE_FILE, COLUMNS as ATTITUDE_COLUMNS, attitude_row
 from companion.capture.replay import SEQUENCE_FILE, TIMESTAMPS_FILE
 from companion.daemon.pipeline import FrameRecord
+from companion.files import write_whole
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, Frame
@@ -80,7 +84,6 @@ DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "qual
 
 # rows (estimates, detections) waiting for the writer beyond which even rows are dropped
 MAX_QUEUED_ROWS = 2000
-SIZE_CHECK_EVERY_FRAMES = 15
 FLUSH_INTERVAL_S = 1.0
 FOLDER_GONE = "the folder was removed"
 
@@ -105,7 +108,7 @@ class RecordParams:
     codec: a key of ``CODECS``; jpeg_quality: 1-100, for mjpg.
     max_duration_s, max_size_mb: the recording stops (the daemon goes on) at
         whichever comes first; and when the disk has less than ``min_free_mb``
-        (or two seconds of recording) left.
+        (or two seconds of recording) left: with less at the start, it does not start.
     queue_frames: images waiting for the disk before new ones are dropped.
     """
 
@@ -204,18 +207,6 @@ class Recorder:
                  groundtruth: Path | None = None, source: str = "", attitude_of_frames: bool = False):
         self.params = params
         self.folder = expand_folder(params.path)
-        try:   # an unreadable parent makes even exists() fail (PermissionError): the same one line
-            if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
-                raise RecordError(f"{self.folder} already exists and is not an empty folder; "
-                                  "choose a new one (a {time} in the path makes one per run)")
-            self.folder.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(map_path, self.folder / MAP_FILE)
-            if groundtruth is not None and groundtruth.is_file():
-                shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
-            folder = os.stat(self.folder)
-        except OSError as error:
-            raise RecordError(f"cannot write {self.folder}: {error.strerror or error}") from None
-        self._folder_id = (folder.st_dev, folder.st_ino)
         self.camera = camera
         self.source = source
         self.attitude_of_frames = attitude_of_frames
@@ -228,16 +219,53 @@ class Recorder:
         self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
         self._image_budget = threading.Semaphore(params.queue_frames)
         self._stopped = threading.Event()   # no more rows taken (limit reached, error, close)
+        self._refused = False               # not started for want of room: nothing written, nothing to close
+        self._finished = False
         self._said_folder_gone = False
+        self._made_folder = False
+        self._folder_id: tuple[int, int] | None = None
         self._writer: cv2.VideoWriter | None = None
         self._files = {}
         self._csv = {}
         self._thread = threading.Thread(target=self._run, name="record", daemon=True)
-        try:
+        try:   # an unreadable parent makes even exists() fail (PermissionError): the same one line
+            if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
+                raise RecordError(f"{self.folder} already exists and is not an empty folder; "
+                                  "choose a new one (a {time} in the path makes one per run)")
+            no_room = self._room_problem()
+            if no_room is not None:   # said at start(); no folder is made
+                self._refused = True
+                self._stop(no_room)
+                return
+            self._made_folder = not self.folder.exists()
+            self.folder.mkdir(parents=True, exist_ok=True)
+            folder = os.stat(self.folder)
+            self._folder_id = (folder.st_dev, folder.st_ino)
+            shutil.copyfile(map_path, self.folder / MAP_FILE)
+            if groundtruth is not None and groundtruth.is_file():
+                shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
             self._open_tables()
             self._write_info()
         except OSError as error:
+            for handle in self._files.values():
+                try:
+                    handle.close()
+                except OSError:
+                    pass
+            if self._folder_id is not None:   # the folder was new or empty: what is in it is ours
+                self._remove_files()
             raise RecordError(f"cannot write {self.folder}: {error.strerror or error}") from None
+
+    def _room_problem(self) -> str | None:
+        """Why the disk has no room for a recording (checked before anything is written), or None."""
+        existing = self.folder
+        while not existing.exists():
+            existing = existing.parent
+        free_mb = shutil.disk_usage(existing).free / 1e6
+        if free_mb < self.params.min_free_mb:
+            return (f"{free_mb:.1f} MB free on the disk of {self.folder}, less than record.min_free_mb "
+                    f"({self.params.min_free_mb:g} MB)")
+        return None
 
     # ------------------------------------------------------ pipeline thread
 
@@ -270,6 +298,9 @@ class Recorder:
     # -------------------------------------------------------------- control
 
     def start(self) -> None:
+        if self._refused:
+            log.warning("recording not started: %s; the daemon goes on without it", self.stop_reason)
+            return
         self._thread.start()
         log.info("recording to %s (%s, at most %.0f s or %.0f MB)", self.folder, self.params.codec,
                  self.params.max_duration_s, self.params.max_size_mb)
@@ -277,6 +308,8 @@ class Recorder:
     def close(self) -> None:
         """Stop taking frames, write what is queued, close the files; idempotent."""
         self._stop("the daemon stopped")
+        if self._refused:
+            return
         if self._thread.is_alive():
             self._thread.join(timeout=10.0)
         elif not self._thread.ident:
@@ -390,14 +423,15 @@ class Recorder:
         return writer
 
     def _check_limits(self, t_ns: int) -> None:
+        """After every frame (a stat of the folder and its files, and of the disk: cheap beside the frame)."""
         duration_s = (t_ns - self._t0_ns) * 1e-9
-        if self.counters.rows % SIZE_CHECK_EVERY_FRAMES == 0 and self._folder_gone():
+        if self._folder_gone():
             self._stop(FOLDER_GONE)
             self._say_folder_gone()
             return
         if duration_s >= self.params.max_duration_s:
             self._stop(f"duration limit reached ({self.params.max_duration_s:g} s)")
-        elif self.counters.rows % SIZE_CHECK_EVERY_FRAMES == 0:
+        else:
             self.counters.bytes = folder_bytes(self.folder)
             free_mb = shutil.disk_usage(self.folder).free / 1e6
             # keep room for the last rows, the index ffmpeg writes on closing and for the rest of the system
@@ -430,36 +464,71 @@ class Recorder:
             self._csv[name].writerow(header)
 
     def _finish(self) -> None:
+        """Close the video and the tables and leave a folder that holds only whole things (see
+        ``_make_whole``); a recording that holds no frame is removed, there is nothing to replay."""
+        if self._finished:
+            return
+        self._finished = True
         if self._writer is not None:
             self._writer.release()
             self._writer = None
         gone = self._folder_gone()
+        unwritten, why = [], ""
         for name, handle in self._files.items():
             try:
                 handle.close()
             except OSError as error:   # the last rows could not be flushed (disk full)
-                if not gone:
-                    log.error("recording: %s: %s", self.folder / name, error.strerror or error)
+                unwritten.append(name)
+                why = error.strerror or str(error)
         if gone:   # nothing to finish: what was written went with the folder
             self._stop(FOLDER_GONE)
             self._say_folder_gone()
             return
+        if unwritten:
+            log.error("recording: the last rows of %s could not be written (%s)", ", ".join(unwritten), why)
+        try:
+            self._make_whole()
+        except OSError as error:
+            log.error("recording: cannot read back %s: %s", self.folder, error.strerror or error)
+        if self.counters.frames == 0:
+            self._remove_files()
+            log.warning("recording: no frame recorded (%s); %s %s", self.stop_reason or "recording",
+                        self.folder, "removed" if not self.folder.exists() else "left empty")
+            return
         attitude = self.folder / ATTITUDE_FILE
         if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
             attitude.unlink()   # no attitude from the link: no file
-        if self.counters.frames == 0:
-            (self.folder / TIMESTAMPS_FILE).unlink(missing_ok=True)   # nothing to replay
         self.counters.bytes = folder_bytes(self.folder)
         try:
             self._write_info()
-        except OSError as error:
+        except OSError as error:   # the one written at the start stays: camera and map, what replay needs
             log.error("recording: cannot write %s: %s", self.folder / SEQUENCE_FILE, error.strerror or error)
         log.info("recorded %d frames (%d dropped) to %s: %s", self.counters.frames, self.counters.dropped_frames,
                  self.folder, self.stop_reason or "recording")
 
+    def _make_whole(self) -> None:
+        """Cut each table after its last whole line (a full disk stops a flush anywhere in a row), and count
+        the frames in what is left of timestamps.csv."""
+        for name in self._files:
+            cut_after_last_line(self.folder / name)
+        self.counters.frames = count_rows(self.folder / TIMESTAMPS_FILE)
+
+    def _remove_files(self) -> None:
+        """Remove what the recording wrote, and the folder if it made it (it was new or empty)."""
+        for name in (VIDEO_FILE, *self._files, GROUNDTRUTH_FILE, MAP_FILE, SEQUENCE_FILE):
+            try:
+                (self.folder / name).unlink(missing_ok=True)
+            except OSError:
+                pass
+        if self._made_folder:
+            try:
+                self.folder.rmdir()
+            except OSError:
+                pass
+
     def _write_info(self) -> None:
         """sequence.yaml: written at start (a crash still leaves a readable folder) and at the end."""
-        timestamps = self.folder / TIMESTAMPS_FILE
+        t_ns = recorded_times(self.folder / TIMESTAMPS_FILE) if self.counters.frames else np.zeros(0, np.int64)
         info = {
             "generator": "companion run --record",
             "started_utc": self._started_utc,
@@ -469,25 +538,53 @@ class Recorder:
             "video": VIDEO_FILE if self.counters.frames else None,
             "video_codec": self.params.codec,
             "frames": self.counters.frames,
-            "fps": recorded_fps(timestamps) if self.counters.frames > 1 else None,
-            "duration_s": (self._last_t_ns - self._t0_ns) * 1e-9 if self._last_t_ns is not None else 0.0,
+            "fps": recorded_fps(t_ns),
+            "duration_s": float(t_ns[-1] - t_ns[0]) * 1e-9 if len(t_ns) else 0.0,
             "pipeline_frames": self.counters.rows,
             "dropped_frames": self.counters.dropped_frames,
             "dropped_rows": self.counters.dropped_rows,
             "size_mb": round(self.counters.bytes / 1e6, 3),
             "stopped": self.stop_reason or "recording",
         }
-        (self.folder / SEQUENCE_FILE).write_text(yaml.safe_dump(info, sort_keys=False))
+        write_whole(self.folder / SEQUENCE_FILE, yaml.safe_dump(info, sort_keys=False))
 
 
-def recorded_fps(timestamps: Path) -> float | None:
-    """Frames per second from the median spacing of timestamps.csv."""
+def recorded_times(timestamps: Path) -> np.ndarray:
+    """The t_ns column of timestamps.csv."""
     with open(timestamps, newline="") as handle:
-        t_ns = np.array([int(r["t_ns"]) for r in csv.DictReader(handle)], dtype=np.int64)
+        return np.array([int(r["t_ns"]) for r in csv.DictReader(handle)], dtype=np.int64)
+
+
+def recorded_fps(t_ns: np.ndarray) -> float | None:
+    """Frames per second from the median spacing of the frames' times."""
     if len(t_ns) < 2:
         return None
     spacing_ns = float(np.median(np.diff(t_ns)))
     return round(1e9 / spacing_ns, 3) if spacing_ns > 0 and math.isfinite(spacing_ns) else None
+
+
+def cut_after_last_line(path: Path) -> None:
+    """Truncate ``path`` after its last newline: a row the disk took only part of is not left half there.
+    Only the end is read; truncating takes no room on a full disk."""
+    with open(path, "rb") as handle:
+        size = handle.seek(0, os.SEEK_END)
+        end = size
+        while end > 0:
+            start = max(0, end - 65536)
+            handle.seek(start)
+            newline = handle.read(end - start).rfind(b"\n")
+            if newline >= 0:
+                end = start + newline + 1
+                break
+            end = start
+    if end < size:
+        os.truncate(path, end)
+
+
+def count_rows(table: Path) -> int:
+    """The rows of a CSV file under its header line (0 when not even the header is there)."""
+    with open(table, "rb") as handle:
+        return max(0, sum(1 for _ in handle) - 1)
 
 
 def folder_bytes(folder: Path) -> int:
