@@ -12,6 +12,7 @@ import datetime
 import math
 import os
 import re
+import resource
 import shutil
 import signal
 import subprocess
@@ -20,6 +21,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -454,3 +456,112 @@ def test_a_recording_folder_removed_mid_run_is_said_once_and_vision_goes_on(tmp_
     said = [line for line in log.splitlines() if str(folder) in line]
     assert len(said) == 2 and "recording to" in said[0] and "removed" in said[1], log
     assert not folder.exists()
+
+
+def run_with_file_limit(args: list[str], limit_bytes: int, foresee: bool = True) -> subprocess.CompletedProcess:
+    """``companion ARGS`` in a child whose files may not pass ``limit_bytes`` (RLIMIT_FSIZE: a write past it
+    fails with EFBIG, as a full disk's with ENOSPC). foresee=False: the recorder is not told of the limit
+    (``record.file_size_limit``), as of a limit it cannot know (a file system's own, a quota)."""
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of the process being killed
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    code = ("import sys; import companion.daemon.record as record; "
+            + ("" if foresee else "record.file_size_limit = lambda: None; ")
+            + "from companion.cli import main; sys.exit(main(sys.argv[1:]))")
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          preexec_fn=limit, timeout=120, cwd=REPO)
+
+
+def replayed(folder: Path, tmp_path: Path) -> subprocess.CompletedProcess:
+    """The daemon replaying ``folder`` as fast as possible."""
+    return run_companion(write_config(tmp_path, {"kind": "replay", "path": str(folder), "realtime": False}))
+
+
+@pytest.mark.parametrize("codec", ["ffv1", "mjpg"])
+def test_a_file_size_limit_stops_the_recording_before_the_video_is_cut(tmp_path, codec):
+    """Files may not pass 1.5 MB (the hover flight's video is 2 MB): OpenCV's writer would say nothing of
+    the writes refused. The recording stops before, says why in the log and in sequence.yaml, and the
+    video holds every frame timestamps.csv lists; the daemon processes every frame."""
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP),
+                          record={"path": str(folder), "codec": codec})
+    run = run_with_file_limit(["run", "--config", str(config)], 1_500_000)
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr
+    info = yaml.safe_load((folder / "sequence.yaml").read_text())
+    assert info["stopped"].startswith("file size limit reached (video.avi at "), info["stopped"]
+    assert f"recording stopped: {info['stopped']}; {info['frames']} frames in {folder}" in run.stderr
+    assert re.search(r"frames 31, sent [1-9]", run.stderr), run.stderr
+    listed = [int(r["frame"]) for r in read_rows(folder / "timestamps.csv")]
+    assert 0 < info["frames"] == len(listed) < 31
+    assert sorted(decoded_frames(folder)) == listed
+    again = replayed(folder, tmp_path)
+    assert again.returncode == 0 and f"frames {len(listed)}, " in again.stderr and "corrupt 0" in again.stderr, \
+        again.stderr
+
+
+def test_a_video_the_disk_refused_is_said_and_its_frames_counted_honestly(tmp_path):
+    """A limit the recorder does not know of (its check of RLIMIT_FSIZE left out): the video is cut at
+    1.2 MB, mid-frame, and OpenCV's writer says nothing. At the stop the video file tells: timestamps.csv
+    lists only the frames it holds whole, the count says so, the log and sequence.yaml say why; the
+    folder replays and `companion report` reads it."""
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP))
+    run = run_with_file_limit(["run", "--config", str(config), "--record", str(folder)], 1_200_000, foresee=False)
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr
+    info = yaml.safe_load((folder / "sequence.yaml").read_text())
+    held = len(decoded_frames(folder))
+    assert 0 < held < 31
+    assert info["frames"] == held and len(read_rows(folder / "timestamps.csv")) == held
+    assert info["stopped"] == f"video write failed: video.avi holds {held} of the 31 frames written " \
+                              "(the disk refused the rest)"
+    said = [line for line in run.stderr.splitlines() if " ERROR " in line]
+    assert len(said) == 1 and f"{folder / 'video.avi'} holds {held} of the 31 frames written" in said[0], said
+    assert f"recorded {held} frames (0 dropped) to {folder}: video write failed" in run.stderr
+    again = replayed(folder, tmp_path)
+    assert again.returncode == 0 and f"frames {held}, " in again.stderr and "corrupt 0" in again.stderr, \
+        again.stderr
+    report = subprocess.run([sys.executable, "-m", "companion", "report", str(folder)], capture_output=True,
+                            text=True, timeout=120)
+    assert report.returncode == 0, report.stderr
+
+
+def test_a_file_size_limit_too_small_for_a_video_refuses_the_recording_at_the_start(tmp_path):
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP))
+    run = run_with_file_limit(["run", "--config", str(config), "--record", str(folder)], 200_000)
+    assert run.returncode == 0, run.stderr
+    said = [line for line in run.stderr.splitlines() if "recording" in line or str(folder) in line]
+    assert len(said) == 1 and said[0].endswith(
+        "recording not started: a file may have at most 0.20 MB here (RLIMIT_FSIZE, ulimit -f), too little for "
+        "a video; the daemon goes on without it"), said
+    assert not folder.exists()
+    assert re.search(r"frames 31, sent [1-9]", run.stderr), run.stderr
+
+
+def test_avi_frames_counts_the_frames_a_cut_video_holds_whole(tmp_path):
+    """Both writers' AVI files, whole and cut mid-frame: the frames held whole (a decoder may make something
+    of the cut one, in pieces)."""
+    from companion.daemon.record import avi_frames
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 256, (480, 640), dtype=np.uint8) for _ in range(5)]
+    for codec in ("ffv1", "mjpg"):
+        recorder = Recorder(RecordParams(path=tmp_path / codec, codec=codec), CameraModel.from_config(
+            yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover"), MAP)
+        recorder.start()
+        from companion.daemon.pipeline import FrameRecord
+        from companion.types import Frame
+        for index, image in enumerate(images):
+            record = FrameRecord(index, 1_000 + index * 33_000_000, 0, (0, 0, 0, 0), False, None, (), None, None)
+            recorder(Frame(image, record.t_ns, index), record)
+        recorder.close()
+        video = tmp_path / codec / "video.avi"
+        assert avi_frames(video) == 5 == len(decoded_frames(tmp_path / codec))
+        cut = tmp_path / f"cut-{codec}.avi"
+        cut.write_bytes(video.read_bytes()[:video.stat().st_size * 3 // 5])   # in the third frame's data
+        count, capture = 0, cv2.VideoCapture(str(cut))
+        while capture.grab():
+            count += 1
+        assert avi_frames(cut) == 2 and count in (2, 3), codec

@@ -21,10 +21,14 @@ a bounded budget (``queue_frames``); when the writer thread falls behind (a
 slow disk) the image is dropped and counted, its estimate row is still
 written, and the pipeline never waits. The recording stops by itself at
 ``max_duration_s`` or ``max_size_mb``, when the disk is nearly full (logged
-once, with the reason), on a write error, or when the daemon stops; it is not
-started on a disk with less than ``min_free_mb`` free. A recording that stops,
-whatever the reason, leaves whole rows only (a row the disk took part of is cut
-off); one that holds no frame is removed. A recording failure never stops the daemon.
+once, with the reason), on a write error, before a file would pass the
+process's file size limit (RLIMIT_FSIZE), or when the daemon stops; it is not
+started on a disk with less than ``min_free_mb`` free. OpenCV's video writer
+does not report a refused write: at the stop the video is read back for the
+frames it holds whole (``avi_frames``) and timestamps.csv lists only those. A
+recording that stops, whatever the reason, leaves whole rows only (a row the
+disk took part of is cut off); one that holds no frame is removed. A recording
+failure never stops the daemon.
 """
 from __future__ import annotations
 
@@ -34,6 +38,7 @@ import logging
 import math
 import os
 import queue
+import resource
 import shutil
 import threading
 import time
@@ -86,6 +91,12 @@ DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "qual
 MAX_QUEUED_ROWS = 2000
 FLUSH_INTERVAL_S = 1.0
 FOLDER_GONE = "the folder was removed"
+# Kept below a file size limit (RLIMIT_FSIZE): the frame about to be written and what the video writer
+# still holds (its buffer: 256 KiB for OpenCV's FFmpeg, 32 KiB for its MJPEG writer) are at most two of the
+# largest steps the video's size was seen to take, at least this; and the index written on closing.
+FILE_LIMIT_MIN_STEPS_BYTES = 1 << 20
+FILE_LIMIT_SLACK_BYTES = 64 << 10
+INDEX_BYTES_PER_FRAME = 32
 
 
 class RecordError(ValueError):
@@ -224,6 +235,9 @@ class Recorder:
         self._said_folder_gone = False
         self._made_folder = False
         self._folder_id: tuple[int, int] | None = None
+        self._file_limit = file_size_limit()
+        self._video_bytes = 0   # the video's size on disk at the last check
+        self._video_step = 0    # the largest growth of the video's size between two checks
         self._writer: cv2.VideoWriter | None = None
         self._files = {}
         self._csv = {}
@@ -265,7 +279,15 @@ class Recorder:
         if free_mb < self.params.min_free_mb:
             return (f"{free_mb:.1f} MB free on the disk of {self.folder}, less than record.min_free_mb "
                     f"({self.params.min_free_mb:g} MB)")
+        if self._file_limit is not None and self._file_limit < self._file_reserve():
+            return (f"a file may have at most {self._file_limit / 1e6:.2f} MB here (RLIMIT_FSIZE, ulimit -f), "
+                    "too little for a video")
         return None
+
+    def _file_reserve(self) -> int:
+        """Bytes a file keeps below the file size limit (see FILE_LIMIT_MIN_STEPS_BYTES)."""
+        return (max(2 * self._video_step, FILE_LIMIT_MIN_STEPS_BYTES) + FILE_LIMIT_SLACK_BYTES
+                + INDEX_BYTES_PER_FRAME * (self.counters.frames + 1))
 
     # ------------------------------------------------------ pipeline thread
 
@@ -432,7 +454,12 @@ class Recorder:
         if duration_s >= self.params.max_duration_s:
             self._stop(f"duration limit reached ({self.params.max_duration_s:g} s)")
         else:
-            self.counters.bytes = folder_bytes(self.folder)
+            sizes = file_sizes(self.folder)
+            self.counters.bytes = sum(sizes.values())
+            video_bytes = sizes.get(VIDEO_FILE, 0)
+            self._video_step = max(self._video_step, video_bytes - self._video_bytes)
+            self._video_bytes = video_bytes
+            largest = max(sizes, key=sizes.get)
             free_mb = shutil.disk_usage(self.folder).free / 1e6
             # keep room for the last rows, the index ffmpeg writes on closing and for the rest of the system
             reserve_mb = max(self.params.min_free_mb, 2.0 * self.counters.bytes / 1e6 / max(duration_s, 1.0))
@@ -440,6 +467,10 @@ class Recorder:
                 self._stop(f"size limit reached ({self.params.max_size_mb:g} MB)")
             elif free_mb < reserve_mb:
                 self._stop(f"disk nearly full ({free_mb:.1f} MB free, {reserve_mb:.1f} MB kept free)")
+            elif self._file_limit is not None and sizes[largest] + self._file_reserve() > self._file_limit:
+                # OpenCV's video writer says nothing of a write the kernel refuses: stopped before
+                self._stop(f"file size limit reached ({largest} at {sizes[largest] / 1e6:.2f} MB of the "
+                           f"{self._file_limit / 1e6:.2f} MB a file may have here: RLIMIT_FSIZE, ulimit -f)")
         if self._limit_reached():
             log.warning("recording stopped: %s; %d frames in %s (the daemon goes on)",
                         self.stop_reason, self.counters.frames, self.folder)
@@ -507,11 +538,23 @@ class Recorder:
                  self.folder, self.stop_reason or "recording")
 
     def _make_whole(self) -> None:
-        """Cut each table after its last whole line (a full disk stops a flush anywhere in a row), and count
-        the frames in what is left of timestamps.csv."""
+        """Cut each table after its last whole line (a full disk stops a flush anywhere in a row), and
+        timestamps.csv after the last frame the video holds whole: OpenCV's writer says nothing of a write
+        the disk refused (full, a file size limit the checks did not foresee), the video file tells. A video
+        that lost frames is the reason the recording stopped (unless a write error came first)."""
         for name in self._files:
             cut_after_last_line(self.folder / name)
-        self.counters.frames = count_rows(self.folder / TIMESTAMPS_FILE)
+        timestamps, video = self.folder / TIMESTAMPS_FILE, self.folder / VIDEO_FILE
+        listed = count_rows(timestamps)
+        held = avi_frames(video) if video.is_file() else 0
+        if held < listed:
+            keep_rows(timestamps, held)
+            if not (self.stop_reason or "").startswith("write failed"):
+                self.stop_reason = (f"video write failed: {VIDEO_FILE} holds {held} of the {listed} frames "
+                                    "written (the disk refused the rest)")
+            log.error("recording: %s holds %d of the %d frames written: the disk refused the rest (full, or a "
+                      "file size limit); %s lists those %d", video, held, listed, TIMESTAMPS_FILE, held)
+        self.counters.frames = min(listed, held)
 
     def _remove_files(self) -> None:
         """Remove what the recording wrote, and the folder if it made it (it was new or empty)."""
@@ -581,11 +624,65 @@ def cut_after_last_line(path: Path) -> None:
         os.truncate(path, end)
 
 
+def keep_rows(table: Path, rows: int) -> None:
+    """Truncate a CSV file after its header line and ``rows`` rows."""
+    with open(table, "rb") as handle:
+        end = sum(len(line) for _, line in zip(range(rows + 1), handle))
+    os.truncate(table, end)
+
+
+def avi_frames(path: Path) -> int:
+    """How many frames an AVI file holds whole: its video chunks (``##dc``, ``##db`` in a ``movi`` list)
+    that end inside the file, in order, up to the first that does not (or is empty: a size never set). A
+    writer the disk stopped leaves a file that ends inside a chunk, and RIFF and list sizes it never set
+    (0, or past the end of the file): those are taken to reach the end of the file. Reads 12 bytes a chunk."""
+    size = os.path.getsize(path)
+    frames = 0
+    with open(path, "rb") as handle:
+        def walk(start: int, end: int, in_movi: bool) -> bool:   # False: the file ended inside a frame
+            nonlocal frames
+            position = start
+            while position + 8 <= end:
+                handle.seek(position)
+                header = handle.read(12)
+                tag, length = header[:4], int.from_bytes(header[4:8], "little")
+                if tag in (b"RIFF", b"LIST") and len(header) == 12:
+                    list_end = position + 8 + length
+                    if length < 4 or list_end > end:
+                        list_end = end
+                    kind = header[8:12]
+                    if kind in (b"AVI ", b"AVIX", b"movi", b"rec "):
+                        if not walk(position + 12, list_end, in_movi or kind == b"movi"):
+                            return False
+                    position = list_end + (length & 1 if list_end < end else 0)
+                    continue
+                if in_movi and tag[2:4] in (b"dc", b"db"):
+                    if length == 0 or position + 8 + length > size:   # OpenCV's MJPEG writer sets it last
+                        return False
+                    frames += 1
+                position += 8 + length + (length & 1)
+            return True
+
+        walk(0, size, False)
+    return frames
+
+
 def count_rows(table: Path) -> int:
     """The rows of a CSV file under its header line (0 when not even the header is there)."""
     with open(table, "rb") as handle:
         return max(0, sum(1 for _ in handle) - 1)
 
 
+def file_sizes(folder: Path) -> dict[str, int]:
+    """Name -> size of the files in ``folder``."""
+    return {p.name: p.stat().st_size for p in folder.iterdir() if p.is_file()}
+
+
 def folder_bytes(folder: Path) -> int:
-    return sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+    return sum(file_sizes(folder).values())
+
+
+def file_size_limit() -> int | None:
+    """The largest file this process may write (RLIMIT_FSIZE, ``ulimit -f``), None when unlimited."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    return None if soft == resource.RLIM_INFINITY else soft
