@@ -565,3 +565,57 @@ def test_avi_frames_counts_the_frames_a_cut_video_holds_whole(tmp_path):
         while capture.grab():
             count += 1
         assert avi_frames(cut) == 2 and count in (2, 3), codec
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A file system of its own, 8 MB (a tmpfs: root may mount one; skipped where it cannot)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def test_a_disk_filled_under_the_recording_leaves_a_whole_folder_that_says_why(tmp_path, small_disk):
+    """Another program fills the disk while the daemon records on it (the brief's 400 KB disk, from the
+    other side): the recording stops, the log says so without a traceback, and the folder holds whole
+    rows, a timestamps.csv that lists only what the video holds, a sequence.yaml that says why and counts
+    them (the room it kept for that is given back at the stop), and it replays."""
+    folder = small_disk / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
+                          map=str(MAP), record={"path": str(folder), "min_free_mb": 0.5})
+    log_path = tmp_path / "stderr.txt"
+    with open(log_path, "w") as log_file:
+        daemon = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config)],
+                                  stdout=subprocess.DEVNULL, stderr=log_file)
+        try:
+            wait_for(lambda: (folder / "timestamps.csv").is_file()
+                     and len((folder / "timestamps.csv").read_text().splitlines()) > 3, "recorded frames")
+            with open(small_disk / "filler", "wb", buffering=0) as filler:   # every block left
+                try:
+                    while filler.write(bytes(4096)):
+                        pass
+                except OSError:
+                    pass
+            wait_for(lambda: " recorded " in log_path.read_text(), "the recording to stop", timeout_s=30.0)
+        finally:
+            daemon.send_signal(signal.SIGINT)
+            daemon.wait(timeout=30)
+    log = log_path.read_text()
+    assert daemon.returncode == 0 and "Traceback" not in log, log
+    info = yaml.safe_load((folder / "sequence.yaml").read_text())
+    rows = read_rows(folder / "timestamps.csv")
+    assert info["frames"] == len(rows) > 0, info
+    assert info["stopped"].startswith(("disk nearly full", "write failed: No space left", "video write failed")), info
+    assert f"recorded {len(rows)} frames (0 dropped) to {folder}: {info['stopped']}" in log, log
+    for table in ("timestamps.csv", "estimates.csv", "detections.csv"):
+        assert (folder / table).read_bytes().endswith(b"\r\n"), table
+    assert not (folder / ".reserve").exists()
+    (small_disk / "filler").unlink()
+    again = replayed(folder, tmp_path)
+    assert again.returncode == 0 and f"frames {len(rows)}, " in again.stderr and "corrupt 0" in again.stderr, \
+        again.stderr

@@ -64,6 +64,10 @@ ESTIMATES_FILE = "estimates.csv"
 DETECTIONS_FILE = "detections.csv"
 GROUNDTRUTH_FILE = "groundtruth.csv"
 MAP_FILE = "map.yaml"
+# room taken at the start and given back at the stop, for the last rows and the final sequence.yaml when the
+# disk filled up under the recording (another program, or faster than the checks)
+RESERVE_FILE = ".reserve"
+RESERVE_BYTES = 64 << 10
 
 # codec -> what it is; both are AVI files any OpenCV/ffmpeg reads
 CODECS = {"ffv1": "FFV1, lossless",
@@ -260,6 +264,7 @@ class Recorder:
                 shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
             self._open_tables()
             self._write_info()
+            (self.folder / RESERVE_FILE).write_bytes(os.urandom(RESERVE_BYTES))   # random: not compressed away
         except OSError as error:
             for handle in self._files.values():
                 try:
@@ -504,6 +509,10 @@ class Recorder:
             self._writer.release()
             self._writer = None
         gone = self._folder_gone()
+        try:   # the room kept for what follows
+            (self.folder / RESERVE_FILE).unlink(missing_ok=True)
+        except OSError:
+            pass
         unwritten, why = [], ""
         for name, handle in self._files.items():
             try:
@@ -558,7 +567,7 @@ class Recorder:
 
     def _remove_files(self) -> None:
         """Remove what the recording wrote, and the folder if it made it (it was new or empty)."""
-        for name in (VIDEO_FILE, *self._files, GROUNDTRUTH_FILE, MAP_FILE, SEQUENCE_FILE):
+        for name in (VIDEO_FILE, *self._files, GROUNDTRUTH_FILE, MAP_FILE, SEQUENCE_FILE, RESERVE_FILE):
             try:
                 (self.folder / name).unlink(missing_ok=True)
             except OSError:
