@@ -528,20 +528,26 @@ class Recorder:
             log.error("recording: the last rows of %s could not be written (%s)", ", ".join(unwritten), why)
         try:
             self._make_whole()
+            if self.counters.frames == 0:
+                self._remove_files()
+                log.warning("recording: no frame recorded (%s); %s %s", self.stop_reason or "recording",
+                            self.folder, "removed" if not self.folder.exists() else "left empty")
+                return
+            attitude = self.folder / ATTITUDE_FILE
+            if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
+                attitude.unlink()   # no attitude from the link: no file
+            self.counters.bytes = folder_bytes(self.folder)
         except OSError as error:
+            if self._folder_gone():   # removed as the recording stopped
+                self._say_folder_gone()
+                return
             log.error("recording: cannot read back %s: %s", self.folder, error.strerror or error)
-        if self.counters.frames == 0:
-            self._remove_files()
-            log.warning("recording: no frame recorded (%s); %s %s", self.stop_reason or "recording",
-                        self.folder, "removed" if not self.folder.exists() else "left empty")
-            return
-        attitude = self.folder / ATTITUDE_FILE
-        if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
-            attitude.unlink()   # no attitude from the link: no file
-        self.counters.bytes = folder_bytes(self.folder)
         try:
             self._write_info()
         except OSError as error:   # the one written at the start stays: camera and map, what replay needs
+            if self._folder_gone():
+                self._say_folder_gone()
+                return
             log.error("recording: cannot write %s: %s", self.folder / SEQUENCE_FILE, error.strerror or error)
         log.info("recorded %d frames (%d dropped) to %s: %s", self.counters.frames, self.counters.dropped_frames,
                  self.folder, self.stop_reason or "recording")
