@@ -10,12 +10,18 @@ from __future__ import annotations
 import csv
 import datetime
 import math
+import os
+import re
+import resource
 import shutil
+import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -254,6 +260,76 @@ def test_record_section_errors_name_the_key(tmp_path, section, message):
                          tmp_path / "daemon.yaml")
 
 
+def test_a_missing_record_path_names_the_file_once(tmp_path):
+    with pytest.raises(ConfigError) as raised:
+        config_from_dict({"source": {"kind": "replay", "path": str(HOVER)}, "map": str(MAP),
+                          "record": {"codec": "ffv1"}}, tmp_path / "daemon.yaml")
+    assert str(raised.value) == f"{tmp_path / 'daemon.yaml'}: record.path: missing"
+
+
+def run_in_child(argv: list[str], as_nobody: bool) -> tuple[int, str]:
+    """``companion ARGV`` in a forked child of this process, as the user nobody when ``as_nobody`` and
+    this is root (without exec: this interpreter needs nothing more from the disk than the config and
+    the recording); returns its exit status and its stderr."""
+    import importlib
+    import tempfile
+
+    from companion.cli import main
+    importlib.import_module("companion.cli.run")   # before the fork: the child may not read the code
+    with tempfile.TemporaryFile("w+") as stderr:
+        pid = os.fork()
+        if pid == 0:
+            code = 99
+            try:
+                sys.stderr = stderr
+                if as_nobody and os.geteuid() == 0:
+                    os.setgroups([])
+                    os.setgid(65534)
+                    os.setuid(65534)
+                code = main(argv)
+            except BaseException as error:   # noqa: BLE001  the test reads it
+                print(f"child failed: {error!r}", file=stderr)
+            finally:
+                stderr.flush()
+                os._exit(code)
+        _, status = os.waitpid(pid, 0)
+        stderr.seek(0)
+        return os.waitstatus_to_exitcode(status), stderr.read()
+
+
+@pytest.mark.parametrize("blocked", ["unsearchable", "read-only", "too long"])
+@pytest.mark.parametrize("given", ["config", "--record"])
+def test_a_record_path_that_cannot_be_written_is_one_line_naming_the_key(given, blocked):
+    """A record path in a folder the daemon's user cannot enter or write in (or a name the file system
+    refuses): one line naming record.path (or --record) and the folder, exit 2, no traceback."""
+    import tempfile
+    top = Path(tempfile.mkdtemp(dir="/tmp"))   # pytest's tmp_path is root's alone
+    try:
+        os.chmod(top, 0o755)
+        sequence = shutil.copytree(HOVER, top / "hover")
+        flight_map = shutil.copyfile(MAP, top / "warehouse.yaml")
+        parent = top / "parent"
+        parent.mkdir()
+        folder = parent / ("x" * 300 if blocked == "too long" else "flight")
+        os.chmod(parent, {"unsearchable": 0o000, "read-only": 0o555, "too long": 0o755}[blocked])
+        if os.geteuid() != 0 and blocked != "too long" and os.access(parent, os.W_OK):
+            pytest.skip("this user writes anywhere")
+        config = write_config(top, {"kind": "replay", "path": str(sequence)}, map=str(flight_map),
+                              **({"record": str(folder)} if given == "config" else {}))
+        os.chmod(config, 0o644)
+        code, stderr = run_in_child(["run", "--config", str(config),
+                                     *(["--record", str(folder)] if given == "--record" else [])],
+                                    as_nobody=blocked != "too long")
+    finally:
+        os.chmod(top / "parent", 0o755)
+        shutil.rmtree(top)
+    why = "File name too long" if blocked == "too long" else "Permission denied"
+    where = f"{config}: record.path" if given == "config" else "--record"
+    assert code == 2, stderr
+    assert stderr.count("\n") == 1 and stderr.rstrip().endswith(f"ERROR companion: {where}: cannot write {folder}: {why}"), \
+        stderr
+
+
 def test_recorder_refuses_a_file_in_the_way(tmp_path):
     (tmp_path / "flight").write_text("not a folder")
     with pytest.raises(RecordError, match="flight already exists"):
@@ -284,19 +360,262 @@ def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
     assert [int(t) for t in open_recording(tmp_path / "flight").t_ns] == [0, 33_000_000, 66_000_000]
 
 
-def test_a_nearly_full_disk_stops_the_recording_cleanly(tmp_path):
-    """The disk's real free space, with the floor set above it: the recording stops at its first check,
-    says why, and leaves a folder that replays."""
+def test_a_disk_without_room_refuses_the_recording_at_the_start_and_vision_goes_on(tmp_path):
+    """Less than min_free_mb free when the daemon starts (the disk's real free space, with the floor set
+    above it): the recording is not started, one line says why, no folder is made; every frame is still
+    processed and sent."""
+    folder = tmp_path / "flight"
     floor_mb = shutil.disk_usage(tmp_path).free / 1e6 + 1000.0
-    config = config_from_dict({
-        "source": {"kind": "replay", "path": str(HOVER), "realtime": False},
-        "map": str(MAP),
-        "mavlink": {"connection": f"udpout:127.0.0.1:{free_port()}", "origin_wait_s": 0.0, "duplicate_listen_s": 0.0},
-        "record": {"path": str(tmp_path / "flight"), "min_free_mb": floor_mb},
-    }, tmp_path / "daemon.yaml")
-    daemon = Daemon(config)
-    assert daemon.run() == 0
-    info = yaml.safe_load((tmp_path / "flight" / "sequence.yaml").read_text())
-    assert info["stopped"].startswith("disk nearly full (") and info["frames"] < 31
-    assert daemon.pipeline.stats.frames == 31
-    assert len(open_recording(tmp_path / "flight").t_ns) == info["frames"]
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP),
+                          record={"path": str(folder), "min_free_mb": floor_mb})
+    run = run_companion(config)
+    assert run.returncode == 0, run.stderr
+    said = [line for line in run.stderr.splitlines() if "recording" in line or str(folder) in line]
+    assert len(said) == 1 and re.search(
+        r"WARNING companion: recording not started: [0-9.]+ MB free on the disk of " + re.escape(
+            f"{folder}, less than record.min_free_mb ({floor_mb:g} MB); the daemon goes on without it") + "$",
+        said[0]), said
+    assert not folder.exists()
+    assert re.search(r"frames 31, sent [1-9]", run.stderr), run.stderr
+
+
+def test_a_recording_that_holds_no_frame_is_removed(tmp_path, caplog):
+    """Nothing to replay: what the recorder wrote goes, and the folder if it made it (one it was given
+    empty stays, empty)."""
+    camera = CameraModel.from_config(yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover")
+    given = tmp_path / "given"
+    given.mkdir()
+    for folder in (tmp_path / "new" / "flight", given):
+        recorder = Recorder(RecordParams(path=folder), camera, MAP)
+        recorder.start()
+        assert (folder / "sequence.yaml").is_file()
+        recorder.close()
+    assert not (tmp_path / "new" / "flight").exists() and (tmp_path / "new").is_dir()
+    assert given.is_dir() and list(given.iterdir()) == []
+    said = [r.getMessage() for r in caplog.records if "no frame recorded" in r.getMessage()]
+    assert said == [f"recording: no frame recorded (the daemon stopped); {tmp_path / 'new' / 'flight'} removed",
+                    f"recording: no frame recorded (the daemon stopped); {given} left empty"]
+
+
+def test_a_table_the_disk_took_part_of_is_cut_after_its_last_whole_row(tmp_path):
+    """A full disk stops a flush anywhere, in a row or in the header: what is left is whole rows."""
+    from companion.daemon.record import count_rows, cut_after_last_line
+    table = tmp_path / "estimates.csv"
+    table.write_bytes(b"frame,t_ns,file\r\n0,0,\r\n1,33,\r\n2,6")
+    cut_after_last_line(table)
+    assert table.read_bytes() == b"frame,t_ns,file\r\n0,0,\r\n1,33,\r\n" and count_rows(table) == 2
+    table.write_bytes(b"frame,t_n")
+    cut_after_last_line(table)
+    assert table.read_bytes() == b"" and count_rows(table) == 0
+    long = b"x" * 100_000 + b"\n" + b"y" * 100_000   # the end is read back in blocks
+    table.write_bytes(long)
+    cut_after_last_line(table)
+    assert table.stat().st_size == 100_001
+
+
+# ------------------------------------------------------ faults while recording
+
+def wait_for(condition, what: str, timeout_s: float = 60.0) -> None:
+    """Wait until ``condition()`` holds (polled; the deadline is only a guard against a hang)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"gave up waiting for {what}"
+        time.sleep(0.05)
+
+
+def test_a_recording_folder_removed_mid_run_is_said_once_and_vision_goes_on(tmp_path):
+    """`rm -rf` of the folder being recorded: the recording stops, one line says why (no traceback from the
+    record thread), and the daemon keeps positioning until it is stopped."""
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
+                          map=str(MAP))
+    log_path, status_path = tmp_path / "stderr.txt", tmp_path / "stdout.txt"
+
+    def last_sent() -> int:
+        return ([0] + [int(n) for n in re.findall(r"sent (\d+)", status_path.read_text())])[-1]
+
+    with open(log_path, "w") as log_file, open(status_path, "w") as status_file:
+        daemon = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config),
+                                   "--record", str(folder)], stdout=status_file, stderr=log_file)
+        try:
+            # some frames on disk (the tables are flushed every second), then the folder goes
+            wait_for(lambda: (folder / "timestamps.csv").is_file()
+                     and len((folder / "timestamps.csv").read_text().splitlines()) > 3, "recorded frames")
+            shutil.rmtree(folder)
+            wait_for(lambda: "removed" in log_path.read_text() or "Traceback" in log_path.read_text(),
+                     "the daemon to notice", timeout_s=30.0)
+            # vision goes on: the status line's count of fixes sent still rises
+            sent_then = last_sent()
+            wait_for(lambda: last_sent() > sent_then, "more fixes sent", timeout_s=30.0)
+        finally:
+            daemon.send_signal(signal.SIGINT)
+            daemon.wait(timeout=30)
+    log = log_path.read_text()
+    assert daemon.returncode == 0, log
+    assert "Traceback" not in log and "Exception in thread" not in log, log
+    said = [line for line in log.splitlines() if str(folder) in line]
+    assert len(said) == 2 and "recording to" in said[0] and "removed" in said[1], log
+    assert not folder.exists()
+
+
+def run_with_file_limit(args: list[str], limit_bytes: int, foresee: bool = True) -> subprocess.CompletedProcess:
+    """``companion ARGS`` in a child whose files may not pass ``limit_bytes`` (RLIMIT_FSIZE: a write past it
+    fails with EFBIG, as a full disk's with ENOSPC). foresee=False: the recorder is not told of the limit
+    (``record.file_size_limit``), as of a limit it cannot know (a file system's own, a quota)."""
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # the write fails instead of the process being killed
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    code = ("import sys; import companion.daemon.record as record; "
+            + ("" if foresee else "record.file_size_limit = lambda: None; ")
+            + "from companion.cli import main; sys.exit(main(sys.argv[1:]))")
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True,
+                          preexec_fn=limit, timeout=120, cwd=REPO)
+
+
+def replayed(folder: Path, tmp_path: Path) -> subprocess.CompletedProcess:
+    """The daemon replaying ``folder`` as fast as possible."""
+    return run_companion(write_config(tmp_path, {"kind": "replay", "path": str(folder), "realtime": False}))
+
+
+@pytest.mark.parametrize("codec", ["ffv1", "mjpg"])
+def test_a_file_size_limit_stops_the_recording_before_the_video_is_cut(tmp_path, codec):
+    """Files may not pass 1.5 MB (the hover flight's video is 2 MB): OpenCV's writer would say nothing of
+    the writes refused. The recording stops before, says why in the log and in sequence.yaml, and the
+    video holds every frame timestamps.csv lists; the daemon processes every frame."""
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP),
+                          record={"path": str(folder), "codec": codec})
+    run = run_with_file_limit(["run", "--config", str(config)], 1_500_000)
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr
+    info = yaml.safe_load((folder / "sequence.yaml").read_text())
+    assert info["stopped"].startswith("file size limit reached (video.avi at "), info["stopped"]
+    assert f"recording stopped: {info['stopped']}; {info['frames']} frames in {folder}" in run.stderr
+    assert re.search(r"frames 31, sent [1-9]", run.stderr), run.stderr
+    listed = [int(r["frame"]) for r in read_rows(folder / "timestamps.csv")]
+    assert 0 < info["frames"] == len(listed) < 31
+    assert sorted(decoded_frames(folder)) == listed
+    again = replayed(folder, tmp_path)
+    assert again.returncode == 0 and f"frames {len(listed)}, " in again.stderr and "corrupt 0" in again.stderr, \
+        again.stderr
+
+
+def test_a_video_the_disk_refused_is_said_and_its_frames_counted_honestly(tmp_path):
+    """A limit the recorder does not know of (its check of RLIMIT_FSIZE left out): the video is cut at
+    1.2 MB, mid-frame, and OpenCV's writer says nothing. At the stop the video file tells: timestamps.csv
+    lists only the frames it holds whole, the count says so, the log and sequence.yaml say why; the
+    folder replays and `companion report` reads it."""
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP))
+    run = run_with_file_limit(["run", "--config", str(config), "--record", str(folder)], 1_200_000, foresee=False)
+    assert run.returncode == 0, run.stderr
+    assert "Traceback" not in run.stderr
+    info = yaml.safe_load((folder / "sequence.yaml").read_text())
+    held = len(decoded_frames(folder))
+    assert 0 < held < 31
+    assert info["frames"] == held and len(read_rows(folder / "timestamps.csv")) == held
+    assert info["stopped"] == f"video write failed: video.avi holds {held} of the 31 frames written " \
+                              "(the disk refused the rest)"
+    said = [line for line in run.stderr.splitlines() if " ERROR " in line]
+    assert len(said) == 1 and f"{folder / 'video.avi'} holds {held} of the 31 frames written" in said[0], said
+    assert f"recorded {held} frames (0 dropped) to {folder}: video write failed" in run.stderr
+    again = replayed(folder, tmp_path)
+    assert again.returncode == 0 and f"frames {held}, " in again.stderr and "corrupt 0" in again.stderr, \
+        again.stderr
+    report = subprocess.run([sys.executable, "-m", "companion", "report", str(folder)], capture_output=True,
+                            text=True, timeout=120)
+    assert report.returncode == 0, report.stderr
+
+
+def test_a_file_size_limit_too_small_for_a_video_refuses_the_recording_at_the_start(tmp_path):
+    folder = tmp_path / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": False}, map=str(MAP))
+    run = run_with_file_limit(["run", "--config", str(config), "--record", str(folder)], 200_000)
+    assert run.returncode == 0, run.stderr
+    said = [line for line in run.stderr.splitlines() if "recording" in line or str(folder) in line]
+    assert len(said) == 1 and said[0].endswith(
+        "recording not started: a file may have at most 0.20 MB here (RLIMIT_FSIZE, ulimit -f), too little for "
+        "a video; the daemon goes on without it"), said
+    assert not folder.exists()
+    assert re.search(r"frames 31, sent [1-9]", run.stderr), run.stderr
+
+
+def test_avi_frames_counts_the_frames_a_cut_video_holds_whole(tmp_path):
+    """Both writers' AVI files, whole and cut mid-frame: the frames held whole (a decoder may make something
+    of the cut one, in pieces)."""
+    from companion.daemon.record import avi_frames
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 256, (480, 640), dtype=np.uint8) for _ in range(5)]
+    for codec in ("ffv1", "mjpg"):
+        recorder = Recorder(RecordParams(path=tmp_path / codec, codec=codec), CameraModel.from_config(
+            yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover"), MAP)
+        recorder.start()
+        from companion.daemon.pipeline import FrameRecord
+        from companion.types import Frame
+        for index, image in enumerate(images):
+            record = FrameRecord(index, 1_000 + index * 33_000_000, 0, (0, 0, 0, 0), False, None, (), None, None)
+            recorder(Frame(image, record.t_ns, index), record)
+        recorder.close()
+        video = tmp_path / codec / "video.avi"
+        assert avi_frames(video) == 5 == len(decoded_frames(tmp_path / codec))
+        cut = tmp_path / f"cut-{codec}.avi"
+        cut.write_bytes(video.read_bytes()[:video.stat().st_size * 3 // 5])   # in the third frame's data
+        count, capture = 0, cv2.VideoCapture(str(cut))
+        while capture.grab():
+            count += 1
+        assert avi_frames(cut) == 2 and count in (2, 3), codec
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A file system of its own, 8 MB (a tmpfs: root may mount one; skipped where it cannot)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def test_a_disk_filled_under_the_recording_leaves_a_whole_folder_that_says_why(tmp_path, small_disk):
+    """Another program fills the disk while the daemon records on it (the brief's 400 KB disk, from the
+    other side): the recording stops, the log says so without a traceback, and the folder holds whole
+    rows, a timestamps.csv that lists only what the video holds, a sequence.yaml that says why and counts
+    them (the room it kept for that is given back at the stop), and it replays."""
+    folder = small_disk / "flight"
+    config = write_config(tmp_path, {"kind": "replay", "path": str(HOVER), "realtime": True, "loop": True},
+                          map=str(MAP), record={"path": str(folder), "min_free_mb": 0.5})
+    log_path = tmp_path / "stderr.txt"
+    with open(log_path, "w") as log_file:
+        daemon = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config)],
+                                  stdout=subprocess.DEVNULL, stderr=log_file)
+        try:
+            wait_for(lambda: (folder / "timestamps.csv").is_file()
+                     and len((folder / "timestamps.csv").read_text().splitlines()) > 3, "recorded frames")
+            with open(small_disk / "filler", "wb", buffering=0) as filler:   # every block left
+                try:
+                    while filler.write(bytes(4096)):
+                        pass
+                except OSError:
+                    pass
+            wait_for(lambda: " recorded " in log_path.read_text(), "the recording to stop", timeout_s=30.0)
+        finally:
+            daemon.send_signal(signal.SIGINT)
+            daemon.wait(timeout=30)
+    log = log_path.read_text()
+    assert daemon.returncode == 0 and "Traceback" not in log, log
+    info = yaml.safe_load((folder / "sequence.yaml").read_text())
+    rows = read_rows(folder / "timestamps.csv")
+    assert info["frames"] == len(rows) > 0, info
+    assert info["stopped"].startswith(("disk nearly full", "write failed: No space left", "video write failed")), info
+    assert f"recorded {len(rows)} frames (0 dropped) to {folder}: {info['stopped']}" in log, log
+    for table in ("timestamps.csv", "estimates.csv", "detections.csv"):
+        assert (folder / table).read_bytes().endswith(b"\r\n"), table
+    assert not (folder / ".reserve").exists()
+    (small_disk / "filler").unlink()
+    again = replayed(folder, tmp_path)
+    assert again.returncode == 0 and f"frames {len(rows)}, " in again.stderr and "corrupt 0" in again.stderr, \
+        again.stderr

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from companion.daemon.config import (Config, ConfigError, ReplayConfig, V4L2Config, default_config_path,
                                      http_address, load_config)
-from companion.daemon.record import RecordParams
+from companion.daemon.record import RecordError, RecordParams
 from companion.yaml_input import Where
 from companion.daemon.service import LOG_LEVELS, Daemon, setup_logging
 from companion.cli import discard_stdout
@@ -46,6 +46,9 @@ def main(args) -> int:
     try:
         config = with_options(load_config(args.config, replay=args.replay, replay_fps=args.fps), args)
         daemon = Daemon(config, status_stream=sys.stdout)
+    except RecordError as error:   # the folder named by the key or option that gave it
+        log.error("%s: %s", "--record" if args.record is not None else f"{config.path}: record.path", error.problem)
+        return 2
     except (ConfigError, ValueError) as error:
         log.error("%s", error)
         return 2

@@ -216,8 +216,9 @@ def _record(section, where: Where) -> RecordParams | None:
     section = {"path": section} if isinstance(section, str) else where.mapping(section, ", ".join(sorted(RECORD_KEYS)))
     where.reject_unknown(section, RECORD_KEYS)
     values = {key: section[key] for key in RECORD_KEYS - {"path"} if key in section}
+    path = where.path(section, "path")   # its own error names the file and the key
     try:
-        return RecordParams(path=where.path(section, "path"), **values)
+        return RecordParams(path=path, **values)
     except (TypeError, ValueError) as error:
         raise where.error(str(error)) from None
 

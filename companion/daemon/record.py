@@ -21,7 +21,14 @@ a bounded budget (``queue_frames``); when the writer thread falls behind (a
 slow disk) the image is dropped and counted, its estimate row is still
 written, and the pipeline never waits. The recording stops by itself at
 ``max_duration_s`` or ``max_size_mb``, when the disk is nearly full (logged
-once, with the reason), on a write error, or when the daemon stops.
+once, with the reason), on a write error, before a file would pass the
+process's file size limit (RLIMIT_FSIZE), or when the daemon stops; it is not
+started on a disk with less than ``min_free_mb`` free. OpenCV's video writer
+does not report a refused write: at the stop the video is read back for the
+frames it holds whole (``avi_frames``) and timestamps.csv lists only those. A
+recording that stops, whatever the reason, leaves whole rows only (a row the
+disk took part of is cut off); one that holds no frame is removed. A recording
+failure never stops the daemon.
 """
 from __future__ import annotations
 
@@ -29,7 +36,9 @@ import csv
 import datetime
 import logging
 import math
+import os
 import queue
+import resource
 import shutil
 import threading
 import time
@@ -43,6 +52,7 @@ import yaml
 from companion.capture.attitude_csv import ATTITUDE_FILE, COLUMNS as ATTITUDE_COLUMNS, attitude_row
 from companion.capture.replay import SEQUENCE_FILE, TIMESTAMPS_FILE
 from companion.daemon.pipeline import FrameRecord
+from companion.files import write_whole
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, Frame
@@ -54,6 +64,10 @@ ESTIMATES_FILE = "estimates.csv"
 DETECTIONS_FILE = "detections.csv"
 GROUNDTRUTH_FILE = "groundtruth.csv"
 MAP_FILE = "map.yaml"
+# room taken at the start and given back at the stop, for the last rows and the final sequence.yaml when the
+# disk filled up under the recording (another program, or faster than the checks)
+RESERVE_FILE = ".reserve"
+RESERVE_BYTES = 64 << 10
 
 # codec -> what it is; both are AVI files any OpenCV/ffmpeg reads
 CODECS = {"ffv1": "FFV1, lossless",
@@ -79,12 +93,24 @@ DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "qual
 
 # rows (estimates, detections) waiting for the writer beyond which even rows are dropped
 MAX_QUEUED_ROWS = 2000
-SIZE_CHECK_EVERY_FRAMES = 15
 FLUSH_INTERVAL_S = 1.0
+FOLDER_GONE = "the folder was removed"
+# Kept below a file size limit (RLIMIT_FSIZE): the frame about to be written and what the video writer
+# still holds (its buffer: 256 KiB for OpenCV's FFmpeg, 32 KiB for its MJPEG writer) are at most two of the
+# largest steps the video's size was seen to take, at least this; and the index written on closing.
+FILE_LIMIT_MIN_STEPS_BYTES = 1 << 20
+FILE_LIMIT_SLACK_BYTES = 64 << 10
+INDEX_BYTES_PER_FRAME = 32
 
 
 class RecordError(ValueError):
-    """A recording that cannot start (folder not empty, codec unavailable): names the folder."""
+    """A recording that cannot start (the folder is not empty, or cannot be written): ``problem`` names the
+    folder; the message puts the key that gives it first (``record.path: ...``; ``companion run`` names the
+    config file with it, or ``--record``)."""
+
+    def __init__(self, problem: str):
+        super().__init__(f"record.path: {problem}")
+        self.problem = problem
 
 
 @dataclass(frozen=True)
@@ -97,7 +123,7 @@ class RecordParams:
     codec: a key of ``CODECS``; jpeg_quality: 1-100, for mjpg.
     max_duration_s, max_size_mb: the recording stops (the daemon goes on) at
         whichever comes first; and when the disk has less than ``min_free_mb``
-        (or two seconds of recording) left.
+        (or two seconds of recording) left: with less at the start, it does not start.
     queue_frames: images waiting for the disk before new ones are dropped.
     """
 
@@ -196,16 +222,6 @@ class Recorder:
                  groundtruth: Path | None = None, source: str = "", attitude_of_frames: bool = False):
         self.params = params
         self.folder = expand_folder(params.path)
-        if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
-            raise RecordError(f"record: {self.folder} already exists and is not an empty folder; "
-                              "choose a new one (a {time} in the path makes one per run)")
-        try:
-            self.folder.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(map_path, self.folder / MAP_FILE)
-            if groundtruth is not None and groundtruth.is_file():
-                shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
-        except OSError as error:
-            raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
         self.camera = camera
         self.source = source
         self.attitude_of_frames = attitude_of_frames
@@ -218,15 +234,65 @@ class Recorder:
         self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
         self._image_budget = threading.Semaphore(params.queue_frames)
         self._stopped = threading.Event()   # no more rows taken (limit reached, error, close)
+        self._refused = False               # not started for want of room: nothing written, nothing to close
+        self._finished = False
+        self._said_folder_gone = False
+        self._made_folder = False
+        self._folder_id: tuple[int, int] | None = None
+        self._file_limit = file_size_limit()
+        self._video_bytes = 0   # the video's size on disk at the last check
+        self._video_step = 0    # the largest growth of the video's size between two checks
         self._writer: cv2.VideoWriter | None = None
         self._files = {}
         self._csv = {}
         self._thread = threading.Thread(target=self._run, name="record", daemon=True)
-        try:
+        try:   # an unreadable parent makes even exists() fail (PermissionError): the same one line
+            if self.folder.exists() and (not self.folder.is_dir() or any(self.folder.iterdir())):
+                raise RecordError(f"{self.folder} already exists and is not an empty folder; "
+                                  "choose a new one (a {time} in the path makes one per run)")
+            no_room = self._room_problem()
+            if no_room is not None:   # said at start(); no folder is made
+                self._refused = True
+                self._stop(no_room)
+                return
+            self._made_folder = not self.folder.exists()
+            self.folder.mkdir(parents=True, exist_ok=True)
+            folder = os.stat(self.folder)
+            self._folder_id = (folder.st_dev, folder.st_ino)
+            shutil.copyfile(map_path, self.folder / MAP_FILE)
+            if groundtruth is not None and groundtruth.is_file():
+                shutil.copyfile(groundtruth, self.folder / GROUNDTRUTH_FILE)
             self._open_tables()
             self._write_info()
+            (self.folder / RESERVE_FILE).write_bytes(os.urandom(RESERVE_BYTES))   # random: not compressed away
         except OSError as error:
-            raise RecordError(f"record: cannot write {self.folder}: {error.strerror or error}") from None
+            for handle in self._files.values():
+                try:
+                    handle.close()
+                except OSError:
+                    pass
+            if self._folder_id is not None:   # the folder was new or empty: what is in it is ours
+                self._remove_files()
+            raise RecordError(f"cannot write {self.folder}: {error.strerror or error}") from None
+
+    def _room_problem(self) -> str | None:
+        """Why the disk has no room for a recording (checked before anything is written), or None."""
+        existing = self.folder
+        while not existing.exists():
+            existing = existing.parent
+        free_mb = shutil.disk_usage(existing).free / 1e6
+        if free_mb < self.params.min_free_mb:
+            return (f"{free_mb:.1f} MB free on the disk of {self.folder}, less than record.min_free_mb "
+                    f"({self.params.min_free_mb:g} MB)")
+        if self._file_limit is not None and self._file_limit < self._file_reserve():
+            return (f"a file may have at most {self._file_limit / 1e6:.2f} MB here (RLIMIT_FSIZE, ulimit -f), "
+                    "too little for a video")
+        return None
+
+    def _file_reserve(self) -> int:
+        """Bytes a file keeps below the file size limit (see FILE_LIMIT_MIN_STEPS_BYTES)."""
+        return (max(2 * self._video_step, FILE_LIMIT_MIN_STEPS_BYTES) + FILE_LIMIT_SLACK_BYTES
+                + INDEX_BYTES_PER_FRAME * (self.counters.frames + 1))
 
     # ------------------------------------------------------ pipeline thread
 
@@ -259,6 +325,9 @@ class Recorder:
     # -------------------------------------------------------------- control
 
     def start(self) -> None:
+        if self._refused:
+            log.warning("recording not started: %s; the daemon goes on without it", self.stop_reason)
+            return
         self._thread.start()
         log.info("recording to %s (%s, at most %.0f s or %.0f MB)", self.folder, self.params.codec,
                  self.params.max_duration_s, self.params.max_size_mb)
@@ -266,6 +335,8 @@ class Recorder:
     def close(self) -> None:
         """Stop taking frames, write what is queued, close the files; idempotent."""
         self._stop("the daemon stopped")
+        if self._refused:
+            return
         if self._thread.is_alive():
             self._thread.join(timeout=10.0)
         elif not self._thread.ident:
@@ -296,11 +367,30 @@ class Recorder:
                         handle.flush()
                     next_flush_s = time.monotonic() + FLUSH_INTERVAL_S
         except OSError as error:
-            self._stop(f"write failed: {error.strerror or error}")
-            log.error("recording stopped: %s (%s)", self.stop_reason, self.folder)
+            if self._folder_gone():
+                self._stop(FOLDER_GONE)
+                self._say_folder_gone()
+            else:
+                self._stop(f"write failed: {error.strerror or error}")
+                log.error("recording stopped: %s (%s)", self.stop_reason, self.folder)
         finally:
             self._drain()
             self._finish()
+
+    def _folder_gone(self) -> bool:
+        """Whether the recording's folder is no longer there (removed, or replaced by another)."""
+        try:
+            folder = os.stat(self.folder)
+        except OSError:
+            return True
+        return (folder.st_dev, folder.st_ino) != self._folder_id
+
+    def _say_folder_gone(self) -> None:
+        """Said once: what was recorded went with the folder; nothing more is written."""
+        if not self._said_folder_gone:
+            self._said_folder_gone = True
+            log.error("recording stopped: %s was removed while recording; %d frames were lost with it "
+                      "(the daemon goes on)", self.folder, self.counters.frames)
 
     def _limit_reached(self) -> bool:
         return self._stopped.is_set() and self.stop_reason != "the daemon stopped"
@@ -360,11 +450,21 @@ class Recorder:
         return writer
 
     def _check_limits(self, t_ns: int) -> None:
+        """After every frame (a stat of the folder and its files, and of the disk: cheap beside the frame)."""
         duration_s = (t_ns - self._t0_ns) * 1e-9
+        if self._folder_gone():
+            self._stop(FOLDER_GONE)
+            self._say_folder_gone()
+            return
         if duration_s >= self.params.max_duration_s:
             self._stop(f"duration limit reached ({self.params.max_duration_s:g} s)")
-        elif self.counters.rows % SIZE_CHECK_EVERY_FRAMES == 0:
-            self.counters.bytes = folder_bytes(self.folder)
+        else:
+            sizes = file_sizes(self.folder)
+            self.counters.bytes = sum(sizes.values())
+            video_bytes = sizes.get(VIDEO_FILE, 0)
+            self._video_step = max(self._video_step, video_bytes - self._video_bytes)
+            self._video_bytes = video_bytes
+            largest = max(sizes, key=sizes.get)
             free_mb = shutil.disk_usage(self.folder).free / 1e6
             # keep room for the last rows, the index ffmpeg writes on closing and for the rest of the system
             reserve_mb = max(self.params.min_free_mb, 2.0 * self.counters.bytes / 1e6 / max(duration_s, 1.0))
@@ -372,6 +472,10 @@ class Recorder:
                 self._stop(f"size limit reached ({self.params.max_size_mb:g} MB)")
             elif free_mb < reserve_mb:
                 self._stop(f"disk nearly full ({free_mb:.1f} MB free, {reserve_mb:.1f} MB kept free)")
+            elif self._file_limit is not None and sizes[largest] + self._file_reserve() > self._file_limit:
+                # OpenCV's video writer says nothing of a write the kernel refuses: stopped before
+                self._stop(f"file size limit reached ({largest} at {sizes[largest] / 1e6:.2f} MB of the "
+                           f"{self._file_limit / 1e6:.2f} MB a file may have here: RLIMIT_FSIZE, ulimit -f)")
         if self._limit_reached():
             log.warning("recording stopped: %s; %d frames in %s (the daemon goes on)",
                         self.stop_reason, self.counters.frames, self.folder)
@@ -396,30 +500,93 @@ class Recorder:
             self._csv[name].writerow(header)
 
     def _finish(self) -> None:
+        """Close the video and the tables and leave a folder that holds only whole things (see
+        ``_make_whole``); a recording that holds no frame is removed, there is nothing to replay."""
+        if self._finished:
+            return
+        self._finished = True
         if self._writer is not None:
             self._writer.release()
             self._writer = None
+        gone = self._folder_gone()
+        try:   # the room kept for what follows
+            (self.folder / RESERVE_FILE).unlink(missing_ok=True)
+        except OSError:
+            pass
+        unwritten, why = [], ""
         for name, handle in self._files.items():
             try:
                 handle.close()
             except OSError as error:   # the last rows could not be flushed (disk full)
-                log.error("recording: %s: %s", self.folder / name, error.strerror or error)
-        attitude = self.folder / ATTITUDE_FILE
-        if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
-            attitude.unlink()   # no attitude from the link: no file
-        if self.counters.frames == 0:
-            (self.folder / TIMESTAMPS_FILE).unlink(missing_ok=True)   # nothing to replay
-        self.counters.bytes = folder_bytes(self.folder)
+                unwritten.append(name)
+                why = error.strerror or str(error)
+        if gone:   # nothing to finish: what was written went with the folder
+            self._stop(FOLDER_GONE)
+            self._say_folder_gone()
+            return
+        if unwritten:
+            log.error("recording: the last rows of %s could not be written (%s)", ", ".join(unwritten), why)
+        try:
+            self._make_whole()
+            if self.counters.frames == 0:
+                self._remove_files()
+                log.warning("recording: no frame recorded (%s); %s %s", self.stop_reason or "recording",
+                            self.folder, "removed" if not self.folder.exists() else "left empty")
+                return
+            attitude = self.folder / ATTITUDE_FILE
+            if attitude.is_file() and attitude.stat().st_size <= len(",".join(ATTITUDE_COLUMNS)) + 2:
+                attitude.unlink()   # no attitude from the link: no file
+            self.counters.bytes = folder_bytes(self.folder)
+        except OSError as error:
+            if self._folder_gone():   # removed as the recording stopped
+                self._say_folder_gone()
+                return
+            log.error("recording: cannot read back %s: %s", self.folder, error.strerror or error)
         try:
             self._write_info()
-        except OSError as error:
+        except OSError as error:   # the one written at the start stays: camera and map, what replay needs
+            if self._folder_gone():
+                self._say_folder_gone()
+                return
             log.error("recording: cannot write %s: %s", self.folder / SEQUENCE_FILE, error.strerror or error)
         log.info("recorded %d frames (%d dropped) to %s: %s", self.counters.frames, self.counters.dropped_frames,
                  self.folder, self.stop_reason or "recording")
 
+    def _make_whole(self) -> None:
+        """Cut each table after its last whole line (a full disk stops a flush anywhere in a row), and
+        timestamps.csv after the last frame the video holds whole: OpenCV's writer says nothing of a write
+        the disk refused (full, a file size limit the checks did not foresee), the video file tells. A video
+        that lost frames is the reason the recording stopped (unless a write error came first)."""
+        for name in self._files:
+            cut_after_last_line(self.folder / name)
+        timestamps, video = self.folder / TIMESTAMPS_FILE, self.folder / VIDEO_FILE
+        listed = count_rows(timestamps)
+        held = avi_frames(video) if video.is_file() else 0
+        if held < listed:
+            keep_rows(timestamps, held)
+            if not (self.stop_reason or "").startswith("write failed"):
+                self.stop_reason = (f"video write failed: {VIDEO_FILE} holds {held} of the {listed} frames "
+                                    "written (the disk refused the rest)")
+            log.error("recording: %s holds %d of the %d frames written: the disk refused the rest (full, or a "
+                      "file size limit); %s lists those %d", video, held, listed, TIMESTAMPS_FILE, held)
+        self.counters.frames = min(listed, held)
+
+    def _remove_files(self) -> None:
+        """Remove what the recording wrote, and the folder if it made it (it was new or empty)."""
+        for name in (VIDEO_FILE, *self._files, GROUNDTRUTH_FILE, MAP_FILE, SEQUENCE_FILE, RESERVE_FILE):
+            try:
+                (self.folder / name).unlink(missing_ok=True)
+            except OSError:
+                pass
+        if self._made_folder:
+            try:
+                self.folder.rmdir()
+            except OSError:
+                pass
+
     def _write_info(self) -> None:
         """sequence.yaml: written at start (a crash still leaves a readable folder) and at the end."""
-        timestamps = self.folder / TIMESTAMPS_FILE
+        t_ns = recorded_times(self.folder / TIMESTAMPS_FILE) if self.counters.frames else np.zeros(0, np.int64)
         info = {
             "generator": "companion run --record",
             "started_utc": self._started_utc,
@@ -429,26 +596,108 @@ class Recorder:
             "video": VIDEO_FILE if self.counters.frames else None,
             "video_codec": self.params.codec,
             "frames": self.counters.frames,
-            "fps": recorded_fps(timestamps) if self.counters.frames > 1 else None,
-            "duration_s": (self._last_t_ns - self._t0_ns) * 1e-9 if self._last_t_ns is not None else 0.0,
+            "fps": recorded_fps(t_ns),
+            "duration_s": float(t_ns[-1] - t_ns[0]) * 1e-9 if len(t_ns) else 0.0,
             "pipeline_frames": self.counters.rows,
             "dropped_frames": self.counters.dropped_frames,
             "dropped_rows": self.counters.dropped_rows,
             "size_mb": round(self.counters.bytes / 1e6, 3),
             "stopped": self.stop_reason or "recording",
         }
-        (self.folder / SEQUENCE_FILE).write_text(yaml.safe_dump(info, sort_keys=False))
+        write_whole(self.folder / SEQUENCE_FILE, yaml.safe_dump(info, sort_keys=False))
 
 
-def recorded_fps(timestamps: Path) -> float | None:
-    """Frames per second from the median spacing of timestamps.csv."""
+def recorded_times(timestamps: Path) -> np.ndarray:
+    """The t_ns column of timestamps.csv."""
     with open(timestamps, newline="") as handle:
-        t_ns = np.array([int(r["t_ns"]) for r in csv.DictReader(handle)], dtype=np.int64)
+        return np.array([int(r["t_ns"]) for r in csv.DictReader(handle)], dtype=np.int64)
+
+
+def recorded_fps(t_ns: np.ndarray) -> float | None:
+    """Frames per second from the median spacing of the frames' times."""
     if len(t_ns) < 2:
         return None
     spacing_ns = float(np.median(np.diff(t_ns)))
     return round(1e9 / spacing_ns, 3) if spacing_ns > 0 and math.isfinite(spacing_ns) else None
 
 
+def cut_after_last_line(path: Path) -> None:
+    """Truncate ``path`` after its last newline: a row the disk took only part of is not left half there.
+    Only the end is read; truncating takes no room on a full disk."""
+    with open(path, "rb") as handle:
+        size = handle.seek(0, os.SEEK_END)
+        end = size
+        while end > 0:
+            start = max(0, end - 65536)
+            handle.seek(start)
+            newline = handle.read(end - start).rfind(b"\n")
+            if newline >= 0:
+                end = start + newline + 1
+                break
+            end = start
+    if end < size:
+        os.truncate(path, end)
+
+
+def keep_rows(table: Path, rows: int) -> None:
+    """Truncate a CSV file after its header line and ``rows`` rows."""
+    with open(table, "rb") as handle:
+        end = sum(len(line) for _, line in zip(range(rows + 1), handle))
+    os.truncate(table, end)
+
+
+def avi_frames(path: Path) -> int:
+    """How many frames an AVI file holds whole: its video chunks (``##dc``, ``##db`` in a ``movi`` list)
+    that end inside the file, in order, up to the first that does not (or is empty: a size never set). A
+    writer the disk stopped leaves a file that ends inside a chunk, and RIFF and list sizes it never set
+    (0, or past the end of the file): those are taken to reach the end of the file. Reads 12 bytes a chunk."""
+    size = os.path.getsize(path)
+    frames = 0
+    with open(path, "rb") as handle:
+        def walk(start: int, end: int, in_movi: bool) -> bool:   # False: the file ended inside a frame
+            nonlocal frames
+            position = start
+            while position + 8 <= end:
+                handle.seek(position)
+                header = handle.read(12)
+                tag, length = header[:4], int.from_bytes(header[4:8], "little")
+                if tag in (b"RIFF", b"LIST") and len(header) == 12:
+                    list_end = position + 8 + length
+                    if length < 4 or list_end > end:
+                        list_end = end
+                    kind = header[8:12]
+                    if kind in (b"AVI ", b"AVIX", b"movi", b"rec "):
+                        if not walk(position + 12, list_end, in_movi or kind == b"movi"):
+                            return False
+                    position = list_end + (length & 1 if list_end < end else 0)
+                    continue
+                if in_movi and tag[2:4] in (b"dc", b"db"):
+                    if length == 0 or position + 8 + length > size:   # OpenCV's MJPEG writer sets it last
+                        return False
+                    frames += 1
+                position += 8 + length + (length & 1)
+            return True
+
+        walk(0, size, False)
+    return frames
+
+
+def count_rows(table: Path) -> int:
+    """The rows of a CSV file under its header line (0 when not even the header is there)."""
+    with open(table, "rb") as handle:
+        return max(0, sum(1 for _ in handle) - 1)
+
+
+def file_sizes(folder: Path) -> dict[str, int]:
+    """Name -> size of the files in ``folder``."""
+    return {p.name: p.stat().st_size for p in folder.iterdir() if p.is_file()}
+
+
 def folder_bytes(folder: Path) -> int:
-    return sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+    return sum(file_sizes(folder).values())
+
+
+def file_size_limit() -> int | None:
+    """The largest file this process may write (RLIMIT_FSIZE, ``ulimit -f``), None when unlimited."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    return None if soft == resource.RLIM_INFINITY else soft
