@@ -119,8 +119,35 @@ BOOT_TIME_REQUEST_RATE_HZ = 2.0
 BOOT_TIME_REQUEST_RETRY_S = 2.0
 
 
+# The least each period of the link may be (LinkParams), and why. Below it (0 above all) the link floods:
+# 100 000 HEARTBEATs in 6 s, a refused TCP link reopened 6000 times a second at 77 % CPU, the origin re-sent
+# and asked for at each turn of the link's loop, a FC that heartbeats at 1 Hz lost and "seen" at each beat.
+MIN_PERIOD_S = {
+    "heartbeat_interval_s": (0.1, "HEARTBEAT at 10 Hz at most"),
+    "statustext_interval_s": (0.1, "STATUSTEXT at 10 Hz at most"),
+    "origin_retry_s": (0.2, "the origin and the requests to the FC at 5 Hz at most"),
+    "fc_timeout_s": (1.5, "the FC heartbeats at 1 Hz: less would lose it between two heartbeats"),
+    "reconnect_initial_s": (0.05, "a lost link reopened at 20 Hz at most"),
+    "reconnect_max_s": (0.05, "a lost link reopened at 20 Hz at most"),  # and >= reconnect_initial_s
+}
+# waits that may be 0 (no wait): none of them repeats anything
+WAITS = ("origin_wait_s", "ekf_wait_s", "home_wait_s", "duplicate_listen_s")
+
+
 class LinkError(ValueError):
-    """A connection string or link parameter that cannot work."""
+    """A connection string or link parameter that cannot work.
+
+    key: the LinkParams field at fault (None for a connection string); problem: what is wrong with it, without
+    its name (``must be >= 0.1 s ..., got 0``), for a message that names the key its own way (the config's).
+    """
+
+    def __init__(self, message: str, key: str | None = None, problem: str | None = None):
+        super().__init__(message)
+        self.key, self.problem = key, problem if problem is not None else message
+
+    @classmethod
+    def of(cls, key: str, problem: str) -> "LinkError":
+        return cls(f"{key} {problem}", key, problem)
 
 
 class LinkState(enum.Enum):
@@ -161,17 +188,21 @@ class LinkParams:
     def __post_init__(self) -> None:
         parse_connection(self.connection)
         if not 1 <= self.system_id <= 254:
-            raise LinkError(f"system_id must be 1..254 (255 is a ground station), got {self.system_id}")
+            raise LinkError.of("system_id", f"must be 1..254 (255 is a ground station), got {self.system_id}")
         if not 1 <= self.component_id <= 255:
-            raise LinkError(f"component_id must be 1..255, got {self.component_id}")
+            raise LinkError.of("component_id", f"must be 1..255, got {self.component_id}")
         if not 0 < self.max_rate_hz <= MAX_VISION_RATE_HZ:
-            raise LinkError(f"max_rate_hz must be in (0, {MAX_VISION_RATE_HZ:g}], got {self.max_rate_hz}")
-        for name in ("origin_wait_s", "origin_retry_s", "ekf_wait_s", "home_wait_s", "duplicate_listen_s",
-                     "fc_timeout_s", "statustext_interval_s",
-                     "heartbeat_interval_s", "reconnect_initial_s", "reconnect_max_s"):
+            raise LinkError.of("max_rate_hz", f"must be in (0, {MAX_VISION_RATE_HZ:g}], got {self.max_rate_hz}")
+        for name in WAITS + tuple(MIN_PERIOD_S):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise LinkError(f"{name} must be a number >= 0, got {value!r}")
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise LinkError.of(name, f"must be a number of seconds, got {value!r}")
+            least, why = MIN_PERIOD_S.get(name, (0.0, "0: no wait"))
+            if value < least:
+                raise LinkError.of(name, f"must be >= {least:g} s ({why}), got {value!r}")
+        if self.reconnect_max_s < self.reconnect_initial_s:
+            raise LinkError.of("reconnect_max_s", f"must be >= reconnect_initial_s ({self.reconnect_initial_s:g} s), "
+                                                  f"got {self.reconnect_max_s!r}")
 
 
 def parse_connection(text: str) -> tuple[str, int | None]:
@@ -182,20 +213,20 @@ def parse_connection(text: str) -> tuple[str, int | None]:
     rate: ``/dev/ttyAMA0,921600`` (57600 when no rate is given).
     """
     if not isinstance(text, str) or not text:
-        raise LinkError(f"connection must be a string such as udpout:127.0.0.1:14550, got {text!r}")
+        raise LinkError.of("connection", f"must be a string such as udpout:127.0.0.1:14550, got {text!r}")
     if text.startswith(NETWORK_PREFIXES):
         kind, _, address = text.partition(":")
         host, _, port = address.rpartition(":")
         if not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise LinkError(f"connection {text!r}: want {kind}:HOST:PORT with a port in 1..65535")
+            raise LinkError.of("connection", f"{text!r}: want {kind}:HOST:PORT with a port in 1..65535")
         return text, None
     if text.startswith(SERIAL_PREFIXES):
         device, _, baud = text.partition(",")
         if baud and not baud.isdigit():
-            raise LinkError(f"connection {text!r}: the baud rate after the comma must be a number")
+            raise LinkError.of("connection", f"{text!r}: the baud rate after the comma must be a number")
         return device, int(baud) if baud else 57600
-    raise LinkError(f"connection {text!r}: want udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, "
-                    "tcpin:HOST:PORT or a serial device such as /dev/ttyAMA0,921600")
+    raise LinkError.of("connection", f"{text!r}: want udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, "
+                                     "tcpin:HOST:PORT or a serial device such as /dev/ttyAMA0,921600")
 
 
 @dataclass(frozen=True, order=True)
