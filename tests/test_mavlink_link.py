@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import logging
+import re
 import select
 import threading
 import time
@@ -299,6 +301,84 @@ def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):
     publisher.stop()
     assert link.counters.transport_errors >= 1 and link.counters.connects >= 2
     assert link.down_reason is None
+
+
+def wait_for_log(caplog, pattern: str, after: int = 0, timeout_s: float = 15.0) -> tuple[int, re.Match]:
+    """(index, match) of the first log record from ``after`` on whose message matches ``pattern``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for index, record in enumerate(list(caplog.records)[after:], after):
+            match = re.search(pattern, record.getMessage())
+            if match:
+                return index, match
+        time.sleep(0.05)
+    raise AssertionError(f"no log line matching {pattern!r} within {timeout_s} s: "
+                         f"{[r.getMessage() for r in caplog.records][-6:]}")
+
+
+LOST = r"lost \(.*\); reconnecting in ([\d.]+) s"
+
+
+def test_a_tcp_link_that_worked_is_reopened_after_reconnect_initial_s_whatever_the_backoff_before(
+        peers, links, caplog):
+    """Nothing listens for long enough that the backoff grows to reconnect_max_s; then a flight controller
+    comes, is heard, and goes away (killed): the link reopens after reconnect_initial_s, and reaches the FC
+    started again. Before, the backoff was reset only when the link was closed, and the loss waited
+    reconnect_max_s (8 s without vision by default)."""
+    caplog.set_level(logging.DEBUG, logger="companion.mavlink.link")
+    port = free_port("tcp")
+    link = links(connection=f"tcp:127.0.0.1:{port}", heartbeat_interval_s=0.2,
+                 reconnect_initial_s=0.1, reconnect_max_s=1.6)
+    wait_for_log(caplog, r"cannot open .*retrying with backoff \(1\.6 s")  # 0.1, 0.2, 0.4, 0.8, 1.6
+    first = peers(port, "--tcp", name="first")
+    deadline = time.monotonic() + 15
+    while not link.fc_seen and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert link.fc_seen
+    seen = len(caplog.records)
+    first.process.kill()  # kill -9: no goodbye
+    first.process.wait()
+    _, lost = wait_for_log(caplog, LOST, after=seen)
+    assert float(lost.group(1)) == pytest.approx(0.1), lost.group(0)
+    second = peers(port, "--tcp", name="second")
+    second.wait_for("HEARTBEAT")
+    assert link.counters.connects == 2
+
+
+def test_a_tcp_connection_that_never_worked_does_not_reset_the_backoff(links, caplog):
+    """A listener that takes the connection and closes it at once (nothing heard, open for less than
+    reconnect_max_s) is no working link: the backoff goes on doubling, not reopening at reconnect_initial_s."""
+    import socket
+    caplog.set_level(logging.DEBUG, logger="companion.mavlink.link")
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(8)
+    listener.settimeout(0.1)
+    stop = threading.Event()
+
+    def refuse_politely():
+        while not stop.is_set():
+            try:
+                connection, _ = listener.accept()
+            except OSError:
+                continue
+            connection.close()
+
+    closer = threading.Thread(target=refuse_politely, daemon=True)
+    closer.start()
+    try:
+        links(connection=f"tcp:127.0.0.1:{listener.getsockname()[1]}", heartbeat_interval_s=0.2,
+              reconnect_initial_s=0.1, reconnect_max_s=5.0)
+        waits, after = [], 0
+        while len(waits) < 4:
+            after, lost = wait_for_log(caplog, LOST, after=after)
+            waits.append(float(lost.group(1)))
+            after += 1
+    finally:
+        stop.set()
+        closer.join()
+        listener.close()
+    assert waits == pytest.approx([0.1, 0.2, 0.4, 0.8]), waits
 
 
 @pytest.mark.parametrize("text, expected", [

@@ -3,7 +3,8 @@
 Threads (both stop on ``close()``):
 
 * ``link`` owns the connection: opens it (reopening with backoff after a
-  transport error), reads what the flight controller (FC) sends, answers
+  transport error, the backoff started again after a connection that worked:
+  ``_connection_worked``), reads what the flight controller (FC) sends, answers
   TIMESYNC requests, runs the origin handshake and sends pending STATUSTEXTs;
 * ``heartbeat`` sends HEARTBEAT at 1 Hz (type 18, autopilot 8), with
   ``system_status`` STANDBY before streaming, ACTIVE while streaming and
@@ -502,6 +503,8 @@ class MavlinkLink:
             except (OSError, _TransportLost) as error:
                 self.counters.transport_errors += 1
                 self.down_reason = f"lost: {error}"
+                if self._connection_worked():
+                    backoff_s = self.params.reconnect_initial_s  # the backoff is for a link that keeps failing
                 log.warning("link %s: lost (%s); reconnecting in %.1f s", self.params.connection, error, backoff_s)
             finally:
                 self._close_connection()
@@ -510,6 +513,13 @@ class MavlinkLink:
             if not self._stop.is_set():
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
+
+    def _connection_worked(self) -> bool:
+        """Whether the connection just lost worked: the FC was heard on it, or it stayed open for
+        ``reconnect_max_s`` (reopened that seldom, nothing is hammered). A lost one that worked is reopened after
+        ``reconnect_initial_s``, not after the backoff grown while nothing listened (8 s without vision)."""
+        return (self._last_fc_heartbeat_s >= self._connected_s
+                or time.monotonic() - self._connected_s >= self.params.reconnect_max_s)
 
     def _serve(self, connection) -> None:
         """Read and react until stopped; raises on a transport error."""
