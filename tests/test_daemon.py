@@ -417,6 +417,53 @@ class NotifyListener:
         self._socket.close()
 
 
+def wait_for_status(notify: NotifyListener, pattern: str, after: int = 0, timeout_s: float = 15.0
+                    ) -> tuple[int, re.Match]:
+    """(index, match) of the first STATUS= line from ``after`` on that matches ``pattern``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for index, line in enumerate(notify.statuses()[after:], after):
+            match = re.search(pattern, line)
+            if match:
+                return index, match
+        time.sleep(0.05)
+    raise AssertionError(f"no STATUS= matching {pattern!r} within {timeout_s} s: {notify.statuses()[-3:]}")
+
+
+def test_a_flight_controller_that_goes_silent_is_on_the_status_line_for_as_long_as_it_lasts(tmp_path, peers):
+    """The UDP flight controller is killed mid-run: vision streams on (the start order gives up waiting for
+    it), and systemd's STATUS (the status line) says 'link streaming, no FC heard N s' from fc_timeout_s on,
+    on every line, counting up, until a flight controller is heard again. Before, it read 'link streaming'
+    throughout, and only one log line and one STATUSTEXT said otherwise."""
+    port = free_port()
+    first = peers(port, "--origin-reply", "on_set")
+    notify = NotifyListener(tmp_path / "notify.sock")
+    config = write_config(tmp_path, HOVER, port, source={"loop": True},
+                          mavlink={"fc_timeout_s": 1.5, "origin_wait_s": 1.0})
+    process = start_daemon(config, env={"NOTIFY_SOCKET": notify.path})
+    try:
+        first.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=20)
+        heard, _ = wait_for_status(notify, r"\| link streaming \| sent")
+        first.process.kill()   # kill -9: a UDP peer says no goodbye, the link stays open
+        first.process.wait()
+        killed = len(notify.statuses())
+        unheard, match = wait_for_status(notify, r"\| link streaming, no FC heard (\d+) s \| sent (\d+)", killed)
+        lasted, later = wait_for_status(notify, r"\| link streaming, no FC heard ([4-9]|\d\d+) s \| sent (\d+)",
+                                        unheard)
+        assert int(later.group(1)) > int(match.group(1)) and int(later.group(2)) > int(match.group(2))  # vision on
+        # it says so on every line meanwhile (the link held vision for origin_wait_s, then streamed on)
+        assert all("no FC heard" in line for line in notify.statuses()[unheard:lasted + 1])
+        second = peers(port, "--origin-reply", "on_set")
+        back, _ = wait_for_status(notify, r"\| link streaming \| sent", lasted)
+        second.wait_for("VISION_POSITION_ESTIMATE", count=3)
+    finally:
+        process.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(process, timeout_s=15)
+        notify.close()
+    assert code == 0, stderr
+    assert "no flight controller seen after 1.0 s" in stderr
+
+
 def test_a_camera_that_stalls_is_reported_and_the_heartbeat_goes_critical(tmp_path, peers):
     """The replay delivers nothing for 3 s in the middle (a stalled camera): the status line
     says so with 0 fps, one STATUSTEXT per change, HEARTBEAT CRITICAL during the stall and

@@ -223,6 +223,43 @@ def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links)
     assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
 
 
+def test_a_udp_flight_controller_killed_without_an_origin_is_said_unheard_once_and_vision_goes_on(
+        peers, links, caplog):
+    """No origin: nothing waits for the FC, vision streams from the start. The UDP peer is killed (no goodbye,
+    the link stays open): from fc_timeout_s on the link says how long no FC has been heard (the status line's
+    'no FC heard'), logs it once and sends one STATUSTEXT, and streams on; a FC heard again clears it.
+    Before, nothing at all said it."""
+    caplog.set_level(logging.INFO, logger="companion.mavlink.link")
+    port = free_port()
+    first = peers(port, name="first")
+    link = links(connection=f"udpout:127.0.0.1:{port}", fc_timeout_s=1.5, heartbeat_interval_s=0.2,
+                 statustext_interval_s=0.1)
+    publisher = Publisher(link)
+    try:
+        first.wait_for("VISION_POSITION_ESTIMATE", count=5)
+        assert link.fc_seen and link.fc_unheard_s is None
+        first.process.kill()
+        first.process.wait()
+        wait_for_log(caplog, r"no flight controller heard for 1\.\d s; vision goes on")
+        assert link.fc_unheard_s >= 1.5 and link.state is LinkState.STREAMING
+        sent = len(publisher.sent_t_ns)
+        deadline = time.monotonic() + 10
+        while (link.fc_unheard_s or 0) < 3.0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.fc_unheard_s >= 3.0 and len(publisher.sent_t_ns) > sent  # still said; vision goes on
+        assert len([r for r in caplog.records if "no flight controller heard" in r.getMessage()]) == 1
+        # told once on the link (a ground station behind a router hears it; the FC is not there to)
+        assert [text for _, _, text in link.statustext_history] == ["companion: no FC heard"]
+        assert link.counters.sent["STATUSTEXT"] == 1
+        peers(port, name="second")
+        deadline = time.monotonic() + 10
+        while link.fc_unheard_s is not None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.fc_unheard_s is None and link.fc_seen
+    finally:
+        publisher.stop()
+
+
 def test_a_flight_controller_that_restarts_without_a_heartbeat_pause_gets_the_origin_again(peers, links):
     """A fast boot on a UART: the FC's heartbeat never pauses for fc_timeout_s and no connection drops, but its
     time_boot_ms (ATTITUDE's, here) starts again from 0, its EKF has lost the origin and it forgot the ATTITUDE

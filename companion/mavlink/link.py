@@ -314,6 +314,7 @@ class MavlinkLink:
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
+        self._told_unheard = False  # "no flight controller heard" said for this silence (_watch_fc_heard)
         self._fc_boot_ms: int | None = None   # the FC's newest time_boot_ms: going back, it restarted
         self._boot_time_request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME, BOOT_TIME_REQUEST_RATE_HZ, BOOT_TIME_REQUEST_RETRY_S)
         self._connected_s = 0.0
@@ -358,6 +359,17 @@ class MavlinkLink:
     @property
     def fc_seen(self) -> bool:
         return time.monotonic() - self._last_fc_heartbeat_s < self.params.fc_timeout_s
+
+    @property
+    def fc_unheard_s(self) -> float | None:
+        """How long no flight controller has been heard on the open connection (since its last heartbeat, or
+        since the connection opened), once that is ``fc_timeout_s`` or more; None while one is heard, and while
+        the connection is down (``down_reason`` says why). Vision may stream meanwhile (the start order gives up
+        waiting): this is what says the FC is not there (the status line)."""
+        if self._connection is None:
+            return None
+        unheard_s = time.monotonic() - max(self._last_fc_heartbeat_s, self._connected_s)
+        return unheard_s if unheard_s >= self.params.fc_timeout_s else None
 
     def subscribe(self, subscriber: Subscriber) -> None:
         """Hand ``subscriber`` the flight controller's messages of its types; call before ``start``."""
@@ -490,9 +502,9 @@ class MavlinkLink:
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
                 continue
             said = self.down_reason = None
+            self._connected_s = time.monotonic()  # before the connection is seen open (fc_unheard_s, publish)
             with self._send_lock:
                 self._connection = connection
-            self._connected_s = time.monotonic()
             self.counters.connects += 1
             self._transport_broken.clear()
             log.info("link %s: open", self.params.connection)
@@ -773,6 +785,7 @@ class MavlinkLink:
             self._handshake_step(now_s)
         if self.state is LinkState.STREAMING and self._home_check_started_s is not None:
             self._home_step(now_s)
+        self._watch_fc_heard()
         self._request_attitude(now_s)
         self._request_boot_time(now_s)
         if now_s - self._last_statustext_s >= self.params.statustext_interval_s:
@@ -788,6 +801,19 @@ class MavlinkLink:
         with self._statustext_lock:
             if queued in self._statustexts:  # (not replaced meanwhile)
                 self._statustexts.remove(queued)
+
+    def _watch_fc_heard(self) -> None:
+        """Without an origin nothing waits for the FC (vision streams from the start), so nothing said that
+        none is heard: said here, once per silence (the status line says it for as long as it lasts; heard
+        again, its heartbeat is logged). With an origin the start order says it (vision held, then no
+        flight controller seen)."""
+        unheard_s = self.fc_unheard_s
+        if unheard_s is None:
+            self._told_unheard = False
+        elif not self._told_unheard and self.params.origin is None and self.stream:
+            self._told_unheard = True
+            log.warning("link: no flight controller heard for %.1f s; vision goes on", unheard_s)
+            self.statustext("companion: no FC heard", SEVERITY_WARNING)
 
     def _fc_went_silent(self) -> bool:
         """True when a FC seen since the last handshake began has stopped sending heartbeats."""
