@@ -325,7 +325,7 @@ def test_config_error_exits_2_naming_the_file_and_key(tmp_path):
     config = write_config(tmp_path, HOVER, 14550, mavlink={"max_rate_hz": 80})
     code, _, stderr = finish(start_daemon(config), timeout_s=30)
     assert code == 2
-    assert f"{config}: mavlink: max_rate_hz" in stderr and "Traceback" not in stderr
+    assert f"{config}: mavlink.max_rate_hz: must be in (0, 50], got 80" in stderr and "Traceback" not in stderr
 
 
 def test_detector_layout_comes_from_the_map_and_a_mismatch_is_named():
