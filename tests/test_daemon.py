@@ -941,6 +941,48 @@ def test_a_hangup_leaves_the_daemon_running_and_sigterm_still_stops_it(tmp_path,
     assert "SIGTERM: stopping" in stderr
 
 
+def wait_until_importing(process: subprocess.Popen, timeout_s: float = 20.0) -> None:
+    """Until the daemon's modules are importing: numpy is mapped into the process (`companion` and its
+    dispatcher load none; `companion run` loads it, OpenCV, SciPy and pymavlink before it has handlers)."""
+    maps = Path(f"/proc/{process.pid}/maps")
+    deadline = time.monotonic() + timeout_s
+    while "/numpy/" not in maps.read_text():
+        assert process.poll() is None and time.monotonic() < deadline, "the daemon never imported numpy"
+        time.sleep(0.002)
+
+
+def test_a_stop_while_the_daemon_starts_ends_it_cleanly_with_a_log_line(tmp_path):
+    """systemd stops the service while `companion run` imports its modules (a second or more on a small
+    computer): exit 0 and a log line, as a stop later on. Before, the default SIGTERM ended it: 143, not a word."""
+    process = start_daemon(write_config(tmp_path, HOVER, free_port(), source={"loop": True}))
+    try:
+        wait_until_importing(process)
+        process.send_signal(signal.SIGTERM)
+    finally:
+        code, _, stderr = finish(process)
+    assert code == 0, stderr
+    assert "SIGTERM while starting: stopping" in stderr and "Traceback" not in stderr, stderr
+    assert "running:" not in stderr  # stopped before it began
+
+
+def test_a_hangup_while_the_daemon_starts_is_said_and_it_runs_on(tmp_path, peers):
+    """SIGHUP while `companion run` imports its modules (the ssh session that started it dropped at once):
+    said in the log and the daemon runs on, as later. Before, the default SIGHUP ended it: 129, not a word."""
+    port = free_port()
+    peer = peers(port)
+    process = start_daemon(write_config(tmp_path, HOVER, port, source={"loop": True}))
+    try:
+        wait_until_importing(process)
+        process.send_signal(signal.SIGHUP)
+        wait_while_running(process, lambda: len(peer.records("VISION_POSITION_ESTIMATE")) >= 10)
+    finally:
+        process.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(process)
+    assert code == 0, stderr
+    assert stderr.count("SIGHUP (the terminal went away?): the daemon goes on") == 1, stderr
+    assert "SIGTERM: stopping" in stderr
+
+
 def test_a_replay_as_fast_as_possible_is_filtered_as_in_real_time(tmp_path):
     """realtime: false: the frames keep their recorded times, so the filter sees the flight's own motion
     and gates none of its poses (stamped when read, time compressed several times, it rejected most of
