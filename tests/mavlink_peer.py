@@ -165,6 +165,7 @@ def main() -> None:
 
     connection = streamer = None
     connected = threading.Event()
+    connecting = threading.Lock()
 
     def on_set_origin(fields: dict) -> None:
         with state_lock:
@@ -215,13 +216,21 @@ def main() -> None:
         # called by libmav's receive thread before it hands over the partner's first message: a callback
         # added once await_connection has returned misses what arrives meanwhile (the link's first texts)
         nonlocal connection, streamer
-        if connection is not None:
-            return
-        connection, streamer = partner, AttitudeStreamer(args, messages, partner, record)
-        partner.add_message_callback(on_message)
+        with connecting:  # libmav's thread and the main thread (below) may both hand it over
+            if connection is not None:
+                return
+            connection, streamer = partner, AttitudeStreamer(args, messages, partner, record)
+            partner.add_message_callback(on_message)
         connected.set()
 
     runtime.on_connection(on_connection)
+    # A partner heard before that (a link already sending when this peer starts: a test's second peer) got no
+    # callback, and none comes later: the peer would hear nothing, ever. await_connection hands it over (what
+    # it sent before this line is not recorded).
+    try:
+        on_connection(runtime.await_connection(1))
+    except RuntimeError:  # "Timeout while waiting for first connection": none yet, the callback will come
+        pass
     record("event", "listening", {})
     deadline = time.monotonic() + args.duration
     while not connected.wait(0.2):

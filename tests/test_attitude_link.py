@@ -141,7 +141,7 @@ def test_a_daemon_records_the_peers_attitude_and_tells_a_pause_once(tmp_path, ca
         "source": {"kind": "replay", "path": str(hover), "realtime": True, "loop": True},
         "map": str(REPO / "maps" / "warehouse.yaml"),
         "mavlink": {"connection": f"udpout:127.0.0.1:{port}", "duplicate_listen_s": 0.0,
-                    "statustext_interval_s": 0.05},
+                    "statustext_interval_s": 0.1},
         "attitude": {"source": "link", "max_age_s": 0.4},   # the pause only, not a loaded machine's stalls
         "record": str(tmp_path / "flight"),
     }, tmp_path / "daemon.yaml")

@@ -363,7 +363,7 @@ def test_config_error_exits_2_naming_the_file_and_key(tmp_path):
     config = write_config(tmp_path, HOVER, 14550, mavlink={"max_rate_hz": 80})
     code, _, stderr = finish(start_daemon(config), timeout_s=30)
     assert code == 2
-    assert f"{config}: mavlink: max_rate_hz" in stderr and "Traceback" not in stderr
+    assert f"{config}: mavlink.max_rate_hz: must be in (0, 50], got 80" in stderr and "Traceback" not in stderr
 
 
 def test_detector_layout_comes_from_the_map_and_a_mismatch_is_named():
@@ -453,6 +453,53 @@ class NotifyListener:
         self._reading.clear()
         self._thread.join()
         self._socket.close()
+
+
+def wait_for_status(notify: NotifyListener, pattern: str, after: int = 0, timeout_s: float = 15.0
+                    ) -> tuple[int, re.Match]:
+    """(index, match) of the first STATUS= line from ``after`` on that matches ``pattern``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for index, line in enumerate(notify.statuses()[after:], after):
+            match = re.search(pattern, line)
+            if match:
+                return index, match
+        time.sleep(0.05)
+    raise AssertionError(f"no STATUS= matching {pattern!r} within {timeout_s} s: {notify.statuses()[-3:]}")
+
+
+def test_a_flight_controller_that_goes_silent_is_on_the_status_line_for_as_long_as_it_lasts(tmp_path, peers):
+    """The UDP flight controller is killed mid-run: vision streams on (the start order gives up waiting for
+    it), and systemd's STATUS (the status line) says 'link streaming, no FC heard N s' from fc_timeout_s on,
+    on every line, counting up, until a flight controller is heard again. Before, it read 'link streaming'
+    throughout, and only one log line and one STATUSTEXT said otherwise."""
+    port = free_port()
+    first = peers(port, "--origin-reply", "on_set")
+    notify = NotifyListener(tmp_path / "notify.sock")
+    config = write_config(tmp_path, HOVER, port, source={"loop": True},
+                          mavlink={"fc_timeout_s": 1.5, "origin_wait_s": 1.0})
+    process = start_daemon(config, env={"NOTIFY_SOCKET": notify.path})
+    try:
+        first.wait_for("VISION_POSITION_ESTIMATE", count=5, timeout_s=20)
+        heard, _ = wait_for_status(notify, r"\| link streaming \| sent")
+        first.process.kill()   # kill -9: a UDP peer says no goodbye, the link stays open
+        first.process.wait()
+        killed = len(notify.statuses())
+        unheard, match = wait_for_status(notify, r"\| link streaming, no FC heard (\d+) s \| sent (\d+)", killed)
+        lasted, later = wait_for_status(notify, r"\| link streaming, no FC heard ([4-9]|\d\d+) s \| sent (\d+)",
+                                        unheard)
+        assert int(later.group(1)) > int(match.group(1)) and int(later.group(2)) > int(match.group(2))  # vision on
+        # it says so on every line meanwhile (the link held vision for origin_wait_s, then streamed on)
+        assert all("no FC heard" in line for line in notify.statuses()[unheard:lasted + 1])
+        second = peers(port, "--origin-reply", "on_set")
+        back, _ = wait_for_status(notify, r"\| link streaming \| sent", lasted)
+        second.wait_for("VISION_POSITION_ESTIMATE", count=3)
+    finally:
+        process.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(process, timeout_s=15)
+        notify.close()
+    assert code == 0, stderr
+    assert "no flight controller seen after 1.0 s" in stderr
 
 
 def test_a_camera_that_stalls_is_reported_and_the_heartbeat_goes_critical(tmp_path, peers):
@@ -949,6 +996,48 @@ def test_a_hangup_leaves_the_daemon_running_and_sigterm_still_stops_it(tmp_path,
         process.send_signal(signal.SIGHUP)
         time.sleep(0.5)
         assert_still_streaming(process, peer)
+    finally:
+        process.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(process)
+    assert code == 0, stderr
+    assert stderr.count("SIGHUP (the terminal went away?): the daemon goes on") == 1, stderr
+    assert "SIGTERM: stopping" in stderr
+
+
+def wait_until_importing(process: subprocess.Popen, timeout_s: float = 20.0) -> None:
+    """Until the daemon's modules are importing: numpy is mapped into the process (`companion` and its
+    dispatcher load none; `companion run` loads it, OpenCV, SciPy and pymavlink before it has handlers)."""
+    maps = Path(f"/proc/{process.pid}/maps")
+    deadline = time.monotonic() + timeout_s
+    while "/numpy/" not in maps.read_text():
+        assert process.poll() is None and time.monotonic() < deadline, "the daemon never imported numpy"
+        time.sleep(0.002)
+
+
+def test_a_stop_while_the_daemon_starts_ends_it_cleanly_with_a_log_line(tmp_path):
+    """systemd stops the service while `companion run` imports its modules (a second or more on a small
+    computer): exit 0 and a log line, as a stop later on. Before, the default SIGTERM ended it: 143, not a word."""
+    process = start_daemon(write_config(tmp_path, HOVER, free_port(), source={"loop": True}))
+    try:
+        wait_until_importing(process)
+        process.send_signal(signal.SIGTERM)
+    finally:
+        code, _, stderr = finish(process)
+    assert code == 0, stderr
+    assert "SIGTERM while starting: stopping" in stderr and "Traceback" not in stderr, stderr
+    assert "running:" not in stderr  # stopped before it began
+
+
+def test_a_hangup_while_the_daemon_starts_is_said_and_it_runs_on(tmp_path, peers):
+    """SIGHUP while `companion run` imports its modules (the ssh session that started it dropped at once):
+    said in the log and the daemon runs on, as later. Before, the default SIGHUP ended it: 129, not a word."""
+    port = free_port()
+    peer = peers(port)
+    process = start_daemon(write_config(tmp_path, HOVER, port, source={"loop": True}))
+    try:
+        wait_until_importing(process)
+        process.send_signal(signal.SIGHUP)
+        wait_while_running(process, lambda: len(peer.records("VISION_POSITION_ESTIMATE")) >= 10)
     finally:
         process.send_signal(signal.SIGTERM)
         code, _, stderr = finish(process)

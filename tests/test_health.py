@@ -175,6 +175,19 @@ def test_the_status_line_says_the_state_with_its_reasons():
     assert "(cannot open" not in dataclasses.replace(down, link_state="handshake").line()
 
 
+def test_the_status_line_says_for_how_long_no_flight_controller_is_heard():
+    """Vision may stream with no FC heard (the start order gives up waiting): the line says so beside the
+    link's state, for as long as it lasts (not while the link is down: its reason is said then)."""
+    status = DaemonStatus(fps=30.0, markers=3, latency_ms=6.0, estimate=None, state="tracking", state_s=0.0,
+                          reasons=(), critical=False, track_state="tracking", link_state="streaming", frames=400,
+                          sent=274, rejected=0, resets=0)
+    assert "| link streaming | sent 274" in status.line()
+    unheard = dataclasses.replace(status, fc_unheard_s=12.4)
+    assert "| tracking | link streaming, no FC heard 12 s | sent 274 " in unheard.line()
+    assert "| link handshake, no FC heard 12 s |" in dataclasses.replace(unheard, link_state="handshake").line()
+    assert "no FC" not in dataclasses.replace(unheard, link_state="connecting", link_down="lost: x").line()
+
+
 # ---------------------------------------------------------------- parameters
 
 GOOD = {"AHRS_EKF_TYPE": 3, "VISO_TYPE": 1, "EK3_SRC1_POSXY": 6, "EK3_SRC1_POSZ": 6, "EK3_SRC1_YAW": 6,

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import logging
+import re
 import select
 import threading
 import time
@@ -221,6 +223,43 @@ def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links)
     assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
 
 
+def test_a_udp_flight_controller_killed_without_an_origin_is_said_unheard_once_and_vision_goes_on(
+        peers, links, caplog):
+    """No origin: nothing waits for the FC, vision streams from the start. The UDP peer is killed (no goodbye,
+    the link stays open): from fc_timeout_s on the link says how long no FC has been heard (the status line's
+    'no FC heard'), logs it once and sends one STATUSTEXT, and streams on; a FC heard again clears it.
+    Before, nothing at all said it."""
+    caplog.set_level(logging.INFO, logger="companion.mavlink.link")
+    port = free_port()
+    first = peers(port, name="first")
+    link = links(connection=f"udpout:127.0.0.1:{port}", fc_timeout_s=1.5, heartbeat_interval_s=0.2,
+                 statustext_interval_s=0.1)
+    publisher = Publisher(link)
+    try:
+        first.wait_for("VISION_POSITION_ESTIMATE", count=5)
+        assert link.fc_seen and link.fc_unheard_s is None
+        first.process.kill()
+        first.process.wait()
+        wait_for_log(caplog, r"no flight controller heard for 1\.\d s; vision goes on")
+        assert link.fc_unheard_s >= 1.5 and link.state is LinkState.STREAMING
+        sent = len(publisher.sent_t_ns)
+        deadline = time.monotonic() + 10
+        while (link.fc_unheard_s or 0) < 3.0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.fc_unheard_s >= 3.0 and len(publisher.sent_t_ns) > sent  # still said; vision goes on
+        assert len([r for r in caplog.records if "no flight controller heard" in r.getMessage()]) == 1
+        # told once on the link (a ground station behind a router hears it; the FC is not there to)
+        assert [text for _, _, text in link.statustext_history] == ["companion: no FC heard"]
+        assert link.counters.sent["STATUSTEXT"] == 1
+        peers(port, name="second")
+        deadline = time.monotonic() + 10
+        while link.fc_unheard_s is not None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.fc_unheard_s is None and link.fc_seen
+    finally:
+        publisher.stop()
+
+
 def test_a_flight_controller_that_restarts_without_a_heartbeat_pause_gets_the_origin_again(peers, links):
     """A fast boot on a UART: the FC's heartbeat never pauses for fc_timeout_s and no connection drops, but its
     time_boot_ms (ATTITUDE's, here) starts again from 0, its EKF has lost the origin and it forgot the ATTITUDE
@@ -281,7 +320,7 @@ def test_a_flight_controller_that_streams_no_boot_time_is_asked_for_one_and_its_
 def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):
     port = free_port("tcp")
     first = peers(port, "--tcp", name="first")
-    link = links(connection=f"tcp:127.0.0.1:{port}", heartbeat_interval_s=0.2, fc_timeout_s=0.6,
+    link = links(connection=f"tcp:127.0.0.1:{port}", heartbeat_interval_s=0.2, fc_timeout_s=1.5,
                  reconnect_initial_s=0.1, reconnect_max_s=0.4)
     publisher = Publisher(link)
     first.wait_for("VISION_POSITION_ESTIMATE", count=5)
@@ -299,6 +338,84 @@ def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):
     publisher.stop()
     assert link.counters.transport_errors >= 1 and link.counters.connects >= 2
     assert link.down_reason is None
+
+
+def wait_for_log(caplog, pattern: str, after: int = 0, timeout_s: float = 15.0) -> tuple[int, re.Match]:
+    """(index, match) of the first log record from ``after`` on whose message matches ``pattern``."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for index, record in enumerate(list(caplog.records)[after:], after):
+            match = re.search(pattern, record.getMessage())
+            if match:
+                return index, match
+        time.sleep(0.05)
+    raise AssertionError(f"no log line matching {pattern!r} within {timeout_s} s: "
+                         f"{[r.getMessage() for r in caplog.records][-6:]}")
+
+
+LOST = r"lost \(.*\); reconnecting in ([\d.]+) s"
+
+
+def test_a_tcp_link_that_worked_is_reopened_after_reconnect_initial_s_whatever_the_backoff_before(
+        peers, links, caplog):
+    """Nothing listens for long enough that the backoff grows to reconnect_max_s; then a flight controller
+    comes, is heard, and goes away (killed): the link reopens after reconnect_initial_s, and reaches the FC
+    started again. Before, the backoff was reset only when the link was closed, and the loss waited
+    reconnect_max_s (8 s without vision by default)."""
+    caplog.set_level(logging.DEBUG, logger="companion.mavlink.link")
+    port = free_port("tcp")
+    link = links(connection=f"tcp:127.0.0.1:{port}", heartbeat_interval_s=0.2,
+                 reconnect_initial_s=0.1, reconnect_max_s=1.6)
+    wait_for_log(caplog, r"cannot open .*retrying with backoff \(1\.6 s")  # 0.1, 0.2, 0.4, 0.8, 1.6
+    first = peers(port, "--tcp", name="first")
+    deadline = time.monotonic() + 15
+    while not link.fc_seen and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert link.fc_seen
+    seen = len(caplog.records)
+    first.process.kill()  # kill -9: no goodbye
+    first.process.wait()
+    _, lost = wait_for_log(caplog, LOST, after=seen)
+    assert float(lost.group(1)) == pytest.approx(0.1), lost.group(0)
+    second = peers(port, "--tcp", name="second")
+    second.wait_for("HEARTBEAT")
+    assert link.counters.connects == 2
+
+
+def test_a_tcp_connection_that_never_worked_does_not_reset_the_backoff(links, caplog):
+    """A listener that takes the connection and closes it at once (nothing heard, open for less than
+    reconnect_max_s) is no working link: the backoff goes on doubling, not reopening at reconnect_initial_s."""
+    import socket
+    caplog.set_level(logging.DEBUG, logger="companion.mavlink.link")
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(8)
+    listener.settimeout(0.1)
+    stop = threading.Event()
+
+    def refuse_politely():
+        while not stop.is_set():
+            try:
+                connection, _ = listener.accept()
+            except OSError:
+                continue
+            connection.close()
+
+    closer = threading.Thread(target=refuse_politely, daemon=True)
+    closer.start()
+    try:
+        links(connection=f"tcp:127.0.0.1:{listener.getsockname()[1]}", heartbeat_interval_s=0.2,
+              reconnect_initial_s=0.1, reconnect_max_s=5.0)
+        waits, after = [], 0
+        while len(waits) < 4:
+            after, lost = wait_for_log(caplog, LOST, after=after)
+            waits.append(float(lost.group(1)))
+            after += 1
+    finally:
+        stop.set()
+        closer.join()
+        listener.close()
+    assert waits == pytest.approx([0.1, 0.2, 0.4, 0.8]), waits
 
 
 @pytest.mark.parametrize("text, expected", [
@@ -323,6 +440,35 @@ def test_bad_connection_strings_are_rejected_with_the_string(text):
 def test_bad_link_parameters_are_rejected(bad):
     with pytest.raises(LinkError, match=next(iter(bad))):
         LinkParams(**bad)
+
+
+@pytest.mark.parametrize("key, least", [("heartbeat_interval_s", 0.1), ("statustext_interval_s", 0.1),
+                                        ("origin_retry_s", 0.2), ("fc_timeout_s", 1.5),
+                                        ("reconnect_initial_s", 0.05), ("reconnect_max_s", 0.05)])
+def test_a_period_of_zero_or_below_its_least_is_refused_naming_the_key_and_the_bound(key, least):
+    """0 was accepted (>= 0) and flooded: 109 379 HEARTBEATs in 6 s, a refused TCP link reopened 37 506 times
+    in 6 s at 77 % CPU, 546 COMMAND_LONG and 111 SET_GPS_GLOBAL_ORIGIN in 6 s. Each period has a least value,
+    said in the error; that value itself is taken."""
+    others = dict(reconnect_initial_s=least) if key == "reconnect_max_s" else {}
+    for bad in (0, 0.0, least / 2):
+        with pytest.raises(LinkError) as error:
+            LinkParams(**others, **{key: bad})
+        assert error.value.key == key and str(error.value).startswith(f"{key} must be >= {least:g} s ("), error.value
+        assert error.value.problem.startswith(f"must be >= {least:g} s (")
+    assert getattr(LinkParams(**others, **{key: least}), key) == least
+
+
+def test_reconnect_max_below_reconnect_initial_is_refused():
+    with pytest.raises(LinkError, match=r"reconnect_max_s must be >= reconnect_initial_s \(2 s\), got 1") as error:
+        LinkParams(reconnect_initial_s=2.0, reconnect_max_s=1.0)
+    assert error.value.key == "reconnect_max_s"
+
+
+@pytest.mark.parametrize("key", ["origin_wait_s", "ekf_wait_s", "home_wait_s", "duplicate_listen_s"])
+def test_a_wait_may_be_zero_but_not_negative(key):
+    assert getattr(LinkParams(**{key: 0}), key) == 0
+    with pytest.raises(LinkError, match=f"{key} must be >= 0 s"):
+        LinkParams(**{key: -0.5})
 
 
 def test_serial_device_with_baud_rate_over_a_pseudo_terminal(links):

@@ -8,6 +8,7 @@ loads no numpy, OpenCV, filterpy or pymavlink. Each sub-command module exposes
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import signal
@@ -59,6 +60,34 @@ def build_parser(command: str | None = None, module: ModuleType | None = None) -
     return parser
 
 
+# `companion run` is a service: a stop (SIGTERM) or a hangup (SIGHUP) while its modules import (a second or more
+# on a small computer) and its config loads, before it has handlers of its own, would end it with 143 or 129 and
+# not a word. Meanwhile they are noted here (``start_signals``), and `run` handles them once it can log:
+# a stop ends it cleanly (exit 0), a hangup is said and changes nothing, as later.
+START_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+start_signals: list[int] = []
+
+
+@contextlib.contextmanager
+def signals_noted_while_starting(command: str | None):
+    """For `companion run`: SIGTERM and SIGHUP noted in ``start_signals`` (not their default: the end of the
+    process) until `run` installs its own handlers; the previous handlers back afterwards (``cli.main`` called
+    in-process, by a test)."""
+    previous = {}
+    if command == "run":
+        try:
+            previous = {sig: signal.signal(sig, lambda signum, _frame: start_signals.append(signum))
+                        for sig in START_SIGNALS}
+        except ValueError:  # not the main thread: signals are not ours to handle
+            previous = {}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        start_signals.clear()
+
+
 def discard_stdout() -> None:
     """Point stdout at /dev/null: its reader is gone, and flushing what is left at exit would raise again."""
     os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -69,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     # No option comes before the sub-command: a known name in first place is the chosen one.
     command = argv[0] if argv and argv[0] in COMMANDS else None
     try:
-        return _run(command, argv)
+        with signals_noted_while_starting(command):
+            return _run(command, argv)
     except KeyboardInterrupt:  # Ctrl-C at any point, the sub-command's imports included
         print(f"companion{f' {command}' if command else ''}: interrupted", file=sys.stderr)
         return 130

@@ -13,7 +13,7 @@ from companion.daemon.config import (Config, ConfigError, ReplayConfig, V4L2Conf
 from companion.daemon.record import RecordError, RecordParams
 from companion.yaml_input import Where
 from companion.daemon.service import LOG_LEVELS, Daemon, setup_logging
-from companion.cli import discard_stdout
+from companion.cli import discard_stdout, start_signals
 
 log = logging.getLogger("companion")
 
@@ -43,6 +43,8 @@ def configure_parser(parser) -> None:
 
 def main(args) -> int:
     setup_logging(args.log_level)
+    if _stopped_while_starting():
+        return 0
     try:
         config = with_options(load_config(args.config, replay=args.replay, replay_fps=args.fps), args)
         daemon = Daemon(config, status_stream=sys.stdout)
@@ -55,6 +57,8 @@ def main(args) -> int:
     previous = {sig: signal.signal(sig, lambda signum, _frame: _on_signal(daemon, signum))
                 for sig in (signal.SIGTERM, signal.SIGINT)}
     previous[signal.SIGHUP] = signal.signal(signal.SIGHUP, lambda _signum, _frame: _on_hangup())
+    if _stopped_while_starting():  # while the config loaded: it starts and stops at once, in order
+        daemon.stop_event.set()
     try:
         return daemon.run()
     finally:
@@ -79,6 +83,21 @@ def with_options(config: Config, args) -> Config:
     if args.http is not None:
         config = dataclasses.replace(config, http=http_address(args.http, Where("command line (--http)", ConfigError, "status")))
     return config
+
+
+def _stopped_while_starting() -> bool:
+    """The signals that came while `companion run` started (``cli.start_signals``: its modules importing, its
+    config loading), said now that the log is set up: True after a SIGTERM (a systemd stop: exit 0); a SIGHUP
+    is said as later and changes nothing."""
+    stopped = False
+    while start_signals:
+        signum = start_signals.pop(0)
+        if signum == signal.SIGHUP:
+            _on_hangup()
+        elif not stopped:
+            log.info("%s while starting: stopping", signal.Signals(signum).name)
+            stopped = True
+    return stopped
 
 
 def _on_hangup() -> None:

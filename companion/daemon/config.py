@@ -20,7 +20,7 @@ from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import FacilityMap, geodetic_origin, load_map
 from companion.fusion import FusionParams
 from companion.geometry.pose import PoseParams
-from companion.mavlink.link import LinkParams, Origin
+from companion.mavlink.link import LinkError, LinkParams, Origin
 from companion.capture.replay import SEQUENCE_FILE, TIMESTAMPS_FILE, read_sequence_info, sequence_map_path
 from companion.capture.simulated import SimulatedCameraParams
 from companion.daemon.record import RecordParams
@@ -394,6 +394,8 @@ def _mavlink(section, where: Where, facility_map: FacilityMap) -> LinkParams:
     values["origin"] = _origin(section.get("origin"), where.sub("origin"), facility_map)
     try:
         return LinkParams(**values)
+    except LinkError as error:  # the key it names is one of this section's
+        raise where.error(error.problem, error.key) from None
     except ValueError as error:
         raise where.error(str(error)) from None
 

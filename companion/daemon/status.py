@@ -37,7 +37,10 @@ class DaemonStatus:
     attitude: the flight controller's attitude in the pose stage ("ok",
     "stale", "waiting"; "off" when none is expected, and then not shown);
     render_ms: a simulated camera's median render time per frame (None: a
-    real camera, and then not shown).
+    real camera, and then not shown); fc_unheard_s: how long no flight
+    controller has been heard on the open link (``MavlinkLink.fc_unheard_s``;
+    None: one is heard, or the link is down), shown beside the link's state
+    (``link streaming, no FC heard 12 s``) for as long as it lasts.
     """
 
     fps: float
@@ -57,6 +60,7 @@ class DaemonStatus:
     attitude: str = "off"
     render_ms: float | None = None
     link_down: str | None = None
+    fc_unheard_s: float | None = None
 
     def state_text(self) -> str:
         """``camera stalled 3.2 s: no frame for 3.2 s``; the bare state when all is well."""
@@ -75,6 +79,8 @@ class DaemonStatus:
             pose = "no pose"
         attitude = "" if self.attitude == "off" else f"attitude {self.attitude} | "
         link = self.link_state + (f" ({self.link_down})" if self.link_down and self.link_state == "connecting" else "")
+        if self.fc_unheard_s is not None and self.link_state != "connecting":
+            link += f", no FC heard {self.fc_unheard_s:.0f} s"
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
                 f"{self.state_text()} | {attitude}link {link} | "
                 f"sent {self.sent} rejected {self.rejected} resets {self.resets}"

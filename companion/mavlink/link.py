@@ -3,7 +3,8 @@
 Threads (both stop on ``close()``):
 
 * ``link`` owns the connection: opens it (reopening with backoff after a
-  transport error), reads what the flight controller (FC) sends, answers
+  transport error, the backoff started again after a connection that worked:
+  ``_connection_worked``), reads what the flight controller (FC) sends, answers
   TIMESYNC requests, runs the origin handshake and sends pending STATUSTEXTs;
 * ``heartbeat`` sends HEARTBEAT at 1 Hz (type 18, autopilot 8), with
   ``system_status`` STANDBY before streaming, ACTIVE while streaming and
@@ -119,8 +120,35 @@ BOOT_TIME_REQUEST_RATE_HZ = 2.0
 BOOT_TIME_REQUEST_RETRY_S = 2.0
 
 
+# The least each period of the link may be (LinkParams), and why. Below it (0 above all) the link floods:
+# 100 000 HEARTBEATs in 6 s, a refused TCP link reopened 6000 times a second at 77 % CPU, the origin re-sent
+# and asked for at each turn of the link's loop, a FC that heartbeats at 1 Hz lost and "seen" at each beat.
+MIN_PERIOD_S = {
+    "heartbeat_interval_s": (0.1, "HEARTBEAT at 10 Hz at most"),
+    "statustext_interval_s": (0.1, "STATUSTEXT at 10 Hz at most"),
+    "origin_retry_s": (0.2, "the origin and the requests to the FC at 5 Hz at most"),
+    "fc_timeout_s": (1.5, "the FC heartbeats at 1 Hz: less would lose it between two heartbeats"),
+    "reconnect_initial_s": (0.05, "a lost link reopened at 20 Hz at most"),
+    "reconnect_max_s": (0.05, "a lost link reopened at 20 Hz at most"),  # and >= reconnect_initial_s
+}
+# waits that may be 0 (no wait): none of them repeats anything
+WAITS = ("origin_wait_s", "ekf_wait_s", "home_wait_s", "duplicate_listen_s")
+
+
 class LinkError(ValueError):
-    """A connection string or link parameter that cannot work."""
+    """A connection string or link parameter that cannot work.
+
+    key: the LinkParams field at fault (None for a connection string); problem: what is wrong with it, without
+    its name (``must be >= 0.1 s ..., got 0``), for a message that names the key its own way (the config's).
+    """
+
+    def __init__(self, message: str, key: str | None = None, problem: str | None = None):
+        super().__init__(message)
+        self.key, self.problem = key, problem if problem is not None else message
+
+    @classmethod
+    def of(cls, key: str, problem: str) -> "LinkError":
+        return cls(f"{key} {problem}", key, problem)
 
 
 class LinkState(enum.Enum):
@@ -161,17 +189,21 @@ class LinkParams:
     def __post_init__(self) -> None:
         parse_connection(self.connection)
         if not 1 <= self.system_id <= 254:
-            raise LinkError(f"system_id must be 1..254 (255 is a ground station), got {self.system_id}")
+            raise LinkError.of("system_id", f"must be 1..254 (255 is a ground station), got {self.system_id}")
         if not 1 <= self.component_id <= 255:
-            raise LinkError(f"component_id must be 1..255, got {self.component_id}")
+            raise LinkError.of("component_id", f"must be 1..255, got {self.component_id}")
         if not 0 < self.max_rate_hz <= MAX_VISION_RATE_HZ:
-            raise LinkError(f"max_rate_hz must be in (0, {MAX_VISION_RATE_HZ:g}], got {self.max_rate_hz}")
-        for name in ("origin_wait_s", "origin_retry_s", "ekf_wait_s", "home_wait_s", "duplicate_listen_s",
-                     "fc_timeout_s", "statustext_interval_s",
-                     "heartbeat_interval_s", "reconnect_initial_s", "reconnect_max_s"):
+            raise LinkError.of("max_rate_hz", f"must be in (0, {MAX_VISION_RATE_HZ:g}], got {self.max_rate_hz}")
+        for name in WAITS + tuple(MIN_PERIOD_S):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise LinkError(f"{name} must be a number >= 0, got {value!r}")
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)):
+                raise LinkError.of(name, f"must be a number of seconds, got {value!r}")
+            least, why = MIN_PERIOD_S.get(name, (0.0, "0: no wait"))
+            if value < least:
+                raise LinkError.of(name, f"must be >= {least:g} s ({why}), got {value!r}")
+        if self.reconnect_max_s < self.reconnect_initial_s:
+            raise LinkError.of("reconnect_max_s", f"must be >= reconnect_initial_s ({self.reconnect_initial_s:g} s), "
+                                                  f"got {self.reconnect_max_s!r}")
 
 
 def parse_connection(text: str) -> tuple[str, int | None]:
@@ -182,20 +214,20 @@ def parse_connection(text: str) -> tuple[str, int | None]:
     rate: ``/dev/ttyAMA0,921600`` (57600 when no rate is given).
     """
     if not isinstance(text, str) or not text:
-        raise LinkError(f"connection must be a string such as udpout:127.0.0.1:14550, got {text!r}")
+        raise LinkError.of("connection", f"must be a string such as udpout:127.0.0.1:14550, got {text!r}")
     if text.startswith(NETWORK_PREFIXES):
         kind, _, address = text.partition(":")
         host, _, port = address.rpartition(":")
         if not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise LinkError(f"connection {text!r}: want {kind}:HOST:PORT with a port in 1..65535")
+            raise LinkError.of("connection", f"{text!r}: want {kind}:HOST:PORT with a port in 1..65535")
         return text, None
     if text.startswith(SERIAL_PREFIXES):
         device, _, baud = text.partition(",")
         if baud and not baud.isdigit():
-            raise LinkError(f"connection {text!r}: the baud rate after the comma must be a number")
+            raise LinkError.of("connection", f"{text!r}: the baud rate after the comma must be a number")
         return device, int(baud) if baud else 57600
-    raise LinkError(f"connection {text!r}: want udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, "
-                    "tcpin:HOST:PORT or a serial device such as /dev/ttyAMA0,921600")
+    raise LinkError.of("connection", f"{text!r}: want udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, "
+                                     "tcpin:HOST:PORT or a serial device such as /dev/ttyAMA0,921600")
 
 
 @dataclass(frozen=True, order=True)
@@ -282,6 +314,7 @@ class MavlinkLink:
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
+        self._told_unheard = False  # "no flight controller heard" said for this silence (_watch_fc_heard)
         self._fc_boot_ms: int | None = None   # the FC's newest time_boot_ms: going back, it restarted
         self._boot_time_request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME, BOOT_TIME_REQUEST_RATE_HZ, BOOT_TIME_REQUEST_RETRY_S)
         self._connected_s = 0.0
@@ -326,6 +359,17 @@ class MavlinkLink:
     @property
     def fc_seen(self) -> bool:
         return time.monotonic() - self._last_fc_heartbeat_s < self.params.fc_timeout_s
+
+    @property
+    def fc_unheard_s(self) -> float | None:
+        """How long no flight controller has been heard on the open connection (since its last heartbeat, or
+        since the connection opened), once that is ``fc_timeout_s`` or more; None while one is heard, and while
+        the connection is down (``down_reason`` says why). Vision may stream meanwhile (the start order gives up
+        waiting): this is what says the FC is not there (the status line)."""
+        if self._connection is None:
+            return None
+        unheard_s = time.monotonic() - max(self._last_fc_heartbeat_s, self._connected_s)
+        return unheard_s if unheard_s >= self.params.fc_timeout_s else None
 
     def subscribe(self, subscriber: Subscriber) -> None:
         """Hand ``subscriber`` the flight controller's messages of its types; call before ``start``."""
@@ -458,9 +502,9 @@ class MavlinkLink:
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
                 continue
             said = self.down_reason = None
+            self._connected_s = time.monotonic()  # before the connection is seen open (fc_unheard_s, publish)
             with self._send_lock:
                 self._connection = connection
-            self._connected_s = time.monotonic()
             self.counters.connects += 1
             self._transport_broken.clear()
             log.info("link %s: open", self.params.connection)
@@ -471,6 +515,8 @@ class MavlinkLink:
             except (OSError, _TransportLost) as error:
                 self.counters.transport_errors += 1
                 self.down_reason = f"lost: {error}"
+                if self._connection_worked():
+                    backoff_s = self.params.reconnect_initial_s  # the backoff is for a link that keeps failing
                 log.warning("link %s: lost (%s); reconnecting in %.1f s", self.params.connection, error, backoff_s)
             finally:
                 self._close_connection()
@@ -479,6 +525,13 @@ class MavlinkLink:
             if not self._stop.is_set():
                 self._stop.wait(backoff_s)
                 backoff_s = min(2 * backoff_s, self.params.reconnect_max_s)
+
+    def _connection_worked(self) -> bool:
+        """Whether the connection just lost worked: the FC was heard on it, or it stayed open for
+        ``reconnect_max_s`` (reopened that seldom, nothing is hammered). A lost one that worked is reopened after
+        ``reconnect_initial_s``, not after the backoff grown while nothing listened (8 s without vision)."""
+        return (self._last_fc_heartbeat_s >= self._connected_s
+                or time.monotonic() - self._connected_s >= self.params.reconnect_max_s)
 
     def _serve(self, connection) -> None:
         """Read and react until stopped; raises on a transport error."""
@@ -732,6 +785,7 @@ class MavlinkLink:
             self._handshake_step(now_s)
         if self.state is LinkState.STREAMING and self._home_check_started_s is not None:
             self._home_step(now_s)
+        self._watch_fc_heard()
         self._request_attitude(now_s)
         self._request_boot_time(now_s)
         if now_s - self._last_statustext_s >= self.params.statustext_interval_s:
@@ -747,6 +801,19 @@ class MavlinkLink:
         with self._statustext_lock:
             if queued in self._statustexts:  # (not replaced meanwhile)
                 self._statustexts.remove(queued)
+
+    def _watch_fc_heard(self) -> None:
+        """Without an origin nothing waits for the FC (vision streams from the start), so nothing said that
+        none is heard: said here, once per silence (the status line says it for as long as it lasts; heard
+        again, its heartbeat is logged). With an origin the start order says it (vision held, then no
+        flight controller seen)."""
+        unheard_s = self.fc_unheard_s
+        if unheard_s is None:
+            self._told_unheard = False
+        elif not self._told_unheard and self.params.origin is None and self.stream:
+            self._told_unheard = True
+            log.warning("link: no flight controller heard for %.1f s; vision goes on", unheard_s)
+            self.statustext("companion: no FC heard", SEVERITY_WARNING)
 
     def _fc_went_silent(self) -> bool:
         """True when a FC seen since the last handshake began has stopped sending heartbeats."""
