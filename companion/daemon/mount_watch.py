@@ -17,9 +17,14 @@ A camera turned about the body's down axis against its config (a wrong yaw or
 facing) shows only while the vehicle tilts: the markers then see the FC's tilt
 turned by as much. Where the FC's tilts over the window spread by
 ``MIN_TILT_SPREAD_FOR_TURN_DEG`` or more, that turn is estimated (least squares
-over the frames' tilts, a constant level error beside it), and one of ``MIN_REPORTED_TURN_DEG`` or more is told as the
-camera's yaw error, CRITICAL: every heading sent is off by as much, and an
-autopilot that takes its heading from vision flies off.
+over the frames' tilts, a constant level error beside it), and one of
+``MIN_REPORTED_TURN_DEG`` or more that explains the tilts (``MIN_TURN_EXPLAINED``
+of them) is told as the camera's yaw error or the flight controller's board
+orientation, which the tilts cannot tell apart: CRITICAL either way (with a
+wrong camera yaw every heading sent is off by as much; with a wrong board
+orientation the autopilot's own attitude is). Tilts that no turn explains
+(a marker turned in the map and seen alone, an attitude stamped late) are
+said as a level difference, with those causes among the ones to check.
 """
 from __future__ import annotations
 
@@ -41,6 +46,9 @@ log = logging.getLogger("companion")
 MOUNT_WATCH_SDS = 3.0  # the daemon reports a median angle of this many ``PoseParams.attitude_sd_deg`` or more
 MIN_TILT_SPREAD_FOR_TURN_DEG = 2.0  # the FC's tilts must spread this much (RMS) for a turn about the vertical
 MIN_REPORTED_TURN_DEG = 10.0  # a turn this large is reported as the camera's yaw (CRITICAL: every heading is off)
+# the turn must explain this share of the markers' tilts about their mean: a map entry turned on a lone marker,
+# an attitude stamped late or early, give tilts that no turn takes one onto the other (it fitted +50 deg there)
+MIN_TURN_EXPLAINED = 0.8
 
 
 @dataclass(frozen=True)
@@ -80,15 +88,17 @@ class MountWatch:
         turned = turn is not None and abs(turn) >= MIN_REPORTED_TURN_DEG
         why = (f"the tilt the markers see is the FC's turned by {turn:+.0f} deg about the body's down axis: the "
                f"camera's yaw in the config is {turn:+.0f} deg off (camera.mount yaw_deg or facing; every heading "
-               f"sent is off by as much)" if turned else
-               "check the camera's mount in the config (camera.mount: facing, tilt_down_deg or roll/pitch/yaw_deg) "
-               "and the FC's level calibration")
+               f"sent is off by as much), or the FC's board orientation is (ArduPilot AHRS_ORIENTATION, PX4 "
+               f"SENS_BOARD_ROT)" if turned else
+               "check the camera's mount in the config (camera.mount: facing, tilt_down_deg or roll/pitch/yaw_deg), "
+               "the FC's level calibration, the map entries of the markers in view (one turned in the map tilts "
+               "every pose from it) and the attitude's time stamps")
         log.log(logging.ERROR if turned else logging.WARNING, "the markers and the flight controller disagree on "
                 "level by %.1f deg (median of the last %d frames; markers - FC: roll %+.1f, pitch %+.1f deg); the "
                 "pose stage leaves the FC's attitude out where they disagree; %s",
                 angle_deg, len(self._frames), roll_deg, pitch_deg, why)
         if self.link is not None:
-            self.link.statustext(f"companion: camera mount? yaw off by {turn:+.0f} deg" if turned else
+            self.link.statustext(f"companion: camera/FC board yaw off by {turn:+.0f} deg" if turned else
                                  f"companion: camera mount? level {angle_deg:.1f} deg off FC",
                                  SEVERITY_CRITICAL if turned else SEVERITY_WARNING)
 
@@ -122,4 +132,10 @@ def tilt_turn_deg(down_markers: np.ndarray, down_fc: np.ndarray, min_spread_deg:
         return None
     # the least-squares turn: atan2 of the summed cross and dot products
     cross = float(np.sum(fc[:, 0] * markers[:, 1] - fc[:, 1] * markers[:, 0]))
-    return math.degrees(math.atan2(cross, float(np.sum(fc * markers))))
+    turn = math.atan2(cross, float(np.sum(fc * markers)))
+    # a turn, or tilts that no turn explains (None): the share of the markers' tilts left over after it
+    c, s = math.cos(turn), math.sin(turn)
+    left = markers - np.column_stack([c * fc[:, 0] - s * fc[:, 1], s * fc[:, 0] + c * fc[:, 1]])
+    if float(np.sum(left * left)) > (1.0 - MIN_TURN_EXPLAINED) * float(np.sum(markers * markers)):
+        return None
+    return math.degrees(turn)
