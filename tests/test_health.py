@@ -163,6 +163,16 @@ def test_markers_lost_with_markers_in_view_says_why_the_pose_stage_gave_none(hea
     assert len("companion: " + said[-1][0]) <= 50
 
 
+def test_markers_lost_to_the_filter_gate_says_so(health):
+    """Poses that the pose stage found but the filter gated off its track (a marker's map entry wrong, seen
+    alone): 'markers lost' alone did not say why."""
+    monitor, clock, said = health
+    play(monitor, clock, 10)
+    play(monitor, clock, 3, tracking=False)     # poses, gated: coasting
+    play(monitor, clock, 1, tracking=None)      # the track ran out
+    assert said[-1] == ("markers lost: filter gating", 4)
+
+
 def test_the_status_line_says_the_state_with_its_reasons():
     status = DaemonStatus(fps=0.0, markers=0, latency_ms=None, estimate=None, state="camera stalled", state_s=3.24,
                           reasons=("no frame for 3.2 s",), critical=True, track_state="acquiring",

@@ -111,7 +111,7 @@ class Health:
         self._periods_ns: collections.deque = collections.deque(maxlen=30)
         self._last_markers_ns: int | None = None
         self._markers_without_pose_ns: int | None = None  # first frame with markers since the last pose
-        self._pose_statuses: collections.Counter = collections.Counter()  # since the last pose
+        self._pose_statuses: collections.Counter = collections.Counter()  # since the last pose the filter took
         self._track = "acquiring"
         self._acquisitions = 0
         self._resets = 0   # the filter's reset counter as last seen
@@ -134,7 +134,10 @@ class Health:
                 self._last_markers_ns = now_ns
             if record.measurement is not None:
                 self._markers_without_pose_ns = None
-                self._pose_statuses.clear()
+                if record.estimate is not None and record.estimate.tracking:
+                    self._pose_statuses.clear()
+                else:  # a pose the filter did not take: gated off its track, or one of a new fix's first
+                    self._pose_statuses["filter gating"] += 1
             elif record.solution is not None:
                 if self._markers_without_pose_ns is None:
                     self._markers_without_pose_ns = now_ns
