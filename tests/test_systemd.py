@@ -35,6 +35,18 @@ def test_unit_is_a_watched_notify_service_of_an_unprivileged_user():
     assert unit_sections()["Install"]["WantedBy"] == "multi-user.target"
 
 
+def test_a_config_that_cannot_work_is_not_restarted_over_and_over(tmp_path):
+    """A typo in the config exits 2 at once: Restart=on-failure restarted it every 2-3 s forever (never 5
+    starts in systemd's 10 s burst limit), repeating the one line that names the key."""
+    config = tmp_path / "companion.yaml"
+    config.write_text("mavlink: {max_rate_hz: 100}\n")
+    run = subprocess.run([sys.executable, "-m", "companion", "run", "--config", str(config)], capture_output=True,
+                         text=True, timeout=60)
+    assert run.returncode != 0 and "companion.yaml: " in run.stderr, run.stderr
+    prevented = unit_sections()["Service"].get("RestartPreventExitStatus", "").split()
+    assert str(run.returncode) in prevented, (run.returncode, prevented)
+
+
 def test_systemd_analyze_verify_reports_nothing(tmp_path):
     analyze = shutil.which("systemd-analyze")
     assert analyze, "systemd-analyze is needed for this test (apt-get install systemd)"
