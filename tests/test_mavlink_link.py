@@ -509,6 +509,37 @@ def test_serial_device_with_baud_rate_over_a_pseudo_terminal(links):
     assert all(thread.is_alive() for thread in link._threads)
 
 
+def test_a_serial_port_another_link_holds_is_not_opened_and_says_why(links):
+    """`companion check-fc` on the UART of a running service: two readers split the tty's bytes, and both saw
+    a flight controller going silent and parameters not reported. The second opener now stays out, saying why;
+    it gets the port once the first lets it go."""
+    import os
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    device = os.ttyname(slave)
+    first = links(connection=f"{device},921600", heartbeat_interval_s=0.1, reconnect_initial_s=0.05,
+                  reconnect_max_s=0.1)
+    deadline = time.monotonic() + 10
+    while first.counters.connects == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert first.counters.connects >= 1
+    second = links(connection=f"{device},921600", heartbeat_interval_s=0.1, reconnect_initial_s=0.05,
+                   reconnect_max_s=0.1)
+    deadline = time.monotonic() + 10
+    while second.down_reason is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert second.counters.connects == 0
+    assert f"{device} is in use by another program" in (second.down_reason or ""), second.down_reason
+    first.close()
+    deadline = time.monotonic() + 10
+    while second.counters.connects == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert second.counters.connects >= 1   # the port let go: the second link has it
+    os.close(master)
+    os.close(slave)
+
+
 # ------------------------------------------------ issue 11: start order, parameters, two companions
 
 def event_time(peer: PeerProcess, name: str, timeout_s: float = 15.0) -> int:

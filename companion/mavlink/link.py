@@ -80,6 +80,7 @@ from __future__ import annotations
 
 import collections
 import enum
+import fcntl
 import itertools
 import logging
 import math
@@ -204,6 +205,19 @@ class LinkParams:
         if self.reconnect_max_s < self.reconnect_initial_s:
             raise LinkError.of("reconnect_max_s", f"must be >= reconnect_initial_s ({self.reconnect_initial_s:g} s), "
                                                   f"got {self.reconnect_max_s!r}")
+
+
+def _claim_serial_port(connection, device: str) -> None:
+    """The flight controller's UART for this link alone while it is open (an advisory lock, as pyserial's
+    ``exclusive``): two programs reading one tty split its bytes between them, and each sees a flight
+    controller that goes silent and answers half its requests (``companion check-fc`` on the service's port).
+    OSError, the connection closed, when another program holds it."""
+    try:
+        fcntl.flock(connection.port.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        connection.close()
+        raise OSError(f"{device} is in use by another program (the companion service, companion check-fc or a "
+                      "ground station: two readers split the flight controller's bytes; stop one)") from None
 
 
 def parse_connection(text: str) -> tuple[str, int | None]:
@@ -468,6 +482,8 @@ class MavlinkLink:
         if device.startswith(("tcp:", "tcpin:")):
             kwargs["retries"] = 0
         connection = mavutil.mavlink_connection(device, **kwargs)
+        if baud is not None:
+            _claim_serial_port(connection, device)
         # pymavlink's TCP/serial classes only print on EOF; make it an error we handle.
         connection.handle_eof = connection.handle_disconnect = self._raise_transport_lost
         return connection
