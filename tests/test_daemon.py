@@ -708,6 +708,22 @@ def test_check_fc_prints_the_table_and_exits_1_on_a_blocking_parameter(peers):
     assert "1 parameter(s) block vision fusion, 2 degrade it" in result.stdout
 
 
+def test_check_fc_tells_a_slow_answer_from_none_and_names_another_system_id(peers):
+    """A flight controller that serves one parameter of ten: its heartbeat answered, the re-asked parameters
+    outlast a short --timeout-s; 'no flight controller answered' was untrue. And a --system-id that is not the
+    FC's was passed over in silence."""
+    port = free_port()
+    peers(port, "--params", json.dumps({"VISO_TYPE": 1}))
+    short = subprocess.run([sys.executable, "-m", "companion", "check-fc", f"udpout:127.0.0.1:{port}", "--timeout-s",
+                            "1.5"], capture_output=True, text=True, timeout=60)
+    assert short.returncode == 2 and short.stderr.startswith(
+        f"companion check-fc: flight controller system 1 answered on udpout:127.0.0.1:{port}, but not every "
+        "parameter within 1.5 s"), short.stderr
+    other = subprocess.run([sys.executable, "-m", "companion", "check-fc", f"udpout:127.0.0.1:{port}",
+                            "--system-id", "2"], capture_output=True, text=True, timeout=60)
+    assert "system id: the flight controller is system 1, the daemon's is 2" in other.stdout, other.stdout
+
+
 @pytest.mark.parametrize("connection, why", [
     ("udpout:127.0.0.1:{port}", None),  # datagrams to nobody: nothing to say but the silence
     ("tcp:127.0.0.1:{port}", "(cannot open: [Errno 111] Connection refused)"),

@@ -48,8 +48,13 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion check-fc: {error}", file=sys.stderr)
         return 2
     logging.getLogger("companion.mavlink").setLevel(logging.ERROR)  # the table says what matters
-    result, down_reason = read_parameters(params, args.timeout_s)
+    result, down_reason, heard_system = read_parameters(params, args.timeout_s)
     if result is None:
+        if heard_system is not None:   # it answered, but its parameter answers took longer
+            print(f"companion check-fc: flight controller system {heard_system} answered on {args.connection}, but "
+                  f"not every parameter within {args.timeout_s:g} s (a missing one is asked for again, three "
+                  "times): give a longer --timeout-s", file=sys.stderr)
+            return 2
         # a refused port or a missing serial device is retried to the end (a SITL or a USB FC may be starting)
         why = f" ({down_reason})" if down_reason else ""
         print(f"companion check-fc: no flight controller answered on {args.connection} within "
@@ -59,6 +64,9 @@ def main(args: argparse.Namespace) -> int:
     checks = fc_params.check_parameters(autopilot, values, expected)
     name = fc_params.AUTOPILOT_NAMES.get(autopilot, f"autopilot {autopilot}")
     print(f"flight controller: system {system_id}, {name}")
+    if system_id != args.system_id:
+        print(f"system id: the flight controller is system {system_id}, the daemon's is {args.system_id} "
+              f"(--system-id; the config's mavlink.system_id must be the FC's SYSID_THISMAV / MAV_SYS_ID)")
     if not checks:
         print("not ArduPilot or PX4: no parameters to check")
         return 0
@@ -94,9 +102,11 @@ def expectations(config_path: str | None, latency_ms: float | None) -> fc_params
                               latency_ms=latency_ms)
 
 
-def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, dict, int] | None, str | None]:
+def read_parameters(params: LinkParams, timeout_s: float
+                    ) -> tuple[tuple[int, dict, int] | None, str | None, int | None]:
     """(autopilot, {name: value or None}, FC system id) read through a non-streaming link, None on timeout;
-    and why the link was down at the end (``MavlinkLink.down_reason``: it never opened), or None."""
+    why the link was down at the end (``MavlinkLink.down_reason``: it never opened), or None; and the system
+    id of a flight controller that was heard (None: none)."""
     got: list = []
     done = threading.Event()
     link = MavlinkLink(params, stream=False)
@@ -111,4 +121,4 @@ def read_parameters(params: LinkParams, timeout_s: float) -> tuple[tuple[int, di
         done.wait(timeout_s)
     finally:
         link.close()
-    return (got[0] if got else None), link.down_reason
+    return (got[0] if got else None), link.down_reason, link.fc_system_id
