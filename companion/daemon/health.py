@@ -26,8 +26,8 @@ While a critical state lasts the link's HEARTBEAT says MAV_STATE_CRITICAL.
 Messages (``emit(text, severity, topic)``: the daemon logs them and sends them
 as STATUSTEXT), one per change: the camera lost, stalled, and delivering again;
 no pose with its reasons; and the filter's own changes (tracking markers,
-markers lost, with the pose stage's commonest reason when markers are still in
-view, re-acquired with its reset counter). "no markers" is shown,
+markers lost, with the commonest reason when markers are still in view: the
+pose stage's status or the filter's gate; re-acquired with its reset counter). "no markers" is shown,
 not sent: the filter's "markers lost" already says it. The camera's messages
 have the topic "camera", the attitude's "attitude", the filter's and "no
 pose" "tracking" (whether poses flow): the link sends such a health change
@@ -168,8 +168,9 @@ class Health:
         # tracking <-> coasting flickers frame to frame: not worth a message
 
     def _lost_text(self, record: FrameRecord) -> str:
-        """'markers lost', with the pose stage's commonest reason when markers are still in view (a wrong camera
-        or map loses the track with markers in sight; short enough for one STATUSTEXT)."""
+        """'markers lost', with the commonest reason since the filter last took a pose when markers are still in
+        view: the pose stage's status, or 'filter gating' (a wrong camera or map loses the track with markers in
+        sight; short enough for one STATUSTEXT)."""
         with self._lock:
             statuses = self._pose_statuses.most_common(1)
         if not record.markers or not statuses:
