@@ -85,6 +85,49 @@ def test_frame_jpg_is_the_annotated_newest_frame_and_after_waits_for_a_newer_one
     assert int(newer["X-Frame-Serial"]) > serial and int(newer["X-Frame-Index"]) != index
 
 
+def run_daemon(tmp_path: Path, http: str):
+    """A started daemon and its thread; stopped by stop_daemon."""
+    tmp_path.mkdir(exist_ok=True)
+    daemon = make_daemon(tmp_path, http=http)
+    runner = threading.Thread(target=daemon.run, name="test-daemon")
+    runner.start()
+    return daemon, runner
+
+
+def stop_daemon(daemon: Daemon, runner: threading.Thread) -> None:
+    daemon.stop_event.set()
+    runner.join(timeout=15)
+    assert not runner.is_alive()
+
+
+def test_a_client_of_the_previous_run_gets_the_restarted_daemons_frames_at_once(tmp_path):
+    """A page that saw serial N from a daemon that ran an hour (about 54000 frames) asks a restarted
+    daemon on the same port for ``?after=N``: it gets the new run's newest frame at once. (Before, the
+    new run counted from 1 and answered 503 until its count passed N: the page froze about an hour.)"""
+    port = free_port("tcp")
+    first, runner = run_daemon(tmp_path / "first", f"127.0.0.1:{port}")
+    try:
+        _, headers, _ = get(first, "/frame.jpg")
+        view = first.live_view
+        with view._new_frame:   # an hour at 15 frames a second
+            view._latest = dataclasses.replace(view._latest, serial=view._latest.serial + 54000)
+        _, headers, _ = get(first, f"/frame.jpg?after={headers['X-Frame-Serial']}")
+        seen = int(headers["X-Frame-Serial"])
+        assert seen > 54000
+    finally:
+        stop_daemon(first, runner)
+    second, runner = run_daemon(tmp_path / "second", f"127.0.0.1:{port}")
+    try:
+        status, headers, body = get(second, f"/frame.jpg?after={seen}")   # not a 503
+        assert status == 200 and 1 <= int(headers["X-Frame-Serial"]) < seen
+        assert cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR).shape == (480, 640, 3)
+        # and the page's next request waits for the next frame of this run
+        _, newer, _ = get(second, f"/frame.jpg?after={headers['X-Frame-Serial']}")
+        assert int(newer["X-Frame-Serial"]) > int(headers["X-Frame-Serial"])
+    finally:
+        stop_daemon(second, runner)
+
+
 def test_status_json_holds_every_status_field_and_the_true_estimate(daemon):
     wait_for(lambda: daemon.status().track_state == "tracking")
     _, headers, body = get(daemon, "/status.json")

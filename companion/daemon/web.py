@@ -2,7 +2,8 @@
 
     /             one page: the annotated camera image, the status, a top view of the map with
                   the estimate and its recent track, the latest STATUSTEXTs; it updates by itself
-    /frame.jpg    the latest annotated frame (``?after=N`` waits up to 2 s for a frame newer than N)
+    /frame.jpg    the latest annotated frame (``?after=N`` waits up to 2 s for a frame newer than N;
+                  an N beyond this run's newest serial, from the daemon's previous run, gets the newest)
     /stream.mjpg  the annotated frames as an MJPEG stream (VLC, ffplay, a browser)
     /status.json  the DaemonStatus (everything the status line knows) plus the estimate with its
                   covariance, its map position, the recent track and STATUSTEXTs
@@ -177,12 +178,16 @@ class LiveView:
                 self._new_frame.notify_all()
 
     def next_frame(self, after_serial: int, timeout_s: float) -> EncodedFrame | None:
-        """The newest encoded frame once its serial exceeds ``after_serial``; None on timeout or stop."""
+        """The newest encoded frame once its serial exceeds ``after_serial``; None on timeout or stop.
+
+        A serial beyond this run's newest (a client of the daemon's previous run: the serials start
+        at 1 again with every start) is none of this run's: the newest frame is at once newer for it.
+        """
         deadline = time.monotonic() + timeout_s
         with self._new_frame:
             while not self._stop.is_set():
                 latest = self._latest
-                if latest is not None and latest.serial > after_serial:
+                if latest is not None and latest.serial != after_serial:
                     return latest
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
