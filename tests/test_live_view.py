@@ -22,7 +22,8 @@ from companion.daemon.overlay import REJECTED, UNMAPPED, USED, annotate
 from companion.daemon.pipeline import FrameRecord
 from companion.daemon.service import Daemon
 from companion.daemon.status import DaemonStatus
-from companion.daemon.web import WebError
+from companion.daemon.web import LiveView, WebError
+from companion.geometry.facility_map import load_map
 from companion.geometry.pose import PoseSolution
 from companion.types import Detection, PoseMeasurement
 from mavlink_peer import free_port
@@ -209,6 +210,35 @@ def test_a_client_that_stops_taking_the_stream_or_sends_nothing_is_dropped(daemo
         frozen.close()
         silent.close()
     assert "Traceback" not in caplog.text and "Exception" not in caplog.text
+
+
+def test_stream_clients_that_leave_while_no_frame_comes_are_dropped():
+    """Three MJPEG clients connect while no frame comes (the camera lost) and close their connections
+    (``curl -m 2``): all three are dropped while still no frame comes, and nobody wants frames any more.
+    (Before, a stream noticed its client gone only when it wrote a frame: ``streams: 3`` stayed, and the
+    frames were encoded for nobody once the camera came back.)"""
+    view = LiveView(("127.0.0.1", 0), load_map(MAP), lambda: None, lambda: [])
+    view.start()
+    host, port = view.server.server_address[:2]
+    clients = []
+    try:
+        for _ in range(3):
+            client = socket.create_connection((host, port), timeout=5)
+            client.sendall(b"GET /stream.mjpg HTTP/1.1\r\nHost: x\r\n\r\n")
+            clients.append(client)
+        for client in clients:
+            assert b"200" in client.recv(1024)
+        wait_for(lambda: view._streams == 3)
+        assert view.wanted()
+        for client in clients:
+            client.close()
+        wait_for(lambda: view._streams == 0, timeout_s=5.0)   # well before the client timeout (10 s)
+        wait_for(lambda: not view.wanted())
+        assert view.counters.encoded == 0
+    finally:
+        for client in clients:
+            client.close()
+        view.close()
 
 
 def test_unknown_path_is_404(daemon):

@@ -16,7 +16,8 @@ a ``/frame.jpg`` request within the last ``INTEREST_S``); then it hands at
 most ``MAX_FPS`` frames a second to the encoder through a one-slot queue
 (dropped and counted when the encoder is busy), so the pipeline never waits.
 A client that sends no request, or stops taking what it asked for, is
-dropped after ``CLIENT_TIMEOUT_S``.
+dropped after ``CLIENT_TIMEOUT_S``; a stream whose client closed the
+connection is dropped within ``STREAM_CHECK_S`` even while no frame comes.
 
 No authentication and no encryption: anyone who reaches the address sees the
 camera and the vehicle's position. The default address is loopback
@@ -31,6 +32,7 @@ import json
 import logging
 import math
 import queue
+import select
 import socket
 import threading
 import time
@@ -63,6 +65,8 @@ BOUNDARY = "companionframe"
 # a client that sends no request, or stops taking the stream it asked for (a frozen viewer), is dropped
 # after this long: its thread ends and, when it was the last stream, the frames stop being encoded
 CLIENT_TIMEOUT_S = 10.0
+# while no frame comes (camera lost) an MJPEG stream looks this often whether its client closed the connection
+STREAM_CHECK_S = 1.0
 
 
 class WebError(ValueError):
@@ -385,8 +389,10 @@ class _Handler(BaseHTTPRequestHandler):
         try:
             serial = 0
             while not self.view.stopping:
-                frame = self.view.next_frame(serial, 1.0)
+                frame = self.view.next_frame(serial, STREAM_CHECK_S)
                 if frame is None:
+                    if self._client_gone():   # no frame to write (camera lost): look at the socket
+                        return
                     continue
                 serial = frame.serial
                 self.wfile.write(f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(frame.jpeg)}\r\n"
@@ -394,3 +400,11 @@ class _Handler(BaseHTTPRequestHandler):
                 self.wfile.flush()
         finally:
             self.view.stream_opened(False)
+
+    def _client_gone(self) -> bool:
+        """The client closed its end (or reset it): a stream's socket sends nothing more after the request."""
+        try:
+            readable, _, _ = select.select([self.connection], [], [], 0)
+            return bool(readable) and self.connection.recv(1, socket.MSG_PEEK) == b""
+        except (OSError, ValueError):
+            return True
