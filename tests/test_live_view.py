@@ -241,10 +241,36 @@ def test_stream_clients_that_leave_while_no_frame_comes_are_dropped():
         view.close()
 
 
-def test_unknown_path_is_404(daemon):
+def test_unknown_path_is_404_and_names_every_path(daemon):
     with pytest.raises(urllib.error.HTTPError) as error:
         get(daemon, "/admin")
     assert error.value.code == 404
+    assert error.value.read().decode().split("try")[1].split() == \
+        ["/", "/frame.jpg", "/stream.mjpg", "/status.json", "/map.json"]
+
+
+@pytest.mark.parametrize("path, content_type", [
+    ("/", "text/html; charset=utf-8"), ("/status.json", "application/json"), ("/map.json", "application/json"),
+    ("/frame.jpg", "image/jpeg"), ("/stream.mjpg", "multipart/x-mixed-replace; boundary=companionframe"),
+])
+def test_head_answers_the_get_endpoints_without_a_body(daemon, path, content_type):
+    """``curl -I``: the GET's status and headers, no body (before: 501)."""
+    host, port = daemon.live_view.server.server_address[:2]
+    with socket.create_connection((host, port), timeout=10) as sock:
+        sock.sendall(f"HEAD {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+        reader = sock.makefile("rb")
+        assert reader.readline().split()[1] == b"200"
+        headers = {}
+        while (line := reader.readline().strip()):
+            name, _, value = line.decode().partition(":")
+            headers[name.lower()] = value.strip()
+        assert headers["content-type"] == content_type
+        # then nothing: the next request on the connection (or its close, after a stream) comes next
+        sock.sendall(b"GET /nothing HTTP/1.1\r\nHost: x\r\n\r\n")
+        rest = reader.readline()
+        assert rest == b"" if path == "/stream.mjpg" else rest.split()[1] == b"404"
+        reader.close()
+    wait_for(lambda: daemon.live_view._streams == 0)
 
 
 def test_a_busy_port_is_a_one_line_error(tmp_path):

@@ -9,6 +9,8 @@
                   covariance, its map position, the recent track and STATUSTEXTs
     /map.json     the map's markers in the top view
 
+Each answers HEAD too (its GET's status and headers, no body).
+
 Threads: the standard library's ``ThreadingHTTPServer`` (one thread per
 request, plus ``serve_forever``) and an ``encoder`` thread. The pipeline-side
 observer does nothing unless a client wants frames (an open MJPEG stream, or
@@ -333,13 +335,23 @@ class _Handler(BaseHTTPRequestHandler):
     def log_message(self, format, *args) -> None:   # noqa: A002 (BaseHTTPRequestHandler's name)
         log.debug("http %s: " + format, self.client_address[0], *args)
 
+    head = False   # a HEAD request: the GET's status and headers, no body
+
     def do_GET(self) -> None:   # noqa: N802 (BaseHTTPRequestHandler's name)
+        self.head = False
+        self._serve()
+
+    def do_HEAD(self) -> None:   # noqa: N802 (BaseHTTPRequestHandler's name)
+        self.head = True
+        self._serve()
+
+    def _serve(self) -> None:
         self.view.counters.requests += 1
         url = urlsplit(self.path)
         route = {"/": self._page, "/index.html": self._page, "/status.json": self._status,
                  "/map.json": self._map, "/frame.jpg": self._frame, "/stream.mjpg": self._stream}.get(url.path)
         if route is None:
-            self._send(HTTPStatus.NOT_FOUND, b"not found: try / /frame.jpg /stream.mjpg /status.json\n",
+            self._send(HTTPStatus.NOT_FOUND, b"not found: try / /frame.jpg /stream.mjpg /status.json /map.json\n",
                        "text/plain")
             return
         try:
@@ -355,7 +367,8 @@ class _Handler(BaseHTTPRequestHandler):
         for name, value in (headers or {}).items():
             self.send_header(name, value)
         self.end_headers()
-        self.wfile.write(body)
+        if not self.head:
+            self.wfile.write(body)
 
     def _page(self, _query) -> None:
         self._send(HTTPStatus.OK, self.view.page, "text/html; charset=utf-8")
@@ -385,6 +398,8 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Connection", "close")
         self.end_headers()
         self.close_connection = True
+        if self.head:
+            return
         self.view.stream_opened(True)
         try:
             serial = 0
