@@ -114,6 +114,11 @@ def test_the_page_loads_updates_its_image_and_shows_the_state(browser, daemon):
         "return [element('status-state').className, element('status-link').textContent,"
         "        element('status-line').textContent];")
     assert state_class == "tracking"
+    # one row a name: the health's state and the filter's ("state" was the filter's, then the health's again)
+    names = browser.execute_script(
+        "return [...document.querySelectorAll('#status td:first-child')].map(td => td.textContent);")
+    assert len(names) == len(set(names)) and {"state", "filter", "link"} <= set(names)
+    assert browser.execute_script("return document.getElementById('status-filter').textContent") == "tracking"
     assert link in ("streaming", "handshake", "connecting")
     assert "fps" in line
     wait_until(browser, "document.getElementById('statustexts').textContent.includes('companion: tracking markers')",

@@ -22,7 +22,8 @@ from companion.daemon.overlay import REJECTED, UNMAPPED, USED, annotate
 from companion.daemon.pipeline import FrameRecord
 from companion.daemon.service import Daemon
 from companion.daemon.status import DaemonStatus
-from companion.daemon.web import WebError
+from companion.daemon.web import LiveView, WebError
+from companion.geometry.facility_map import load_map
 from companion.geometry.pose import PoseSolution
 from companion.types import Detection, PoseMeasurement
 from mavlink_peer import free_port
@@ -83,6 +84,49 @@ def test_frame_jpg_is_the_annotated_newest_frame_and_after_waits_for_a_newer_one
     serial, index = int(headers["X-Frame-Serial"]), int(headers["X-Frame-Index"])
     _, newer, _ = get(daemon, f"/frame.jpg?after={serial}")
     assert int(newer["X-Frame-Serial"]) > serial and int(newer["X-Frame-Index"]) != index
+
+
+def run_daemon(tmp_path: Path, http: str):
+    """A started daemon and its thread; stopped by stop_daemon."""
+    tmp_path.mkdir(exist_ok=True)
+    daemon = make_daemon(tmp_path, http=http)
+    runner = threading.Thread(target=daemon.run, name="test-daemon")
+    runner.start()
+    return daemon, runner
+
+
+def stop_daemon(daemon: Daemon, runner: threading.Thread) -> None:
+    daemon.stop_event.set()
+    runner.join(timeout=15)
+    assert not runner.is_alive()
+
+
+def test_a_client_of_the_previous_run_gets_the_restarted_daemons_frames_at_once(tmp_path):
+    """A page that saw serial N from a daemon that ran an hour (about 54000 frames) asks a restarted
+    daemon on the same port for ``?after=N``: it gets the new run's newest frame at once. (Before, the
+    new run counted from 1 and answered 503 until its count passed N: the page froze about an hour.)"""
+    port = free_port("tcp")
+    first, runner = run_daemon(tmp_path / "first", f"127.0.0.1:{port}")
+    try:
+        _, headers, _ = get(first, "/frame.jpg")
+        view = first.live_view
+        with view._new_frame:   # an hour at 15 frames a second
+            view._latest = dataclasses.replace(view._latest, serial=view._latest.serial + 54000)
+        _, headers, _ = get(first, f"/frame.jpg?after={headers['X-Frame-Serial']}")
+        seen = int(headers["X-Frame-Serial"])
+        assert seen > 54000
+    finally:
+        stop_daemon(first, runner)
+    second, runner = run_daemon(tmp_path / "second", f"127.0.0.1:{port}")
+    try:
+        status, headers, body = get(second, f"/frame.jpg?after={seen}")   # not a 503
+        assert status == 200 and 1 <= int(headers["X-Frame-Serial"]) < seen
+        assert cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR).shape == (480, 640, 3)
+        # and the page's next request waits for the next frame of this run
+        _, newer, _ = get(second, f"/frame.jpg?after={headers['X-Frame-Serial']}")
+        assert int(newer["X-Frame-Serial"]) > int(headers["X-Frame-Serial"])
+    finally:
+        stop_daemon(second, runner)
 
 
 def test_status_json_holds_every_status_field_and_the_true_estimate(daemon):
@@ -168,10 +212,65 @@ def test_a_client_that_stops_taking_the_stream_or_sends_nothing_is_dropped(daemo
     assert "Traceback" not in caplog.text and "Exception" not in caplog.text
 
 
-def test_unknown_path_is_404(daemon):
+def test_stream_clients_that_leave_while_no_frame_comes_are_dropped():
+    """Three MJPEG clients connect while no frame comes (the camera lost) and close their connections
+    (``curl -m 2``): all three are dropped while still no frame comes, and nobody wants frames any more.
+    (Before, a stream noticed its client gone only when it wrote a frame: ``streams: 3`` stayed, and the
+    frames were encoded for nobody once the camera came back.)"""
+    view = LiveView(("127.0.0.1", 0), load_map(MAP), lambda: None, lambda: [])
+    view.start()
+    host, port = view.server.server_address[:2]
+    clients = []
+    try:
+        for _ in range(3):
+            client = socket.create_connection((host, port), timeout=5)
+            client.sendall(b"GET /stream.mjpg HTTP/1.1\r\nHost: x\r\n\r\n")
+            clients.append(client)
+        for client in clients:
+            assert b"200" in client.recv(1024)
+        wait_for(lambda: view._streams == 3)
+        assert view.wanted()
+        for client in clients:
+            client.close()
+        wait_for(lambda: view._streams == 0, timeout_s=5.0)   # well before the client timeout (10 s)
+        wait_for(lambda: not view.wanted())
+        assert view.counters.encoded == 0
+    finally:
+        for client in clients:
+            client.close()
+        view.close()
+
+
+def test_unknown_path_is_404_and_names_every_path(daemon):
     with pytest.raises(urllib.error.HTTPError) as error:
         get(daemon, "/admin")
     assert error.value.code == 404
+    assert error.value.read().decode().split("try")[1].split() == \
+        ["/", "/frame.jpg", "/stream.mjpg", "/status.json", "/map.json"]
+
+
+@pytest.mark.parametrize("path, content_type", [
+    ("/", "text/html; charset=utf-8"), ("/status.json", "application/json"), ("/map.json", "application/json"),
+    ("/frame.jpg", "image/jpeg"), ("/stream.mjpg", "multipart/x-mixed-replace; boundary=companionframe"),
+])
+def test_head_answers_the_get_endpoints_without_a_body(daemon, path, content_type):
+    """``curl -I``: the GET's status and headers, no body (before: 501)."""
+    host, port = daemon.live_view.server.server_address[:2]
+    with socket.create_connection((host, port), timeout=10) as sock:
+        sock.sendall(f"HEAD {path} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+        reader = sock.makefile("rb")
+        assert reader.readline().split()[1] == b"200"
+        headers = {}
+        while (line := reader.readline().strip()):
+            name, _, value = line.decode().partition(":")
+            headers[name.lower()] = value.strip()
+        assert headers["content-type"] == content_type
+        # then nothing: the next request on the connection (or its close, after a stream) comes next
+        sock.sendall(b"GET /nothing HTTP/1.1\r\nHost: x\r\n\r\n")
+        rest = reader.readline()
+        assert rest == b"" if path == "/stream.mjpg" else rest.split()[1] == b"404"
+        reader.close()
+    wait_for(lambda: daemon.live_view._streams == 0)
 
 
 def test_a_busy_port_is_a_one_line_error(tmp_path):

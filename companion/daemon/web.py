@@ -2,11 +2,14 @@
 
     /             one page: the annotated camera image, the status, a top view of the map with
                   the estimate and its recent track, the latest STATUSTEXTs; it updates by itself
-    /frame.jpg    the latest annotated frame (``?after=N`` waits up to 2 s for a frame newer than N)
+    /frame.jpg    the latest annotated frame (``?after=N`` waits up to 2 s for a frame newer than N;
+                  an N beyond this run's newest serial, from the daemon's previous run, gets the newest)
     /stream.mjpg  the annotated frames as an MJPEG stream (VLC, ffplay, a browser)
     /status.json  the DaemonStatus (everything the status line knows) plus the estimate with its
                   covariance, its map position, the recent track and STATUSTEXTs
     /map.json     the map's markers in the top view
+
+Each answers HEAD too (its GET's status and headers, no body).
 
 Threads: the standard library's ``ThreadingHTTPServer`` (one thread per
 request, plus ``serve_forever``) and an ``encoder`` thread. The pipeline-side
@@ -15,7 +18,8 @@ a ``/frame.jpg`` request within the last ``INTEREST_S``); then it hands at
 most ``MAX_FPS`` frames a second to the encoder through a one-slot queue
 (dropped and counted when the encoder is busy), so the pipeline never waits.
 A client that sends no request, or stops taking what it asked for, is
-dropped after ``CLIENT_TIMEOUT_S``.
+dropped after ``CLIENT_TIMEOUT_S``; a stream whose client closed the
+connection is dropped within ``STREAM_CHECK_S`` even while no frame comes.
 
 No authentication and no encryption: anyone who reaches the address sees the
 camera and the vehicle's position. The default address is loopback
@@ -30,6 +34,7 @@ import json
 import logging
 import math
 import queue
+import select
 import socket
 import threading
 import time
@@ -62,6 +67,8 @@ BOUNDARY = "companionframe"
 # a client that sends no request, or stops taking the stream it asked for (a frozen viewer), is dropped
 # after this long: its thread ends and, when it was the last stream, the frames stop being encoded
 CLIENT_TIMEOUT_S = 10.0
+# while no frame comes (camera lost) an MJPEG stream looks this often whether its client closed the connection
+STREAM_CHECK_S = 1.0
 
 
 class WebError(ValueError):
@@ -177,12 +184,16 @@ class LiveView:
                 self._new_frame.notify_all()
 
     def next_frame(self, after_serial: int, timeout_s: float) -> EncodedFrame | None:
-        """The newest encoded frame once its serial exceeds ``after_serial``; None on timeout or stop."""
+        """The newest encoded frame once its serial exceeds ``after_serial``; None on timeout or stop.
+
+        A serial beyond this run's newest (a client of the daemon's previous run: the serials start
+        at 1 again with every start) is none of this run's: the newest frame is at once newer for it.
+        """
         deadline = time.monotonic() + timeout_s
         with self._new_frame:
             while not self._stop.is_set():
                 latest = self._latest
-                if latest is not None and latest.serial > after_serial:
+                if latest is not None and latest.serial != after_serial:
                     return latest
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -324,13 +335,23 @@ class _Handler(BaseHTTPRequestHandler):
     def log_message(self, format, *args) -> None:   # noqa: A002 (BaseHTTPRequestHandler's name)
         log.debug("http %s: " + format, self.client_address[0], *args)
 
+    head = False   # a HEAD request: the GET's status and headers, no body
+
     def do_GET(self) -> None:   # noqa: N802 (BaseHTTPRequestHandler's name)
+        self.head = False
+        self._serve()
+
+    def do_HEAD(self) -> None:   # noqa: N802 (BaseHTTPRequestHandler's name)
+        self.head = True
+        self._serve()
+
+    def _serve(self) -> None:
         self.view.counters.requests += 1
         url = urlsplit(self.path)
         route = {"/": self._page, "/index.html": self._page, "/status.json": self._status,
                  "/map.json": self._map, "/frame.jpg": self._frame, "/stream.mjpg": self._stream}.get(url.path)
         if route is None:
-            self._send(HTTPStatus.NOT_FOUND, b"not found: try / /frame.jpg /stream.mjpg /status.json\n",
+            self._send(HTTPStatus.NOT_FOUND, b"not found: try / /frame.jpg /stream.mjpg /status.json /map.json\n",
                        "text/plain")
             return
         try:
@@ -346,7 +367,8 @@ class _Handler(BaseHTTPRequestHandler):
         for name, value in (headers or {}).items():
             self.send_header(name, value)
         self.end_headers()
-        self.wfile.write(body)
+        if not self.head:
+            self.wfile.write(body)
 
     def _page(self, _query) -> None:
         self._send(HTTPStatus.OK, self.view.page, "text/html; charset=utf-8")
@@ -376,12 +398,16 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Connection", "close")
         self.end_headers()
         self.close_connection = True
+        if self.head:
+            return
         self.view.stream_opened(True)
         try:
             serial = 0
             while not self.view.stopping:
-                frame = self.view.next_frame(serial, 1.0)
+                frame = self.view.next_frame(serial, STREAM_CHECK_S)
                 if frame is None:
+                    if self._client_gone():   # no frame to write (camera lost): look at the socket
+                        return
                     continue
                 serial = frame.serial
                 self.wfile.write(f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(frame.jpeg)}\r\n"
@@ -389,3 +415,11 @@ class _Handler(BaseHTTPRequestHandler):
                 self.wfile.flush()
         finally:
             self.view.stream_opened(False)
+
+    def _client_gone(self) -> bool:
+        """The client closed its end (or reset it): a stream's socket sends nothing more after the request."""
+        try:
+            readable, _, _ = select.select([self.connection], [], [], 0)
+            return bool(readable) and self.connection.recv(1, socket.MSG_PEEK) == b""
+        except (OSError, ValueError):
+            return True
