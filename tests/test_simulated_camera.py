@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -373,7 +375,7 @@ def test_camera_renders_from_the_state_and_stalls_without_it():
         deadline = time.monotonic() + 1.0
         while source.lost_reason is None and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert source.lost_reason == "simulated camera: no SIM_STATE yet: no simulator seen on the link"
+        assert "waiting for the flight controller" in source.lost_reason
         assert source.get(0.05) is None
         # a state stream at 100 Hz: frames come, stamped with a state's time plus the latency
         R_ned_body = frames.rotation_from_euler_321(0, 0, math.radians(215.0))
@@ -427,3 +429,72 @@ def test_culling_leaves_the_image_as_it_is():
         whole = source._renderer.render(source.world.quads, T_camera_map, background=40.0).image
         culled = source._renderer.render(in_view, T_camera_map, background=40.0).image
         np.testing.assert_array_equal(culled, whole)
+
+
+def free_port_in_range(first: int = 21000, last: int = 21999) -> int:
+    """A free TCP port of this machine's test range."""
+    import random
+    import socket
+    for port in random.sample(range(first, last + 1), last - first + 1):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise AssertionError("no free port in the range")
+
+
+def start_stand_in(tmp_path) -> tuple[subprocess.Popen, int, int]:
+    """tests/sim_vehicle_peer.py, its own process, at the map's origin: (process, companion port, GCS port)."""
+    companion_port = free_port_in_range()
+    gcs_port = free_port_in_range()
+    while gcs_port == companion_port:
+        gcs_port = free_port_in_range()
+    record = tmp_path / "peer.jsonl"
+    peer = subprocess.Popen([sys.executable, str(ROOT / "tests" / "sim_vehicle_peer.py"), "--companion-port",
+                             str(companion_port), "--gcs-port", str(gcs_port), "--out", str(record), "--home",
+                             f"{ORIGIN.latitude_deg},{ORIGIN.longitude_deg},{ORIGIN.altitude_m},0", "--duration", "60"])
+    deadline = time.monotonic() + 10
+    while not (record.exists() and "listening" in record.read_text()):
+        if time.monotonic() > deadline or peer.poll() is not None:
+            peer.kill()
+            raise AssertionError("the stand-in did not start listening")
+        time.sleep(0.05)
+    return peer, companion_port, gcs_port
+
+
+def test_a_start_waiting_for_the_flight_controller_is_no_missing_sim_state(tmp_path):
+    """The camera starts before the link has seen the flight controller (whose heartbeat comes at 1 Hz):
+    its lost reason says it waits for the flight controller; once the link sees the stand-in and asks for
+    SIM_STATE, no reason says SIM_STATE is missing before the first frame comes (it said 'no SIM_STATE yet'
+    while no one had asked, and kept it; a start whose heartbeat came late said 'no SIM_STATE from the
+    simulator yet' milliseconds after asking, or 'no SIM_STATE for 0.0 s' when the first sample came)."""
+    from companion.mavlink.link import LinkParams, MavlinkLink
+    peer, companion_port, _ = start_stand_in(tmp_path)
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0}, "test")
+    source = SimulatedCamera(load_map(HALL_MAP), camera, SimulatedCameraParams(fps=20, stall_timeout_s=1.0))
+    link = MavlinkLink(LinkParams(connection=f"tcp:127.0.0.1:{companion_port}"))
+    link.subscribe(source.state_stream)
+    source.start()
+    try:
+        deadline = time.monotonic() + 10
+        while source.lost_reason is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "waiting for the flight controller" in source.lost_reason
+        link.start()
+        reasons, frame = [], None
+        deadline = time.monotonic() + 30
+        while frame is None and time.monotonic() < deadline:
+            if source.lost_reason not in reasons:
+                reasons.append(source.lost_reason)
+            frame = source.get(0.02)
+        assert frame is not None, reasons
+        assert source.state_stream.requests >= 1
+        assert not [r for r in reasons if r is not None and "no SIM_STATE" in r], reasons
+        assert source.lost_reason is None
+    finally:
+        link.close()
+        source.close()
+        peer.terminate()
+        peer.wait(timeout=10)
