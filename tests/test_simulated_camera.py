@@ -498,3 +498,41 @@ def test_a_start_waiting_for_the_flight_controller_is_no_missing_sim_state(tmp_p
         source.close()
         peer.terminate()
         peer.wait(timeout=10)
+
+
+def test_the_example_mission_exits_with_one_line_when_the_simulator_dies(tmp_path):
+    """examples/sitl_square_mission.py against the stand-in, which is killed (SIGKILL) while the mission
+    waits on it: the mission says in one line that the autopilot is gone and exits 1. (It printed 'EOF on TCP
+    socket' millions of times at full speed, pymavlink's TCP connection reading the closed socket again,
+    and never said the autopilot was gone.)"""
+    from closed_loop_harness import ENV, MISSION, hall_config
+    peer, companion_port, gcs_port = start_stand_in(tmp_path)
+    config = hall_config(tmp_path, companion_port)
+    out_path, err_path = tmp_path / "mission.out", tmp_path / "mission.err"
+    with open(out_path, "w") as out, open(err_path, "w") as err:
+        mission = subprocess.Popen([sys.executable, str(MISSION), "--config", str(config), "--connect",
+                                    f"tcp:127.0.0.1:{gcs_port}", "--timeout-s", "120"], stdout=out, stderr=err,
+                                   env=ENV)
+    try:
+        deadline = time.monotonic() + 60
+        while "waiting for the autopilot's position" not in out_path.read_text():
+            assert mission.poll() is None and time.monotonic() < deadline, err_path.read_text()
+            time.sleep(0.05)
+        peer.kill()
+        peer.wait(timeout=10)
+        try:
+            returncode = mission.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            returncode = None
+    finally:
+        if mission.poll() is None:
+            mission.kill()
+            mission.wait(timeout=10)
+        if peer.poll() is None:
+            peer.kill()
+            peer.wait(timeout=10)
+    assert out_path.stat().st_size < 10_000, out_path.stat().st_size  # no flood
+    assert "EOF on TCP socket" not in out_path.read_text()
+    assert returncode == 1
+    errors = err_path.read_text().splitlines()
+    assert len(errors) == 1 and "autopilot" in errors[0] and "the simulator stopped?" in errors[0], errors
