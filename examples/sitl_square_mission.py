@@ -24,7 +24,9 @@ What it does (docs/sitl.md), over its own MAVLink connection to the autopilot
    maximum.
 
 Every wait is bounded (``--timeout-s``); a wait that runs out is one line
-on stderr and exit status 1.
+on stderr and exit status 1, as is an autopilot that goes away (its TCP
+connection closed or reset, or no heartbeat for ``HEARTBEAT_LOST_S``: the
+simulator stopped or died).
 """
 from __future__ import annotations
 
@@ -46,10 +48,15 @@ GUIDED, LAND = 4, 9
 # SET_POSITION_TARGET_LOCAL_NED: use x, y, z and yaw; ignore velocity, acceleration, yaw rate
 POSITION_AND_YAW_MASK = 0b0000_1001_1111_1000
 ARRIVED_M = 0.10
+HEARTBEAT_LOST_S = 5.0   # the autopilot sends one a second: this long without one, it is gone
 
 
 class MissionError(RuntimeError):
     """A bounded wait that ran out; the message says which."""
+
+
+class AutopilotLost(MissionError):
+    """The connection to the autopilot closed, or its heartbeat stopped."""
 
 
 class Vehicle:
@@ -58,6 +65,13 @@ class Vehicle:
     def __init__(self, connection: str, origin, timeout_s: float):
         self.mav = mavutil.mavlink_connection(connection, source_system=255, source_component=190,
                                               dialect="ardupilotmega")
+        self.connection = connection
+        # pymavlink's TCP connection, on an EOF or a reset, prints a line and reads the closed socket again (without
+        # autoreconnect): a line per read at full speed, millions of them. Raise instead.
+        if hasattr(self.mav, "handle_eof"):
+            self.mav.handle_eof = self._connection_closed
+            self.mav.handle_disconnect = self._connection_closed
+        self.heartbeat_s: float | None = None  # the autopilot's newest heartbeat (monotonic)
         self.origin = origin
         self.timeout_s = timeout_s
         self.truth_ned: np.ndarray | None = None
@@ -67,6 +81,15 @@ class Vehicle:
         self.armed = False
         self.samples: list[np.ndarray] = []  # truth per SIM_STATE
         self.estimate_errors: list[float] = []  # |estimate - truth| per LOCAL_POSITION_NED, in the air
+
+    def _connection_closed(self) -> None:
+        raise AutopilotLost(f"the autopilot closed the connection ({self.connection}): the simulator stopped?")
+
+    def check_alive(self) -> None:
+        """AutopilotLost once the autopilot's heartbeat has been missing for ``HEARTBEAT_LOST_S``."""
+        if self.heartbeat_s is not None and time.monotonic() - self.heartbeat_s > HEARTBEAT_LOST_S:
+            raise AutopilotLost(f"no heartbeat from the autopilot on {self.connection} for "
+                                f"{time.monotonic() - self.heartbeat_s:.0f} s: the simulator stopped?")
 
     def wait(self, what: str, done, timeout_s: float | None = None) -> None:
         deadline = time.monotonic() + (timeout_s or self.timeout_s)
@@ -82,6 +105,7 @@ class Vehicle:
             message = self.mav.recv_match(blocking=True, timeout=max(0.0, end - time.monotonic()))
             if message is not None:
                 self.handle(message)
+            self.check_alive()
             if time.monotonic() >= end:
                 return
 
@@ -100,6 +124,7 @@ class Vehicle:
                 truth_now = self.truth_ned + self.truth_velocity * (time.monotonic() - self.truth_s)
                 self.estimate_errors.append(float(np.linalg.norm(self.estimate_ned - truth_now)))
         elif kind == "HEARTBEAT" and message.get_srcComponent() == 1:
+            self.heartbeat_s = time.monotonic()
             self.armed = bool(message.base_mode & mavutil.mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         elif kind == "STATUSTEXT":
             print(f"autopilot: {message.text}", flush=True)
@@ -111,9 +136,14 @@ class Vehicle:
             self.mav.mav.command_long_send(self.mav.target_system, self.mav.target_component, command, 0, *p)
             deadline = time.monotonic() + retry_s
             while time.monotonic() < deadline:
-                ack = self.mav.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.05)
-                if ack is not None and ack.command == command:
-                    if ack.result == mavutil.mavlink.MAV_RESULT_ACCEPTED:
+                message = self.mav.recv_match(blocking=True, timeout=0.05)
+                self.check_alive()
+                if message is None:
+                    continue
+                if message.get_type() != "COMMAND_ACK":
+                    self.handle(message)  # the heartbeat, the truth and the estimate go on
+                elif message.command == command:
+                    if message.result == mavutil.mavlink.MAV_RESULT_ACCEPTED:
                         return True
                     break
             self.pump(max(0.0, deadline - time.monotonic()))
@@ -154,6 +184,7 @@ def fly(args) -> dict:
     vehicle = Vehicle(args.connect, origin, args.timeout_s)
     if vehicle.mav.wait_heartbeat(timeout=args.timeout_s) is None:
         raise MissionError(f"no heartbeat from the autopilot on {args.connect} within {args.timeout_s:.0f} s")
+    vehicle.heartbeat_s = time.monotonic()
     vehicle.ask_for(mavutil.mavlink.MAVLINK_MSG_ID_SIM_STATE, 50)
     vehicle.ask_for(mavutil.mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 20)
     print("waiting for the autopilot's position (its EKF using our vision)", flush=True)

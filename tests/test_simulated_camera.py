@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -373,7 +375,7 @@ def test_camera_renders_from_the_state_and_stalls_without_it():
         deadline = time.monotonic() + 1.0
         while source.lost_reason is None and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert source.lost_reason == "simulated camera: no SIM_STATE yet: no simulator seen on the link"
+        assert "waiting for the flight controller" in source.lost_reason
         assert source.get(0.05) is None
         # a state stream at 100 Hz: frames come, stamped with a state's time plus the latency
         R_ned_body = frames.rotation_from_euler_321(0, 0, math.radians(215.0))
@@ -427,3 +429,110 @@ def test_culling_leaves_the_image_as_it_is():
         whole = source._renderer.render(source.world.quads, T_camera_map, background=40.0).image
         culled = source._renderer.render(in_view, T_camera_map, background=40.0).image
         np.testing.assert_array_equal(culled, whole)
+
+
+def free_port_in_range(first: int = 21000, last: int = 21999) -> int:
+    """A free TCP port of this machine's test range."""
+    import random
+    import socket
+    for port in random.sample(range(first, last + 1), last - first + 1):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return port
+    raise AssertionError("no free port in the range")
+
+
+def start_stand_in(tmp_path) -> tuple[subprocess.Popen, int, int]:
+    """tests/sim_vehicle_peer.py, its own process, at the map's origin: (process, companion port, GCS port)."""
+    companion_port = free_port_in_range()
+    gcs_port = free_port_in_range()
+    while gcs_port == companion_port:
+        gcs_port = free_port_in_range()
+    record = tmp_path / "peer.jsonl"
+    peer = subprocess.Popen([sys.executable, str(ROOT / "tests" / "sim_vehicle_peer.py"), "--companion-port",
+                             str(companion_port), "--gcs-port", str(gcs_port), "--out", str(record), "--home",
+                             f"{ORIGIN.latitude_deg},{ORIGIN.longitude_deg},{ORIGIN.altitude_m},0", "--duration", "60"])
+    deadline = time.monotonic() + 10
+    while not (record.exists() and "listening" in record.read_text()):
+        if time.monotonic() > deadline or peer.poll() is not None:
+            peer.kill()
+            raise AssertionError("the stand-in did not start listening")
+        time.sleep(0.05)
+    return peer, companion_port, gcs_port
+
+
+def test_a_start_waiting_for_the_flight_controller_is_no_missing_sim_state(tmp_path):
+    """The camera starts before the link has seen the flight controller (whose heartbeat comes at 1 Hz):
+    its lost reason says it waits for the flight controller; once the link sees the stand-in and asks for
+    SIM_STATE, no reason says SIM_STATE is missing before the first frame comes (it said 'no SIM_STATE yet'
+    while no one had asked, and kept it; a start whose heartbeat came late said 'no SIM_STATE from the
+    simulator yet' milliseconds after asking, or 'no SIM_STATE for 0.0 s' when the first sample came)."""
+    from companion.mavlink.link import LinkParams, MavlinkLink
+    peer, companion_port, _ = start_stand_in(tmp_path)
+    camera = CameraModel.from_config({"width": 320, "height": 240, "hfov_deg": 70.0}, "test")
+    source = SimulatedCamera(load_map(HALL_MAP), camera, SimulatedCameraParams(fps=20, stall_timeout_s=1.0))
+    link = MavlinkLink(LinkParams(connection=f"tcp:127.0.0.1:{companion_port}"))
+    link.subscribe(source.state_stream)
+    source.start()
+    try:
+        deadline = time.monotonic() + 10
+        while source.lost_reason is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "waiting for the flight controller" in source.lost_reason
+        link.start()
+        reasons, frame = [], None
+        deadline = time.monotonic() + 30
+        while frame is None and time.monotonic() < deadline:
+            if source.lost_reason not in reasons:
+                reasons.append(source.lost_reason)
+            frame = source.get(0.02)
+        assert frame is not None, reasons
+        assert source.state_stream.requests >= 1
+        assert not [r for r in reasons if r is not None and "no SIM_STATE" in r], reasons
+        assert source.lost_reason is None
+    finally:
+        link.close()
+        source.close()
+        peer.terminate()
+        peer.wait(timeout=10)
+
+
+def test_the_example_mission_exits_with_one_line_when_the_simulator_dies(tmp_path):
+    """examples/sitl_square_mission.py against the stand-in, which is killed (SIGKILL) while the mission
+    waits on it: the mission says in one line that the autopilot is gone and exits 1. (It printed 'EOF on TCP
+    socket' millions of times at full speed, pymavlink's TCP connection reading the closed socket again,
+    and never said the autopilot was gone.)"""
+    from closed_loop_harness import ENV, MISSION, hall_config
+    peer, companion_port, gcs_port = start_stand_in(tmp_path)
+    config = hall_config(tmp_path, companion_port)
+    out_path, err_path = tmp_path / "mission.out", tmp_path / "mission.err"
+    with open(out_path, "w") as out, open(err_path, "w") as err:
+        mission = subprocess.Popen([sys.executable, str(MISSION), "--config", str(config), "--connect",
+                                    f"tcp:127.0.0.1:{gcs_port}", "--timeout-s", "120"], stdout=out, stderr=err,
+                                   env=ENV)
+    try:
+        deadline = time.monotonic() + 60
+        while "waiting for the autopilot's position" not in out_path.read_text():
+            assert mission.poll() is None and time.monotonic() < deadline, err_path.read_text()
+            time.sleep(0.05)
+        peer.kill()
+        peer.wait(timeout=10)
+        try:
+            returncode = mission.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            returncode = None
+    finally:
+        if mission.poll() is None:
+            mission.kill()
+            mission.wait(timeout=10)
+        if peer.poll() is None:
+            peer.kill()
+            peer.wait(timeout=10)
+    assert out_path.stat().st_size < 10_000, out_path.stat().st_size  # no flood
+    assert "EOF on TCP socket" not in out_path.read_text()
+    assert returncode == 1
+    errors = err_path.read_text().splitlines()
+    assert len(errors) == 1 and "autopilot" in errors[0] and "the simulator stopped?" in errors[0], errors

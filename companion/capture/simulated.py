@@ -54,8 +54,11 @@ The closed loop in a simulator (docs/sitl.md)::
   ``exposure_latency`` and it is handed over no earlier than that, like a
   camera whose driver delivers a frame that long after its exposure.
 * **A stopped stream is a stalled camera.** Without a state to render there
-  is no frame; after ``stall_timeout_s`` ``lost_reason`` says why, as a
-  camera's would, and the daemon's health reports it.
+  is no frame; ``lost_reason`` says why, as a camera's would, and the
+  daemon's health reports it: after ``stall_timeout_s`` from the start that
+  it waits for the flight controller (SIM_STATE is asked for when the link
+  sees its heartbeat), and that SIM_STATE is missing only ``stall_timeout_s``
+  after it was asked for, or after the newest sample.
 
 Nothing downstream knows the frames are rendered.
 """
@@ -88,6 +91,16 @@ log = logging.getLogger(__name__)
 SIM_STATE = "SIM_STATE"
 HISTORY_LENGTH = 256          # samples kept: seconds of state at any useful rate
 RENDER_WINDOW_S = 1.0         # render times reported over this much of the newest time
+
+
+WAITING_FOR_FC = ("simulated camera: waiting for the flight controller (no heartbeat on the link yet: SITL not "
+                  "started, or not on this connection?); SIM_STATE is asked for once it is seen")
+WAITING_FOR_STATE = "simulated camera: flight controller seen, SIM_STATE asked for: waiting for the first"
+
+
+def _seconds_text(ns: int) -> str:
+    """A duration as said in a lost reason: never '0.0 s'."""
+    return f"{ns * 1e-9:.1f} s" if ns >= 100_000_000 else f"{max(ns, 0) * 1e-6:.0f} ms"
 
 
 class SimulatedCameraError(ValueError):
@@ -369,6 +382,7 @@ class SimStateStream:
         self.received = 0
         self.unusable = 0
         self.request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SIM_STATE, rate_hz, request_retry_s)
+        self.first_request_ns: int | None = None   # when SIM_STATE was first asked for (monotonic)
         self.clock = SendClock()
         self.dequantizer = Dequantizer()
 
@@ -400,7 +414,10 @@ class SimStateStream:
 
     def requests_due(self, now_s: float, target_system: int, target_component: int) -> list:
         """MAV_CMD_SET_MESSAGE_INTERVAL for SIM_STATE while it is missing or slow, every ``request_retry_s``."""
-        return self.request.due(now_s, target_system, target_component)
+        requests = self.request.due(now_s, target_system, target_component)
+        if requests and self.first_request_ns is None:
+            self.first_request_ns = time.monotonic_ns()
+        return requests
 
 
 def sim_state_from_message(message, receive_ns: int, origin: GeodeticOrigin) -> SimState | None:
@@ -494,7 +511,8 @@ class SimulatedCamera(ThreadedSource):
         period_ns = int(1e9 / self.params.fps)
         delay_ns = int(self.params.render_delay_ms * 1e6)
         latency_ns = int(self.params.exposure_latency_ms * 1e6)
-        started_ns = last_state_ns = time.monotonic_ns()
+        started_ns = time.monotonic_ns()
+        last_state_ns: int | None = None   # when a state was last rendered
         next_ns = started_ns
         index = 0
         while not self._stop.is_set():
@@ -505,11 +523,11 @@ class SimulatedCamera(ThreadedSource):
             next_ns = max(next_ns + period_ns, now_ns - period_ns)
             state = self.history.at(now_ns - delay_ns, max_extrapolation_ns=delay_ns)
             if state is None:
-                self._no_state(now_ns, last_state_ns)
+                self._no_state(now_ns, started_ns, last_state_ns)
                 continue
             last_state_ns = now_ns
             if self.lost_reason is not None:
-                log.info("simulated camera: SIM_STATE back; rendering again")
+                log.info("simulated camera: SIM_STATE came; rendering")
                 self.lost_reason = None
             image = self._render(state, index)
             t_ns = state.t_ns + latency_ns
@@ -518,21 +536,33 @@ class SimulatedCamera(ThreadedSource):
             self._publish(Frame(image=image, t_ns=t_ns, index=index))
             index += 1
 
-    def _no_state(self, now_ns: int, last_state_ns: int) -> None:
-        """No state to render: after ``stall_timeout_s`` the camera is lost, said once."""
-        silent_s = (now_ns - last_state_ns) * 1e-9
-        if silent_s < self.params.stall_timeout_s or self.lost_reason is not None:
-            return
+    def _no_state(self, now_ns: int, started_ns: int, last_state_ns: int | None) -> None:
+        """No state to render: the camera is lost once ``stall_timeout_s`` has passed since it could have had one.
+
+        SIM_STATE is asked for only once the link sees the flight controller (its heartbeat, 1 Hz): until
+        then the source waits for the flight controller (said after ``stall_timeout_s`` from its start);
+        from the first request on, it is missing only ``stall_timeout_s`` after that request, or after the
+        newest sample (or the last frame rendered), whichever is latest. A reason is said once, and again
+        only when it changes."""
+        timeout_ns = self.params.stall_timeout_s * 1e9
+        asked_ns = self.state_stream.first_request_ns
         newest = self.history.newest_t_ns
-        if newest is not None:
-            what = f"no SIM_STATE for {(now_ns - newest) * 1e-9:.1f} s"
-        elif self.state_stream.requests == 0:  # asked for once the link sees the flight controller
-            what = "no SIM_STATE yet: no simulator seen on the link"
-        else:
-            what = ("no SIM_STATE from the simulator yet (is it ArduPilot SITL, and does it answer "
-                    "MAV_CMD_SET_MESSAGE_INTERVAL?)")
-        self.lost_reason = f"simulated camera: {what}"
-        log.warning("%s", self.lost_reason)
+        if asked_ns is None and newest is None:
+            if now_ns - started_ns < timeout_ns:
+                return
+            reason = WAITING_FOR_FC
+        elif now_ns - max(asked_ns or 0, newest or 0, last_state_ns or 0) < timeout_ns:
+            if self.lost_reason not in (WAITING_FOR_FC, WAITING_FOR_STATE):
+                return
+            reason = WAITING_FOR_STATE  # lost while the FC was away: now only waiting for its first SIM_STATE
+        elif newest is not None:
+            reason = f"simulated camera: no SIM_STATE for {_seconds_text(now_ns - newest)}"
+        else:  # asked, and none came
+            reason = ("simulated camera: no SIM_STATE from the simulator yet (is it ArduPilot SITL, and does it "
+                      f"answer MAV_CMD_SET_MESSAGE_INTERVAL?): asked for {_seconds_text(now_ns - asked_ns)} ago")
+        if reason != self.lost_reason:
+            self.lost_reason = reason
+            log.warning("%s", reason)
 
     def _render(self, state: SimState, index: int) -> np.ndarray:
         """(H, W) uint8: the degraded image the camera sees from ``state``."""
