@@ -163,6 +163,18 @@ def test_markers_lost_with_markers_in_view_says_why_the_pose_stage_gave_none(hea
     assert len("companion: " + said[-1][0]) <= 50
 
 
+def test_a_source_given_longer_for_its_first_frame_is_starting_until_then():
+    """A simulated camera waits for the FC's first heartbeat (up to 1 s) before it asks for a state: health
+    called a start whose first frame came 1.2 s in 'camera stalled' (CRITICAL, to the FC)."""
+    clock = Clock()
+    said = []
+    monitor = Health(lambda text, severity, topic: said.append(text), clock_ns=clock, first_frame_within_s=2.0)
+    clock.now_ns += 1_500_000_000
+    assert monitor.check().state == "starting" and said == []
+    clock.now_ns += 600_000_000
+    assert monitor.check().state == "camera stalled"
+
+
 def test_markers_lost_to_the_filter_gate_says_so(health):
     """Poses that the pose stage found but the filter gated off its track (a marker's map entry wrong, seen
     alone): 'markers lost' alone did not say why."""

@@ -372,10 +372,11 @@ def test_camera_renders_from_the_state_and_stalls_without_it():
                                                    stall_timeout_s=0.3))
     source.start()
     try:
-        deadline = time.monotonic() + 1.0
+        # no flight controller: said a heartbeat period (1 s) plus stall_timeout_s after the start
+        deadline = time.monotonic() + 3.0
         while source.lost_reason is None and time.monotonic() < deadline:
             time.sleep(0.02)
-        assert "waiting for the flight controller" in source.lost_reason
+        assert "waiting for the flight controller" in (source.lost_reason or "")
         assert source.get(0.05) is None
         # a state stream at 100 Hz: frames come, stamped with a state's time plus the latency
         R_ned_body = frames.rotation_from_euler_321(0, 0, math.radians(215.0))

@@ -547,8 +547,8 @@ class SimulatedCamera(ThreadedSource):
         timeout_ns = self.params.stall_timeout_s * 1e9
         asked_ns = self.state_stream.first_request_ns
         newest = self.history.newest_t_ns
-        if asked_ns is None and newest is None:
-            if now_ns - started_ns < timeout_ns:
+        if asked_ns is None and newest is None:  # the FC's first heartbeat may take a second to come
+            if now_ns - started_ns < timeout_ns + int(mm.FC_HEARTBEAT_PERIOD_S * 1e9):
                 return
             reason = WAITING_FOR_FC
         elif now_ns - max(asked_ns or 0, newest or 0, last_state_ns or 0) < timeout_ns:

@@ -99,10 +99,14 @@ class Health:
     """Judges the daemon's health from its frames and the wall clock; see the module docstring."""
 
     def __init__(self, emit: Emit, no_markers_after_s: float = 0.5, no_pose_after_s: float = 2.0,
-                 clock_ns: Callable[[], int] = time.monotonic_ns, attitude_expected: bool = False):
+                 clock_ns: Callable[[], int] = time.monotonic_ns, attitude_expected: bool = False,
+                 first_frame_within_s: float = STALL_MAX_S):
+        """first_frame_within_s: how long the first frame may take before it is a stall (a simulated camera
+        waits for the flight controller's first heartbeat, up to a second, before it can ask for a state)."""
         self._emit = emit
         self.no_markers_after_s = no_markers_after_s
         self.no_pose_after_s = no_pose_after_s
+        self.first_frame_within_s = first_frame_within_s
         self._clock_ns = clock_ns
         self._lock = threading.Lock()
         self._started_ns = clock_ns()
@@ -218,7 +222,7 @@ class Health:
             return HealthState("camera lost", _seconds(now_ns - (last_frame_ns or self._started_ns)), (lost_reason,))
         if last_frame_ns is None:
             waited_s = _seconds(now_ns - self._started_ns)
-            return HealthState("camera stalled" if waited_s > STALL_MAX_S else "starting", waited_s)
+            return HealthState("camera stalled" if waited_s > self.first_frame_within_s else "starting", waited_s)
         # a source back from lost gets its stall time to deliver (it was lost, not stalled, until now)
         silent_s = _seconds(now_ns - max(last_frame_ns, lost_ns or 0))
         if silent_s > stall_after_s:

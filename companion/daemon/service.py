@@ -41,7 +41,7 @@ import numpy as np
 
 from companion.geometry import frames
 from companion.daemon.config import Config, ConfigError, ReplayConfig, SimulatedCameraConfig
-from companion.daemon.health import Health, HealthState
+from companion.daemon.health import STALL_MAX_S, Health, HealthState
 from companion.detect.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter
 from companion.geometry.attitude import AttitudeHistory, AttitudeLookup
@@ -49,7 +49,7 @@ from companion.geometry.camera import CameraError, CameraModel
 from companion.mavlink import fc_params
 from companion.mavlink.attitude import AttitudeStream
 from companion.mavlink.link import LinkState, MavlinkLink
-from companion.mavlink.messages import SEVERITY_CRITICAL, SEVERITY_WARNING
+from companion.mavlink.messages import FC_HEARTBEAT_PERIOD_S, SEVERITY_CRITICAL, SEVERITY_WARNING
 from companion.daemon.notify import Notifier
 from companion.daemon.map_watch import MapWatch
 from companion.daemon.mount_watch import MOUNT_WATCH_SDS, MountWatch, MountWatchParams
@@ -133,7 +133,8 @@ class Daemon:
             attitude=attitude,
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
-        self.health = Health(self._say, attitude_expected=attitude is not None)
+        self.health = Health(self._say, attitude_expected=attitude is not None,
+                             first_frame_within_s=first_frame_within_s(config))
         self.pipeline.observers.append(self.health.observe)
         # a marker the pose stage keeps leaving out is said once (docs/survey.md)
         self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
@@ -422,6 +423,15 @@ class Daemon:
                  source.reopens, dict(self.link.counters.sent))
         for name, median_ms, p99_ms in stats.stage_table():
             log.info("stage %-14s median %7.2f ms  p99 %7.2f ms", name, median_ms, p99_ms)
+
+
+def first_frame_within_s(config: Config) -> float:
+    """How long the first frame may take before health calls it a stall: a simulated camera asks for the
+    simulator's state only once it has heard the flight controller (its heartbeat: up to a second), then waits
+    its own ``stall_timeout_s`` (and says why, as its lost reason, if nothing comes)."""
+    if isinstance(config.source, SimulatedCameraConfig):
+        return FC_HEARTBEAT_PERIOD_S + config.source.stall_timeout_s
+    return STALL_MAX_S
 
 
 def attitude_source(config: Config, source: FrameSource

@@ -134,6 +134,9 @@ def odometry(estimate: Estimate) -> Message:
     )
 
 
+FC_HEARTBEAT_PERIOD_S = 1.0  # ArduPilot and PX4 send their HEARTBEAT at 1 Hz: a new link hears one within this
+
+
 def heartbeat(system_status: int, instance: int = 0) -> Message:
     """HEARTBEAT of an onboard controller (type 18) that is no autopilot (8).
 
