@@ -430,7 +430,7 @@ def first_frame_within_s(config: Config) -> float:
     simulator's state only once it has heard the flight controller (its heartbeat: up to a second), then waits
     its own ``stall_timeout_s`` (and says why, as its lost reason, if nothing comes)."""
     if isinstance(config.source, SimulatedCameraConfig):
-        return FC_HEARTBEAT_PERIOD_S + config.source.stall_timeout_s
+        return FC_HEARTBEAT_PERIOD_S + config.source.params.stall_timeout_s
     return STALL_MAX_S
 
 
