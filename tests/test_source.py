@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import threading
 import time
 from pathlib import Path
@@ -342,7 +343,10 @@ def test_a_camera_stuck_on_one_image_is_lost_with_that_reason_and_reopened(tmp_p
             frame = source.get(timeout_s=0.05)
         back = source.lost_reason
         source.close()
-    assert reason == "camera test: the same image over and over for 0.3 s (a frozen driver, or a covered lens)"
+    # the time said is the stall timeout or, on a loaded machine, a little more
+    said = re.fullmatch(r"camera test: the same image over and over for (\d+\.\d) s \(a frozen driver, or a "
+                        r"covered lens\)", reason or "")
+    assert said and float(said.group(1)) >= 0.3, reason
     assert frame is not None and frame.index >= 3 and number_of(frame.image) in (0, 1, 2) and back is None
     lost = [r for r in caplog.records if "same image" in r.getMessage()]
     assert lost and lost[0].levelno == logging.WARNING
