@@ -256,6 +256,13 @@ def test_a_udp_flight_controller_killed_without_an_origin_is_said_unheard_once_a
         while link.fc_unheard_s is not None and time.monotonic() < deadline:
             time.sleep(0.05)
         assert link.fc_unheard_s is None and link.fc_seen
+        deadline = time.monotonic() + 10
+        while link.counters.handshakes < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert link.counters.handshakes >= 2   # the FC back: the start order again
+        # the missing origin is said at the first handshake, not again at each (it was, at every return)
+        assert len([r for r in caplog.records if r.levelno == logging.WARNING
+                    and "no geodetic origin configured" in r.getMessage()]) == 1
     finally:
         publisher.stop()
 

@@ -775,8 +775,10 @@ class MavlinkLink:
         if not self.stream:
             self.state = LinkState.HANDSHAKE  # reading only: never streams
         elif self.params.origin is None:
-            log.warning("link: no geodetic origin configured: streaming without SET_GPS_GLOBAL_ORIGIN "
-                        "(home, RTL and auto modes need one)")
+            # said at the first handshake only: every reopen, FC return or restart would say it again
+            log.log(logging.WARNING if self.counters.handshakes == 1 else logging.DEBUG,
+                    "link: no geodetic origin configured: streaming without SET_GPS_GLOBAL_ORIGIN "
+                    "(home, RTL and auto modes need one)")
             self.state = LinkState.STREAMING
         else:
             self.state = LinkState.HANDSHAKE
