@@ -171,24 +171,26 @@ def _shown(value) -> str:
 
 def degradations_from_args(args) -> Degradations:
     """``DEFAULT_DEGRADATIONS`` with the realism options; a knob out of its range named by its option."""
-    knobs = {knob: getattr(args, option[2:].replace("-", "_")) for option, knob in REALISM_OPTIONS.items()}
-    for option, knob in REALISM_OPTIONS.items():
-        try:
-            Degradations(**{knob: knobs[knob]})
-        except DegradationError as error:
-            raise SimulationError(f"{option}: {str(error).removeprefix('degradations: ')}") from None
+    knobs = _checked_options(args, REALISM_OPTIONS, Degradations, DegradationError, "degradations: ")
     return DEFAULT_DEGRADATIONS.with_(motion_blur=args.motion_blur, **knobs)
 
 
 def attitude_from_args(args) -> AttitudeNoise | None:
     """attitude.csv's noise (None: --no-attitude); a setting out of its range named by its option."""
-    settings = {name: getattr(args, option[2:].replace("-", "_")) for option, name in ATTITUDE_OPTIONS.items()}
-    for option, name in ATTITUDE_OPTIONS.items():
-        try:
-            AttitudeNoise(**{name: settings[name]})
-        except SimulationError as error:
-            raise SimulationError(f"{option}: {error}") from None
+    settings = _checked_options(args, ATTITUDE_OPTIONS, AttitudeNoise, SimulationError)
     return AttitudeNoise(**settings) if args.attitude else None
+
+
+def _checked_options(args, options: dict[str, str], make, error_type, prefix: str = "") -> dict:
+    """{field: value} of ``options`` (--option -> field of ``make``), each value checked alone by ``make``: a
+    SimulationError naming the option of one out of its range."""
+    values = {field: getattr(args, option[2:].replace("-", "_")) for option, field in options.items()}
+    for option, field in options.items():
+        try:
+            make(**{field: values[field]})
+        except error_type as error:
+            raise SimulationError(f"{option}: {str(error).removeprefix(prefix)}") from None
+    return values
 
 
 def camera_from_args(args) -> CameraModel:
