@@ -101,8 +101,7 @@ def table_row(result: FrameResult, header: bool) -> str:
     row = f"{result.frame:>6} {result.t_ns / 1e6:>9.1f} {len(result.detected_ids):>4} {len(s.marker_ids):>4} " \
           f"{s.status + notes:<20}"
     if m is not None:
-        forward_map = m.T_map_body[:3, 0]
-        heading = math.degrees(math.atan2(forward_map[1], forward_map[0]))
+        heading = frames.map_heading_deg(m.T_map_body[:3, 0])   # the body's forward axis
         sd_m = math.sqrt(float(np.trace(m.covariance_ned[:3, :3])))
         x, y, z = m.T_map_body[:3, 3]
         row += f" {x:>7.3f} {y:>7.3f} {z:>6.3f} {heading:>8.2f} {m.reprojection_rms_px:>6.2f} {sd_m:>6.3f}"

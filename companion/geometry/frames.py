@@ -270,6 +270,13 @@ def geodetic_from_ned(ned_m, origin_latitude_deg: float, origin_longitude_deg: f
     return float(latitude_deg), float(longitude_deg), float(origin_altitude_m - down_m)
 
 
+def map_heading_deg(direction_map) -> float:
+    """The heading of a direction given in the map frame: degrees counter-clockwise from the map's +x seen from
+    above, in (-180, 180] (its horizontal part; as the map file gives headings)."""
+    x, y = float(direction_map[0]), float(direction_map[1])
+    return math.degrees(math.atan2(y, x))
+
+
 def yaw_ned_from_map_heading_deg(heading_deg: float, x_bearing_deg: float) -> float:
     """NED yaw (compass heading, degrees in [0, 360)) of a body heading ``heading_deg`` in the map.
 
