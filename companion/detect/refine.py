@@ -250,8 +250,8 @@ class _IdealFrame:
         return cls((float(lo[0]), float(lo[1])), np.dstack([map_x, map_y]))
 
     def to_frame(self, ideal_xy: np.ndarray, shift_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-        """(1, P, 2) float32 ideal pixels -> frame pixels + ``shift_px``, read off the map (bilinear, at
-        OpenCV's 1/32-pixel steps like every ``cv2.remap``); far outside any frame where the map has no value.
+        """(1, P, 2) float32 ideal pixels -> frame pixels + ``shift_px``, read off the map (bilinear: exact with
+        OpenCV 5, at 1/32-pixel steps with OpenCV 4's ``cv2.remap``); far outside any frame where the map has no value.
 
         (The shifts are ``cv2.add`` with a per-channel scalar: 5x faster than numpy's broadcast on (1, P, 2).)
         """
@@ -489,7 +489,7 @@ class MarkerRefiner:
         outline = homography.project(H, self._outline_grid)
         if not np.all(np.isfinite(outline)):
             return None
-        if ideal is not None:  # a box with a margin: the map's 1/32-pixel steps will do
+        if ideal is not None:  # a box with a margin: the map's bilinear reading will do
             outline = ideal.to_frame(outline.astype(np.float32)[None])[0]
         height, width = gray.shape
         margin = 2

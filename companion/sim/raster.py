@@ -227,8 +227,6 @@ class Renderer:
         self.distorted = bool(np.any(self.dist != 0.0))
         if self.distorted:
             self._undistort_map, canvas_K, canvas_size = self._distortion_map()
-            # the same map in OpenCV's fixed-point form (1/32 px, what cv2.remap uses inside): twice as fast
-            self._fixed_map = cv2.convertMaps(self._undistort_map, None, cv2.CV_16SC2)
         else:
             self._undistort_map, canvas_K, canvas_size = None, self.K.copy(), (self.width, self.height)
         # the canvas at the supersampled resolution: u_ss = s (u + 0.5) - 0.5
@@ -454,7 +452,7 @@ class Renderer:
             if label is not None:
                 label = np.ascontiguousarray(label[s // 2::s, s // 2::s][: h // s, : w // s])
         if self._undistort_map is not None:
-            color = cv2.remap(color, *self._fixed_map, LENS_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
+            color = cv2.remap(color, self._undistort_map, None, LENS_INTERPOLATION, borderMode=cv2.BORDER_REPLICATE)
             if label is not None:
                 label = cv2.remap(label.astype(np.float32), self._undistort_map, None, cv2.INTER_NEAREST,
                                   borderMode=cv2.BORDER_CONSTANT, borderValue=-1).astype(np.int32)
