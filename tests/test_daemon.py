@@ -543,6 +543,43 @@ def test_a_camera_that_stalls_is_reported_and_the_heartbeat_goes_critical(tmp_pa
     assert stderr.count("camera stalled") == 1
 
 
+def test_a_recording_keeps_what_the_operator_was_told_at_the_frame_it_was_said(tmp_path, peers):
+    """The stalled camera of the test above, recorded: events.csv holds every STATUSTEXT the flight
+    controller received (whole, where the FC gets 50 characters), each at the newest frame when it was
+    said: the stall at the last frame before the gap, CRITICAL; and the report lists them."""
+    rows = read_rows(HOVER / "timestamps.csv")
+    sequence = spliced_sequence(tmp_path, HOVER, keep=[int(r["frame"]) for r in rows], gap_after=12,
+                                gap_ns=3_000_000_000)
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    flight = tmp_path / "flight"
+    code, _, stderr = finish(start_daemon(write_config(tmp_path, sequence, port, record={"path": str(flight)})),
+                             timeout_s=40)
+    assert code == 0, stderr
+    received = [r["fields"]["text"] for r in peer.records("STATUSTEXT")]
+    events = read_rows(flight / "events.csv")
+    said = [e["text"] for e in events]
+    assert len(received) >= 3 and all(any(text.startswith(r) for text in said) for r in received), (received, said)
+    stalled = [e for e in events if "camera stalled" in e["text"]]
+    again = [e for e in events if "frames again" in e["text"]]
+    assert len(stalled) == 1 and len(again) == 1, said
+    assert stalled[0]["severity"] == "CRITICAL" and stalled[0]["frame"] == "12"
+    assert int(again[0]["frame"]) > 12
+    # on timestamps.csv's time base: frame 12's time, and the frame the return was said at
+    recorded_ns = {int(r["frame"]): int(r["t_ns"]) for r in read_rows(flight / "timestamps.csv")}
+    assert int(stalled[0]["t_ns"]) == recorded_ns[12] and int(again[0]["t_ns"]) == recorded_ns[int(again[0]["frame"])]
+
+    run = subprocess.run([sys.executable, "-m", "companion", "report", str(flight)], capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    page = (flight / "report.html").read_text()
+    assert "<h2>Messages to the operator</h2>" in page
+    assert re.search(rf"<td>{float(stalled[0]['t_ns']) * 1e-9:.2f}</td><td>12</td><td>CRITICAL</td>"
+                     rf"<td>{re.escape(stalled[0]['text'])}</td>", page)
+    warnings = sum(e["severity"] in ("CRITICAL", "WARNING", "ERROR") for e in events)
+    assert f"<td>messages to the operator</td><td>{len(events)} ({warnings} warning" in page
+
+
 def log_time_ns(stderr: str, text: str) -> int:
     """The monotonic time (this machine's, the peer's clock) of the last log line containing ``text``."""
     line = [line for line in stderr.splitlines() if text in line][-1]

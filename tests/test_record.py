@@ -360,6 +360,28 @@ def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
     assert [int(t) for t in open_recording(tmp_path / "flight").t_ns] == [0, 33_000_000, 66_000_000]
 
 
+def test_events_are_recorded_whole_at_the_newest_frame(tmp_path):
+    """events.csv (frame,t_ns,severity,text): a text said before the first frame has neither; one said after
+    frame k carries k and its time on the recording's base; the text whole, commas and quotes kept."""
+    from companion.daemon.pipeline import FrameRecord
+    from companion.types import Frame
+    recorder = Recorder(RecordParams(path=tmp_path / "flight"), CameraModel.from_config(
+        yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover"), MAP)
+    recorder.start()
+    recorder.event(4, "companion: no FC heard")
+    long_text = 'companion: marker "X", seen 40 times, disagrees with the map by 12 cm (companion map check)'
+    start_ns = 7_000_000_000
+    for index in range(3):
+        t_ns = start_ns + index * 50_000_000
+        recorder(Frame(np.zeros((480, 640), np.uint8), t_ns, index + 10),
+                 FrameRecord(index + 10, t_ns, t_ns, (0, 0, 0, 0), False, None, (), None, None))
+        if index == 1:
+            recorder.event(2, long_text)
+    recorder.close()
+    assert [tuple(r.values()) for r in read_rows(tmp_path / "flight" / "events.csv")] == [
+        ("", "", "WARNING", "companion: no FC heard"), ("11", "50000000", "CRITICAL", long_text)]
+
+
 def test_a_disk_without_room_refuses_the_recording_at_the_start_and_vision_goes_on(tmp_path):
     """Less than min_free_mb free when the daemon starts (the disk's real free space, with the floor set
     above it): the recording is not started, one line says why, no folder is made; every frame is still

@@ -9,6 +9,8 @@
     DIR/detections.csv   one row per decoded marker: symbol, path, corrections, corners
     DIR/attitude.csv     t_ns,roll_deg,pitch_deg  the flight controller's attitude (when there is one:
                          each sample from the link; a replay's at each frame), same time base
+    DIR/events.csv       frame,t_ns,severity,text  what the daemon told the operator (every STATUSTEXT,
+                         whole), at the newest pipeline frame when it was said (blank: before the first)
     DIR/groundtruth.csv  copied from a replayed sequence that has one (same frame numbers)
     DIR/map.yaml         a copy of the facility map
     DIR/sequence.yaml    camera, map (map.yaml), rate, counts, why the recording stopped
@@ -55,6 +57,7 @@ from companion.daemon.pipeline import FrameRecord
 from companion.files import write_whole
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
+from companion.mavlink.messages import severity_name
 from companion.types import AttitudeSample, Frame
 
 log = logging.getLogger("companion")
@@ -62,6 +65,7 @@ log = logging.getLogger("companion")
 VIDEO_FILE = "video.avi"
 ESTIMATES_FILE = "estimates.csv"
 DETECTIONS_FILE = "detections.csv"
+EVENTS_FILE = "events.csv"
 GROUNDTRUTH_FILE = "groundtruth.csv"
 MAP_FILE = "map.yaml"
 # room taken at the start and given back at the stop, for the last rows and the final sequence.yaml when the
@@ -88,6 +92,7 @@ ESTIMATE_COLUMNS = (
     "v_north_m_s", "v_east_m_s", "v_down_m_s", "tracking", "reset_counter",
     *COVARIANCE_COLUMNS,
 )
+EVENT_COLUMNS = ("frame", "t_ns", "severity", "text")
 DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "quality",
                      "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y")
 
@@ -152,7 +157,7 @@ class RecordCounters:
     frames: int = 0          # images written
     rows: int = 0            # estimate rows written (one per pipeline frame while recording)
     dropped_frames: int = 0  # images the writer could not keep up with (their rows are kept)
-    dropped_rows: int = 0    # rows dropped because even the row queue was full
+    dropped_rows: int = 0    # rows (and events) dropped because even the row queue was full
     bytes: int = 0           # size of the folder's files at the last check
 
 
@@ -216,6 +221,7 @@ class Recorder:
     attitude_of_frames: record each frame's attitude (``FrameRecord.attitude``:
         a replay's, which has no stream of its own); otherwise the samples
         come through ``attitude`` (the link's, as they arrive).
+    What the daemon tells the operator comes through ``event`` (the link's ``on_statustext``).
     """
 
     def __init__(self, params: RecordParams, camera: CameraModel, map_path: Path,
@@ -231,6 +237,7 @@ class Recorder:
         self._t0_ns: int | None = None
         self._last_t_ns: int | None = None
         self._last_attitude_t_ns: int | None = None
+        self._newest: tuple[int, int] | None = None   # (index, t_ns) of the newest pipeline frame queued
         self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
         self._image_budget = threading.Semaphore(params.queue_frames)
         self._stopped = threading.Event()   # no more rows taken (limit reached, error, close)
@@ -309,6 +316,7 @@ class Recorder:
             self.counters.dropped_rows += 1
             if image is not None:
                 self._image_budget.release()
+        self._newest = (record.index, record.t_ns)   # after its row: an event that names it is queued after it
         if self.attitude_of_frames and record.attitude is not None:
             self.attitude(AttitudeSample(record.t_ns, record.attitude.roll_rad, record.attitude.pitch_rad))
 
@@ -321,6 +329,16 @@ class Recorder:
             self._rows.put_nowait(("attitude", None, sample))
         except queue.Full:
             pass
+
+    def event(self, severity: int, text: str) -> None:
+        """Record one message to the operator (a STATUSTEXT, whole: the link sends 50 characters) at the
+        newest pipeline frame; never blocks (whichever thread said it calls this)."""
+        if self._stopped.is_set():
+            return
+        try:
+            self._rows.put_nowait(("event", None, (self._newest, severity, text)))
+        except queue.Full:
+            self.counters.dropped_rows += 1
 
     # -------------------------------------------------------------- control
 
@@ -399,6 +417,9 @@ class Recorder:
         if kind == "attitude":
             self._write_attitude(payload)
             return
+        if kind == "event":
+            self._write_event(*payload)
+            return
         record: FrameRecord = payload
         if self._t0_ns is None:
             self._t0_ns = record.t_ns
@@ -419,6 +440,12 @@ class Recorder:
             return
         self._last_attitude_t_ns = sample.t_ns
         self._csv[ATTITUDE_FILE].writerow(attitude_row(sample, self._t0_ns))
+
+    def _write_event(self, newest: tuple[int, int] | None, severity: int, text: str) -> None:
+        """One events.csv row, on the frames' time base at the newest frame when it was said (blank before
+        the first frame)."""
+        frame, t_ns = ("", "") if newest is None or self._t0_ns is None else (newest[0], newest[1] - self._t0_ns)
+        self._csv[EVENTS_FILE].writerow((frame, t_ns, severity_name(severity), text))
 
     def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:
         if self._last_t_ns is not None and record.t_ns <= self._last_t_ns:
@@ -492,7 +519,7 @@ class Recorder:
 
     def _open_tables(self) -> None:
         headers = {TIMESTAMPS_FILE: ("frame", "t_ns", "file"), ESTIMATES_FILE: ESTIMATE_COLUMNS,
-                   DETECTIONS_FILE: DETECTION_COLUMNS, ATTITUDE_FILE: ATTITUDE_COLUMNS}
+                   DETECTIONS_FILE: DETECTION_COLUMNS, ATTITUDE_FILE: ATTITUDE_COLUMNS, EVENTS_FILE: EVENT_COLUMNS}
         for name, header in headers.items():
             handle = open(self.folder / name, "w", newline="")
             self._files[name] = handle

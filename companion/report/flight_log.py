@@ -1,7 +1,7 @@
 """A recorded flight read back for the report: per-frame arrays, gaps in vision, per-marker counts.
 
 Reads the files ``companion.daemon.record`` writes (``estimates.csv``,
-``detections.csv``, ``sequence.yaml``) and, when present, the
+``detections.csv``, ``events.csv``, ``sequence.yaml``) and, when present, the
 ``groundtruth.csv`` of a simulated or replayed sequence (matched by frame
 number). Every error names the file, and the row and column when it is one
 value.
@@ -18,8 +18,8 @@ import numpy as np
 
 from companion.capture.replay import SEQUENCE_FILE, read_sequence_info
 from companion.capture.source import SourceError
-from companion.daemon.record import (AXES, AXIS_UNITS, DETECTIONS_FILE, ESTIMATES_FILE, GROUNDTRUTH_FILE,
-                                     VERDICTS)
+from companion.daemon.record import (AXES, AXIS_UNITS, DETECTIONS_FILE, ESTIMATES_FILE, EVENTS_FILE,
+                                     GROUNDTRUTH_FILE, VERDICTS)
 
 # a stretch without a fresh fix is a gap when it lasts longer than this, or 3 frame periods if longer
 GAP_MIN_S = 0.2
@@ -56,6 +56,22 @@ class MarkerCounts:
     corrections: int               # corrected symbols, summed
 
 
+@dataclass(frozen=True)
+class Event:
+    """A message the daemon gave the operator (events.csv): at the newest frame when it was said, t_s from the
+    first frame (frame and t_s None: said before the first frame); severity a MAV_SEVERITY name."""
+
+    frame: int | None
+    t_s: float | None
+    severity: str
+    text: str
+
+    @property
+    def is_warning(self) -> bool:
+        """WARNING or worse."""
+        return self.severity in ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")
+
+
 @dataclass
 class FlightLog:
     """One flight, frame by frame (N pipeline frames, times in seconds from the first frame).
@@ -79,6 +95,7 @@ class FlightLog:
     estimated: np.ndarray
     position_sd_m: np.ndarray
     markers: list[MarkerCounts] = field(default_factory=list)
+    events: list[Event] | None = None   # None: the recording has no events.csv (made before it had one)
     truth_ned_m: np.ndarray | None = None
     truth_yaw_rad: np.ndarray | None = None
 
@@ -173,6 +190,8 @@ def read_flight(folder) -> FlightLog:
     )
     if (folder / DETECTIONS_FILE).is_file():
         log.markers = marker_counts(folder / DETECTIONS_FILE)
+    if (folder / EVENTS_FILE).is_file():
+        log.events = read_events(folder / EVENTS_FILE, int(t_ns[0]))
     if (folder / GROUNDTRUTH_FILE).is_file():
         log.truth_ned_m, log.truth_yaw_rad = _groundtruth(folder / GROUNDTRUTH_FILE, log.frame)
     return log
@@ -192,6 +211,20 @@ def marker_counts(path: Path) -> list[MarkerCounts]:
         entry[5] += int(fixes)
     markers = [MarkerCounts(v[0], k, *v[1:]) for k, v in counts.items()]
     return sorted(markers, key=lambda m: (-m.frames, m.id))
+
+
+def read_events(path: Path, t0_ns: int) -> list[Event]:
+    """events.csv; its times on estimates.csv's base (``t0_ns``: that file's first time)."""
+    table = _Table(path, ("frame", "t_ns", "severity", "text"))
+    frames, t_ns = table.floats("frame"), table.floats("t_ns")
+    for column, values in (("frame", frames), ("t_ns", t_ns)):
+        bad = np.flatnonzero(np.isfinite(values) & (values != np.round(values)))
+        if len(bad):
+            raise ReportError(f"{path}: row {bad[0] + 2}, column {column}: must be an integer or empty, "
+                              f"got {table.rows[bad[0]].get(column)!r}")
+    return [Event(int(f) if np.isfinite(f) else None, (t - t0_ns) * 1e-9 if np.isfinite(t) else None,
+                  severity, text)
+            for f, t, severity, text in zip(frames, t_ns, table.texts("severity"), table.texts("text"))]
 
 
 def _groundtruth(path: Path, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

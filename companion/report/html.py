@@ -2,9 +2,9 @@
 
 Sections (each plot a PNG embedded in the page, made with matplotlib):
 summary, track over the map, position and yaw against time, vision
-availability with every gap and its reason, capture -> send latency,
-markers (detections and corrections per marker), and the error against
-``groundtruth.csv`` when the folder has one.
+availability with every gap and its reason, what the operator was told
+(events.csv), capture -> send latency, markers (detections and corrections
+per marker), and the error against ``groundtruth.csv`` when the folder has one.
 """
 from __future__ import annotations
 
@@ -46,6 +46,7 @@ def write_report(log: FlightLog, facility_map: FacilityMap | None, out: Path | N
         ("Track over the map", _image(track_figure(log, facility_map)) + _track_note(log, facility_map)),
         ("Position and yaw against time", _image(time_figure(log))),
         ("Vision availability", _image(availability_figure(log)) + gaps_table(log)),
+        ("Messages to the operator", events_table(log)),
         ("Capture → send latency", _image(latency_figure(log)) + stage_table(log)),
         ("Markers", (_image(markers_figure(log)) if log.markers else "") + markers_table(log)),
     ]
@@ -89,6 +90,7 @@ def summary_table(log: FlightLog, facility_map: FacilityMap | None) -> str:
         ("fresh vision fixes", f"{fixes} of {len(log.frame)} frames ({100 * fixes / len(log.frame):.0f} %)"),
         ("estimates sent", str(int(log.sent.sum()))),
         ("capture → send", f"median {_ms(log.latency_ms)}, p99 {_ms(log.latency_ms, 99)}"),
+        ("messages to the operator", _events_summary(log)),
         ("gaps in vision", f"{len(gaps)}, longest {max((g.duration_s for g in gaps), default=0):.2f} s"
                            f" ({max(gaps, key=lambda g: g.duration_s).reason})" if gaps else "none"),
     ]
@@ -108,6 +110,24 @@ def gaps_table(log: FlightLog) -> str:
     rows = [(f"{g.start_s:.2f}", f"{g.end_s:.2f}", f"{g.duration_s:.2f}", g.frames, g.reason,
              ", ".join(f"{k} {v}" for k, v in g.reasons.items())) for g in gaps]
     return _rows(rows, ("from s", "to s", "length s", "frames", "reason", "frames by verdict"))
+
+
+def _events_summary(log: FlightLog) -> str:
+    if log.events is None:
+        return "not recorded (no events.csv)"
+    warnings = sum(event.is_warning for event in log.events)
+    return f"{len(log.events)} ({warnings} warning{'' if warnings == 1 else 's'} or worse)"
+
+
+def events_table(log: FlightLog) -> str:
+    if log.events is None:
+        return "<p class=note>This recording has no events.csv (recorded by a version before it was kept).</p>"
+    if not log.events:
+        return "<p class=note>Nothing was said: no STATUSTEXT in the whole recording.</p>"
+    rows = [("before the first frame" if e.t_s is None else f"{e.t_s:.2f}", "" if e.frame is None else e.frame,
+             e.severity, e.text) for e in log.events]
+    return ("<p class=note>Every STATUSTEXT the daemon queued, whole (the flight controller gets 50 characters), "
+            "at the newest frame when it was said.</p>" + _rows(rows, ("s", "frame", "severity", "text")))
 
 
 def stage_table(log: FlightLog) -> str:
@@ -220,12 +240,16 @@ def availability_figure(log: FlightLog):
         axes.broken_barh(spans, (lane - 0.4, 0.8), facecolors=VERDICT_COLOURS[verdict], lw=0)
     for gap in log.gaps():
         axes.axvspan(gap.start_s, gap.end_s, color="#c0392b", alpha=0.08, lw=0)
+    warned = [e.t_s for e in log.events or () if e.is_warning and e.t_s is not None]
+    for t_s in warned:
+        axes.axvline(t_s, color="#c0392b", lw=0.8, ls="--")
     axes.set_yticks(range(len(names)), ["fix sent" if n == "ok" else n for n in names])
     axes.invert_yaxis()
     axes.set_xlabel("time (s)")
     axes.set_xlim(log.t_s[0] - period, log.t_s[-1] + period)
     axes.grid(axis="x", alpha=0.3)
-    axes.set_title("each frame's verdict (shaded: the gaps listed below)", fontsize=9)
+    axes.set_title("each frame's verdict (shaded: the gaps listed below"
+                   + ("; dashed: a warning to the operator, see Messages)" if warned else ")"), fontsize=9)
     return figure
 
 
