@@ -565,6 +565,8 @@ def test_a_recording_keeps_what_the_operator_was_told_at_the_frame_it_was_said(t
     assert len(stalled) == 1 and len(again) == 1, said
     assert stalled[0]["severity"] == "CRITICAL" and stalled[0]["frame"] == "12"
     assert int(again[0]["frame"]) > 12
+    # the track ended for the gap, and the loss says so (it said 'filter gating')
+    assert [e["text"] for e in events if "markers lost" in e["text"]] == ["companion: markers lost: no frame for 3.1 s"]
     # on timestamps.csv's time base: frame 12's time, and the frame the return was said at
     recorded_ns = {int(r["frame"]): int(r["t_ns"]) for r in read_rows(flight / "timestamps.csv")}
     assert int(stalled[0]["t_ns"]) == recorded_ns[12] and int(again[0]["t_ns"]) == recorded_ns[int(again[0]["frame"])]

@@ -185,6 +185,22 @@ def test_markers_lost_to_the_filter_gate_says_so(health):
     assert said[-1] == ("markers lost: filter gating", 4)
 
 
+def test_markers_lost_after_a_gap_in_the_frames_says_the_gap_not_the_gate(health):
+    """Frames stop for 3 s (a stalled camera) and the first pose after the gap waits to be confirmed as a new
+    fix: the track ended for the gap (longer than the filter's max_coast_s), which 'filter gating' misnamed
+    (a recorded stall said 'markers lost: filter gating'); a gap shorter than max_coast_s ends no track."""
+    monitor, clock, said = health
+    play(monitor, clock, 10)
+    clock.now_ns += 3_000_000_000
+    play(monitor, clock, 1, tracking=None)      # a pose, not yet a fix
+    assert said[-1] == ("markers lost: no frame for 3.1 s", 4)
+    play(monitor, clock, 3, tracking=True)
+    clock.now_ns += 100_000_000                 # 0.17 s between captures: within max_coast_s (0.25 s)
+    play(monitor, clock, 1, tracking=None)
+    assert said[-1] == ("markers lost: filter gating", 4)
+    assert len("companion: markers lost: no frame for 999.9 s") <= 50
+
+
 def test_the_status_line_says_the_state_with_its_reasons():
     status = DaemonStatus(fps=0.0, markers=0, latency_ms=None, estimate=None, state="camera stalled", state_s=3.24,
                           reasons=("no frame for 3.2 s",), critical=True, track_state="acquiring",

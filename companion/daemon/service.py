@@ -134,7 +134,8 @@ class Daemon:
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
         self.health = Health(self._say, attitude_expected=attitude is not None,
-                             first_frame_within_s=first_frame_within_s(config))
+                             first_frame_within_s=first_frame_within_s(config),
+                             track_ends_after_s=config.fusion.max_coast_s)
         self.pipeline.observers.append(self.health.observe)
         # a marker the pose stage keeps leaving out is said once (docs/survey.md)
         self.pipeline.observers.append(MapWatch(config.facility_map, self.link))
