@@ -360,26 +360,35 @@ def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
     assert [int(t) for t in open_recording(tmp_path / "flight").t_ns] == [0, 33_000_000, 66_000_000]
 
 
-def test_events_are_recorded_whole_at_the_newest_frame(tmp_path):
-    """events.csv (frame,t_ns,severity,text): a text said before the first frame has neither; one said after
-    frame k carries k and its time on the recording's base; the text whole, commas and quotes kept."""
+def test_the_daemons_log_is_recorded_at_the_newest_frame(tmp_path, caplog):
+    """events.csv (frame,t_ns,level,text): the daemon's log (the companion logger and its children, INFO and
+    up) from start to close: a line logged before the first frame has neither; one after frame k carries k
+    and its time on the recording's base; commas and quotes kept; DEBUG, other loggers and what is logged
+    after close are not."""
+    import logging
     from companion.daemon.pipeline import FrameRecord
     from companion.types import Frame
     recorder = Recorder(RecordParams(path=tmp_path / "flight"), CameraModel.from_config(
         yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"], "hover"), MAP)
+    caplog.set_level(logging.DEBUG, logger="companion")   # DEBUG lines are made, and still not recorded
     recorder.start()
-    recorder.event(4, "companion: no FC heard")
-    long_text = 'companion: marker "X", seen 40 times, disagrees with the map by 12 cm (companion map check)'
+    logging.getLogger("companion.mavlink.link").warning("link: no flight controller heard for %.1f s", 3.0)
+    long_text = 'marker "X", seen 40 times, disagrees with the map by 12 cm (companion map check)'
     start_ns = 7_000_000_000
     for index in range(3):
         t_ns = start_ns + index * 50_000_000
         recorder(Frame(np.zeros((480, 640), np.uint8), t_ns, index + 10),
                  FrameRecord(index + 10, t_ns, t_ns, (0, 0, 0, 0), False, None, (), None, None))
         if index == 1:
-            recorder.event(2, long_text)
+            logging.getLogger("companion").error(long_text)
+            logging.getLogger("companion").debug("not recorded")
+            logging.getLogger("elsewhere").warning("not ours")
     recorder.close()
-    assert [tuple(r.values()) for r in read_rows(tmp_path / "flight" / "events.csv")] == [
-        ("", "", "WARNING", "companion: no FC heard"), ("11", "50000000", "CRITICAL", long_text)]
+    logging.getLogger("companion").warning("after the recording")
+    rows = [tuple(r.values()) for r in read_rows(tmp_path / "flight" / "events.csv")]
+    assert rows[0][:3] == ("", "", "INFO") and rows[0][3].startswith(f"recording to {tmp_path / 'flight'}")
+    assert rows[1:] == [("", "", "WARNING", "link: no flight controller heard for 3.0 s"),
+                        ("11", "50000000", "ERROR", long_text)]
 
 
 def test_a_disk_without_room_refuses_the_recording_at_the_start_and_vision_goes_on(tmp_path):

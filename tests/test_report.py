@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parent.parent
 HOVER = REPO / "tests" / "data" / "sequences" / "warehouse_hover"
 MAP = REPO / "maps" / "warehouse.yaml"
 SECTIONS = ("Summary", "Track over the map", "Position and yaw against time", "Vision availability",
-            "Messages to the operator", "Capture → send latency", "Markers", "Error against the ground truth")
+            "Log while recording", "Capture → send latency", "Markers", "Error against the ground truth")
 
 
 def report(*args: str) -> subprocess.CompletedProcess:
@@ -101,9 +101,9 @@ def test_gaps_are_found_with_their_reason(tmp_path):
     assert "Error against the ground truth" not in page and "2 gap(s)" in run.stdout
 
 
-def test_messages_to_the_operator_are_listed_at_their_frames(tmp_path):
-    """events.csv written by hand: one said before the first frame, a warning whose text has a comma and
-    quotes, longer than a STATUSTEXT's 50 characters; times on estimates.csv's base (its first t_ns 1 s)."""
+def test_the_daemons_log_is_listed_at_its_frames(tmp_path):
+    """events.csv written by hand: a line logged before the first frame, a warning whose text has a comma and
+    quotes; times on estimates.csv's base (its first t_ns 1 s)."""
     folder = tmp_path / "flight"
     write_estimates(folder, ["ok"] * 60)
     with open(folder / "estimates.csv") as handle:
@@ -111,29 +111,29 @@ def test_messages_to_the_operator_are_listed_at_their_frames(tmp_path):
     shifted = [lines[0]] + [f"{i},{1_000_000_000 + round(i * 1e9 / 30)}" + line[line.index(",", line.index(",") + 1):]
                             for i, line in enumerate(lines[1:])]
     (folder / "estimates.csv").write_text("\n".join(shifted) + "\n")
-    text = 'companion: markers lost: reprojection, "A" and "5" both far from the map (see map check)'
+    text = 'markers lost: reprojection, "A" and "5" both far from the map (see map check)'
     with open(folder / "events.csv", "w", newline="") as handle:
         writer = csv.writer(handle)
-        writer.writerows([("frame", "t_ns", "severity", "text"), ("", "", "WARNING", "companion: no FC heard"),
-                          (45, 2_500_000_000, "WARNING", text), (50, 2_666_666_667, "INFO", "companion: re-acquired (reset 1)")])
+        writer.writerows([("frame", "t_ns", "level", "text"), ("", "", "WARNING", "link: no FC heard"),
+                          (45, 2_500_000_000, "WARNING", text), (50, 2_666_666_667, "INFO", "re-acquired (reset 1)")])
     log = read_flight(folder)
-    assert [(e.frame, e.severity, e.text) for e in log.events] == [
-        (None, "WARNING", "companion: no FC heard"), (45, "WARNING", text), (50, "INFO", "companion: re-acquired (reset 1)")]
+    assert [(e.frame, e.level, e.text) for e in log.events] == [
+        (None, "WARNING", "link: no FC heard"), (45, "WARNING", text), (50, "INFO", "re-acquired (reset 1)")]
     assert log.events[0].t_s is None and log.events[1].t_s == pytest.approx(1.5)
     run = report(str(folder))
     assert run.returncode == 0, run.stderr
     page = (folder / "report.html").read_text()
-    assert "<td>messages to the operator</td><td>3 (2 warnings or worse)</td>" in page
-    assert "<td>before the first frame</td><td></td><td>WARNING</td><td>companion: no FC heard</td>" in page
+    assert "<td>log lines</td><td>3 (2 warnings or errors)</td>" in page
+    assert "<td>before the first frame</td><td></td><td>WARNING</td><td>link: no FC heard</td>" in page
     assert "<td>1.50</td><td>45</td><td>WARNING</td><td>" + html.escape(text) + "</td>" in page
 
-    (folder / "events.csv").write_text("frame,t_ns,severity,text\n4.5,100,INFO,x\n")
+    (folder / "events.csv").write_text("frame,t_ns,level,text\n4.5,100,INFO,x\n")
     with pytest.raises(ReportError, match=r"events.csv: row 2, column frame: must be an integer or empty, got '4.5'"):
         read_flight(folder)
     (folder / "events.csv").unlink()   # a recording from before events.csv: said, not an error
     assert read_flight(folder).events is None
     assert report(str(folder)).returncode == 0
-    assert "<td>messages to the operator</td><td>not recorded (no events.csv)</td>" in (folder / "report.html").read_text()
+    assert "<td>log lines</td><td>not recorded (no events.csv)</td>" in (folder / "report.html").read_text()
 
 
 def test_a_folder_without_estimates_is_a_one_line_error(tmp_path):

@@ -9,8 +9,9 @@
     DIR/detections.csv   one row per decoded marker: symbol, path, corrections, corners
     DIR/attitude.csv     t_ns,roll_deg,pitch_deg  the flight controller's attitude (when there is one:
                          each sample from the link; a replay's at each frame), same time base
-    DIR/events.csv       frame,t_ns,severity,text  what the daemon told the operator (every STATUSTEXT,
-                         whole), at the newest pipeline frame when it was said (blank: before the first)
+    DIR/events.csv       frame,t_ns,level,text  the daemon's log while recording (INFO and above: every
+                         STATUSTEXT is among it, in its longer form), each line at the newest pipeline
+                         frame when it was logged (blank: before the first frame)
     DIR/groundtruth.csv  copied from a replayed sequence that has one (same frame numbers)
     DIR/map.yaml         a copy of the facility map
     DIR/sequence.yaml    camera, map (map.yaml), rate, counts, why the recording stopped
@@ -57,10 +58,10 @@ from companion.daemon.pipeline import FrameRecord
 from companion.files import write_whole
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
-from companion.mavlink.messages import severity_name
 from companion.types import AttitudeSample, Frame
 
-log = logging.getLogger("companion")
+LOGGER = "companion"   # the daemon's logger (every module's is it or a child of it)
+log = logging.getLogger(LOGGER)
 
 VIDEO_FILE = "video.avi"
 ESTIMATES_FILE = "estimates.csv"
@@ -92,7 +93,7 @@ ESTIMATE_COLUMNS = (
     "v_north_m_s", "v_east_m_s", "v_down_m_s", "tracking", "reset_counter",
     *COVARIANCE_COLUMNS,
 )
-EVENT_COLUMNS = ("frame", "t_ns", "severity", "text")
+EVENT_COLUMNS = ("frame", "t_ns", "level", "text")
 DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "quality",
                      "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y")
 
@@ -221,7 +222,8 @@ class Recorder:
     attitude_of_frames: record each frame's attitude (``FrameRecord.attitude``:
         a replay's, which has no stream of its own); otherwise the samples
         come through ``attitude`` (the link's, as they arrive).
-    What the daemon tells the operator comes through ``event`` (the link's ``on_statustext``).
+    The daemon's log lines (the ``companion`` logger, INFO and above) come through ``event`` while it
+    records (``LogToEvents``, attached from ``start`` to ``close``).
     """
 
     def __init__(self, params: RecordParams, camera: CameraModel, map_path: Path,
@@ -238,6 +240,7 @@ class Recorder:
         self._last_t_ns: int | None = None
         self._last_attitude_t_ns: int | None = None
         self._newest: tuple[int, int] | None = None   # (index, t_ns) of the newest pipeline frame queued
+        self._log_handler = LogToEvents(self)
         self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
         self._image_budget = threading.Semaphore(params.queue_frames)
         self._stopped = threading.Event()   # no more rows taken (limit reached, error, close)
@@ -330,13 +333,12 @@ class Recorder:
         except queue.Full:
             pass
 
-    def event(self, severity: int, text: str) -> None:
-        """Record one message to the operator (a STATUSTEXT, whole: the link sends 50 characters) at the
-        newest pipeline frame; never blocks (whichever thread said it calls this)."""
+    def event(self, level: str, text: str) -> None:
+        """Record one log line at the newest pipeline frame; never blocks (whichever thread logged it calls this)."""
         if self._stopped.is_set():
             return
         try:
-            self._rows.put_nowait(("event", None, (self._newest, severity, text)))
+            self._rows.put_nowait(("event", None, (self._newest, level, text)))
         except queue.Full:
             self.counters.dropped_rows += 1
 
@@ -347,11 +349,13 @@ class Recorder:
             log.warning("recording not started: %s; the daemon goes on without it", self.stop_reason)
             return
         self._thread.start()
+        logging.getLogger(LOGGER).addHandler(self._log_handler)
         log.info("recording to %s (%s, at most %.0f s or %.0f MB)", self.folder, self.params.codec,
                  self.params.max_duration_s, self.params.max_size_mb)
 
     def close(self) -> None:
         """Stop taking frames, write what is queued, close the files; idempotent."""
+        logging.getLogger(LOGGER).removeHandler(self._log_handler)
         self._stop("the daemon stopped")
         if self._refused:
             return
@@ -441,11 +445,11 @@ class Recorder:
         self._last_attitude_t_ns = sample.t_ns
         self._csv[ATTITUDE_FILE].writerow(attitude_row(sample, self._t0_ns))
 
-    def _write_event(self, newest: tuple[int, int] | None, severity: int, text: str) -> None:
-        """One events.csv row, on the frames' time base at the newest frame when it was said (blank before
+    def _write_event(self, newest: tuple[int, int] | None, level: str, text: str) -> None:
+        """One events.csv row, on the frames' time base at the newest frame when it was logged (blank before
         the first frame)."""
         frame, t_ns = ("", "") if newest is None or self._t0_ns is None else (newest[0], newest[1] - self._t0_ns)
-        self._csv[EVENTS_FILE].writerow((frame, t_ns, severity_name(severity), text))
+        self._csv[EVENTS_FILE].writerow((frame, t_ns, level, text))
 
     def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:
         if self._last_t_ns is not None and record.t_ns <= self._last_t_ns:
@@ -632,6 +636,20 @@ class Recorder:
             "stopped": self.stop_reason or "recording",
         }
         write_whole(self.folder / SEQUENCE_FILE, yaml.safe_dump(info, sort_keys=False))
+
+
+class LogToEvents(logging.Handler):
+    """The daemon's log lines, INFO and above, into a recording's events.csv (``Recorder.event``)."""
+
+    def __init__(self, recorder: Recorder):
+        super().__init__(logging.INFO)
+        self.recorder = recorder
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.recorder.event(record.levelname, record.getMessage())
+        except Exception:   # logging's own rule: a handler never raises into the code that logs
+            self.handleError(record)
 
 
 def recorded_times(timestamps: Path) -> np.ndarray:

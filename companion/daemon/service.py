@@ -169,11 +169,10 @@ class Daemon:
             recorder = Recorder(config.record, config.camera, Path(config.facility_map.path), groundtruth,
                                 source=describe_source(config),
                                 attitude_of_frames=self.attitude_stream is None and self.pipeline.attitude is not None)
-            # first: the frame an observer says something about is the newest the recording has (events.csv)
+            # first: the frame an observer logs something about is the newest the recording has (events.csv)
             self.pipeline.observers.insert(0, recorder)
             if self.attitude_stream is not None:   # the FC's samples as they arrive (link thread)
                 self.attitude_stream.on_sample = recorder.attitude
-            self.link.on_statustext = recorder.event   # what the operator is told, as it is said
         return recorder, live_view
 
     def _compare_replay_camera(self) -> None:

@@ -68,8 +68,6 @@ fault reaches the operator within ``statustext_interval_s`` whatever waits.
 Parameters: when a FC appears, the few parameters that decide whether it
 fuses vision (``companion.mavlink.fc_params``) are read with
 PARAM_REQUEST_READ; ``on_parameters(autopilot, values)`` gets them.
-``on_statustext(severity, text)`` gets every text as it is queued, whole
-(the flight recording's events.csv), on the thread that said it.
 
 Two daemons: our HEARTBEAT carries a token of this process (its start time)
 in ``custom_mode``. A HEARTBEAT with our system and component id and another
@@ -328,7 +326,6 @@ class MavlinkLink:
         self._statustext_sequence = itertools.count()
         # (wall time s, severity, text) of the latest STATUSTEXTs, for the live view
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
-        self.on_statustext: Callable[[int, str], None] | None = None   # each text as it is queued (never blocks)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
         self._told_unheard = False  # "no flight controller heard" said for this silence (_watch_fc_heard)
@@ -437,8 +434,6 @@ class MavlinkLink:
         for q in dropped:
             log.warning("link: STATUSTEXT queue full: %r not sent", q.text)
         self.statustext_history.append((time.time(), severity, text))
-        if self.on_statustext is not None:
-            self.on_statustext(severity, text)
 
     def set_critical(self, critical: bool) -> None:
         """HEARTBEAT system_status CRITICAL while ``critical`` (the daemon's health: camera stalled or lost)."""

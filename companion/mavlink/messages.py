@@ -239,12 +239,6 @@ def param_value(message, bytewise: bool) -> tuple[str, float]:
     return name, value
 
 
-def severity_name(severity: int) -> str:
-    """MAV_SEVERITY's name without its prefix: 4 -> "WARNING"; the number itself for one it does not define."""
-    entry = mavlink2.enums["MAV_SEVERITY"].get(severity)
-    return entry.name.removeprefix("MAV_SEVERITY_") if entry is not None else str(severity)
-
-
 def statustext(severity: int, text: str) -> Message:
     """STATUSTEXT (253), ASCII, cut to the 50 characters of one chunk."""
     data = text.encode("ascii", "replace")[:STATUSTEXT_MAX_CHARS]

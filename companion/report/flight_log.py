@@ -58,18 +58,18 @@ class MarkerCounts:
 
 @dataclass(frozen=True)
 class Event:
-    """A message the daemon gave the operator (events.csv): at the newest frame when it was said, t_s from the
-    first frame (frame and t_s None: said before the first frame); severity a MAV_SEVERITY name."""
+    """A line of the daemon's log while it recorded (events.csv): at the newest frame when it was logged, t_s
+    from the first frame (frame and t_s None: before the first frame); level a logging level's name."""
 
     frame: int | None
     t_s: float | None
-    severity: str
+    level: str
     text: str
 
     @property
     def is_warning(self) -> bool:
         """WARNING or worse."""
-        return self.severity in ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")
+        return self.level in ("WARNING", "ERROR", "CRITICAL")
 
 
 @dataclass
@@ -215,7 +215,7 @@ def marker_counts(path: Path) -> list[MarkerCounts]:
 
 def read_events(path: Path, t0_ns: int) -> list[Event]:
     """events.csv; its times on estimates.csv's base (``t0_ns``: that file's first time)."""
-    table = _Table(path, ("frame", "t_ns", "severity", "text"))
+    table = _Table(path, ("frame", "t_ns", "level", "text"))
     frames, t_ns = table.floats("frame"), table.floats("t_ns")
     for column, values in (("frame", frames), ("t_ns", t_ns)):
         bad = np.flatnonzero(np.isfinite(values) & (values != np.round(values)))
@@ -223,8 +223,8 @@ def read_events(path: Path, t0_ns: int) -> list[Event]:
             raise ReportError(f"{path}: row {bad[0] + 2}, column {column}: must be an integer or empty, "
                               f"got {table.rows[bad[0]].get(column)!r}")
     return [Event(int(f) if np.isfinite(f) else None, (t - t0_ns) * 1e-9 if np.isfinite(t) else None,
-                  severity, text)
-            for f, t, severity, text in zip(frames, t_ns, table.texts("severity"), table.texts("text"))]
+                  level, text)
+            for f, t, level, text in zip(frames, t_ns, table.texts("level"), table.texts("text"))]
 
 
 def _groundtruth(path: Path, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

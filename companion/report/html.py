@@ -2,8 +2,8 @@
 
 Sections (each plot a PNG embedded in the page, made with matplotlib):
 summary, track over the map, position and yaw against time, vision
-availability with every gap and its reason, what the operator was told
-(events.csv), capture -> send latency, markers (detections and corrections
+availability with every gap and its reason, the daemon's log while it
+recorded (events.csv), capture -> send latency, markers (detections and corrections
 per marker), and the error against ``groundtruth.csv`` when the folder has one.
 """
 from __future__ import annotations
@@ -46,7 +46,7 @@ def write_report(log: FlightLog, facility_map: FacilityMap | None, out: Path | N
         ("Track over the map", _image(track_figure(log, facility_map)) + _track_note(log, facility_map)),
         ("Position and yaw against time", _image(time_figure(log))),
         ("Vision availability", _image(availability_figure(log)) + gaps_table(log)),
-        ("Messages to the operator", events_table(log)),
+        ("Log while recording", events_table(log)),
         ("Capture → send latency", _image(latency_figure(log)) + stage_table(log)),
         ("Markers", (_image(markers_figure(log)) if log.markers else "") + markers_table(log)),
     ]
@@ -90,7 +90,7 @@ def summary_table(log: FlightLog, facility_map: FacilityMap | None) -> str:
         ("fresh vision fixes", f"{fixes} of {len(log.frame)} frames ({100 * fixes / len(log.frame):.0f} %)"),
         ("estimates sent", str(int(log.sent.sum()))),
         ("capture → send", f"median {_ms(log.latency_ms)}, p99 {_ms(log.latency_ms, 99)}"),
-        ("messages to the operator", _events_summary(log)),
+        ("log lines", _events_summary(log)),
         ("gaps in vision", f"{len(gaps)}, longest {max((g.duration_s for g in gaps), default=0):.2f} s"
                            f" ({max(gaps, key=lambda g: g.duration_s).reason})" if gaps else "none"),
     ]
@@ -116,18 +116,19 @@ def _events_summary(log: FlightLog) -> str:
     if log.events is None:
         return "not recorded (no events.csv)"
     warnings = sum(event.is_warning for event in log.events)
-    return f"{len(log.events)} ({warnings} warning{'' if warnings == 1 else 's'} or worse)"
+    return f"{len(log.events)} ({warnings} warning{'' if warnings == 1 else 's'} or error{'' if warnings == 1 else 's'})"
 
 
 def events_table(log: FlightLog) -> str:
     if log.events is None:
         return "<p class=note>This recording has no events.csv (recorded by a version before it was kept).</p>"
     if not log.events:
-        return "<p class=note>Nothing was said: no STATUSTEXT in the whole recording.</p>"
+        return "<p class=note>Nothing logged while recording.</p>"
     rows = [("before the first frame" if e.t_s is None else f"{e.t_s:.2f}", "" if e.frame is None else e.frame,
-             e.severity, e.text) for e in log.events]
-    return ("<p class=note>Every STATUSTEXT the daemon queued, whole (the flight controller gets 50 characters), "
-            "at the newest frame when it was said.</p>" + _rows(rows, ("s", "frame", "severity", "text")))
+             e.level, e.text) for e in log.events]
+    return ("<p class=note>Every line the daemon logged while it recorded (INFO and above; what the flight "
+            "controller was told as STATUSTEXT is among them), at the newest frame when it was logged.</p>"
+            + _rows(rows, ("s", "frame", "level", "text")))
 
 
 def stage_table(log: FlightLog) -> str:
@@ -249,7 +250,7 @@ def availability_figure(log: FlightLog):
     axes.set_xlim(log.t_s[0] - period, log.t_s[-1] + period)
     axes.grid(axis="x", alpha=0.3)
     axes.set_title("each frame's verdict (shaded: the gaps listed below"
-                   + ("; dashed: a warning to the operator, see Messages)" if warned else ")"), fontsize=9)
+                   + ("; dashed: a warning in the daemon's log)" if warned else ")"), fontsize=9)
     return figure
 
 
