@@ -347,6 +347,38 @@ def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):
     assert link.down_reason is None
 
 
+def test_vision_waits_to_listen_for_another_companion_on_the_first_connection_only(peers, links):
+    """duplicate_listen_s (3 s here) holds a newcomer's vision until it could have heard another companion.
+    A link that has sent vision and reconnects (the flight controller's TCP server restarted) sends at once:
+    it held every reconnection's vision for the window too, an outage longer by 1.5 s by default."""
+    port = free_port("tcp")
+    first = peers(port, "--tcp", name="first")
+    link = links(connection=f"tcp:127.0.0.1:{port}", heartbeat_interval_s=0.2, duplicate_listen_s=3.0,
+                 reconnect_initial_s=0.1, reconnect_max_s=0.4)
+
+    def wait_streaming(connects: int) -> None:
+        deadline = time.monotonic() + 10
+        while not (link.counters.connects >= connects and link.down_reason is None
+                   and link.state is LinkState.STREAMING) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert link.state is LinkState.STREAMING and link.counters.connects == connects
+
+    wait_streaming(1)
+    assert not link.publish(estimate(time.monotonic_ns()))   # listening: a newcomer sends nothing yet
+    deadline = time.monotonic() + 10
+    while not link.publish(estimate(time.monotonic_ns())) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    first.wait_for("VISION_POSITION_ESTIMATE")
+    first.stop()
+    deadline = time.monotonic() + 10
+    while link.counters.transport_errors == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    second = peers(port, "--tcp", name="second")
+    wait_streaming(2)
+    assert link.publish(estimate(time.monotonic_ns()))       # reopened: sent at once
+    second.wait_for("VISION_POSITION_ESTIMATE")
+
+
 def wait_for_log(caplog, pattern: str, after: int = 0, timeout_s: float = 15.0) -> tuple[int, re.Match]:
     """(index, match) of the first log record from ``after`` on whose message matches ``pattern``."""
     deadline = time.monotonic() + timeout_s

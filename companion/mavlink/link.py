@@ -74,7 +74,8 @@ in ``custom_mode``. A HEARTBEAT with our system and component id and another
 token is another companion on the same vehicle: the one started later
 refuses to stream (state DUPLICATE, ``duplicate`` says why), and vision is
 held for ``duplicate_listen_s`` after the connection opens so that it never
-sends before it could have heard the other.
+sends before it could have heard the other; only until the link has sent
+vision once (``_listening_for_another``).
 """
 from __future__ import annotations
 
@@ -317,6 +318,7 @@ class MavlinkLink:
         # This process's token in our HEARTBEAT: its start time in ms (mod 2^32), to tell another companion apart.
         self.instance = time.time_ns() // 1_000_000 & 0xFFFFFFFF
         self._critical = False
+        self._sent_vision = False   # a vision message went out on some connection of this link
         self._connection = None
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
@@ -392,7 +394,7 @@ class MavlinkLink:
     def publish(self, estimate: Estimate) -> bool:
         """Send the vision messages for one estimate now; False if held back."""
         if (self.state is not LinkState.STREAMING or self._connection is None or not self.stream
-                or time.monotonic() - self._connected_s < self.params.duplicate_listen_s):
+                or self._listening_for_another()):
             self.counters.held_back += 1
             return False
         min_interval_ns = max(MIN_VISION_SPACING_NS, 1e9 / self.params.max_rate_hz - RATE_JITTER_NS)
@@ -408,6 +410,7 @@ class MavlinkLink:
         if self.params.send_odometry:
             messages.append(mm.odometry(estimate))
         sent = all(self._send(message) for message in messages)
+        self._sent_vision = self._sent_vision or sent
         if sent and self._home_check_pending:
             # the FC can set home only once it has a position: from our first vision sample on
             self._home_check_pending = False
@@ -415,6 +418,13 @@ class MavlinkLink:
             self._home_set_requested = False
             self._home_check_started_s = time.monotonic()
         return sent
+
+    def _listening_for_another(self) -> bool:
+        """Whether vision is held to listen for another companion: for ``duplicate_listen_s`` after the connection
+        opens, until this link has sent vision once. A link that has sent does not wait again when it reopens:
+        that added the window to every outage (1.5 s more without vision), and a companion started while it was
+        down gives way as soon as it hears this one (the one started later refuses)."""
+        return not self._sent_vision and time.monotonic() - self._connected_s < self.params.duplicate_listen_s
 
     def statustext(self, text: str, severity: int = SEVERITY_INFO, topic: str | None = None) -> None:
         """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``, the most urgent first.
