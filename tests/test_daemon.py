@@ -616,6 +616,33 @@ def test_a_stall_is_told_within_a_second_though_a_silent_fc_left_its_parameters_
     assert stderr.count("flight controller parameter ") == 10, stderr
 
 
+def test_parameters_read_again_at_a_reconnection_are_not_told_again(tmp_path, peers):
+    """A TCP flight controller that answers no parameter read, restarted mid-flight: the link reads the
+    parameters at each connection; the same values are judged once (ten log lines, two STATUSTEXTs), not
+    again at every reconnection (seen in a recording's events.csv: the ten lines twice)."""
+    port = free_port("tcp")
+    first = peers(port, "--tcp")
+    config = write_config(tmp_path, HOVER, port, source={"loop": True},
+                          mavlink={"connection": f"tcp:127.0.0.1:{port}", "reconnect_initial_s": 0.1,
+                                   "reconnect_max_s": 0.4})
+    daemon = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config),
+                               "--log-level", "debug"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        first.wait_for("VISION_POSITION_ESTIMATE", count=45, timeout_s=30)   # 30 sent: the latency, then judged
+        first.stop()
+        second = peers(port, "--tcp")
+        second.wait_for("PARAM_REQUEST_READ", count=30, timeout_s=30)       # three rounds of ten: read again
+        second.wait_for("VISION_POSITION_ESTIMATE", count=len(second.records("VISION_POSITION_ESTIMATE")) + 15)
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(daemon)
+    assert code == 0, stderr
+    assert stderr.count("flight controller parameter VISO_TYPE = - blocks vision fusion") == 1, stderr
+    assert stderr.count("flight controller parameters read again, unchanged: not judged again") == 1, stderr
+    texts = [r["fields"]["text"] for peer in (first, second) for r in peer.records("STATUSTEXT")]
+    assert texts.count("companion: VISO_TYPE=? blocks vision") == 1, texts
+
+
 def test_frames_of_another_aspect_ratio_than_the_calibration_stop_the_daemon(tmp_path):
     """A 1280x720 calibration and 640x480 frames: no silent 'no pose', a clear error."""
     config = write_config(tmp_path, HOVER, free_port(),

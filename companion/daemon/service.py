@@ -150,6 +150,7 @@ class Daemon:
         self._resized_frames = 0
         self._sizes_said: set[tuple[int, int]] = set()
         self._fc_parameters: tuple[int, dict, float] | None = None  # (autopilot, values, when they came)
+        self._judged_parameters: tuple[int, dict] | None = None     # the last (autopilot, values) judged
         self._pipeline_alive_s = time.monotonic()
         self._pipeline_thread = threading.Thread(target=self._run_pipeline, name="pipeline", daemon=True)
         self.recorder, self.live_view = self._make_observers()
@@ -304,15 +305,21 @@ class Daemon:
 
     def _report_fc_parameters(self, now_s: float) -> None:
         """Judge the FC's parameters once the latency is measured (or after a while): log each one that
-        stops or degrades vision fusion, and tell them in a few STATUSTEXTs (fc_params.statustexts)."""
+        stops or degrades vision fusion, and tell them in a few STATUSTEXTs (fc_params.statustexts). The
+        same values read again (the link reads them at every reconnection) are not told again."""
         pending = self._fc_parameters
         if pending is None:
             return
         autopilot, values, arrived_s = pending
+        if (autopilot, values) == self._judged_parameters:
+            self._fc_parameters = None
+            log.debug("flight controller parameters read again, unchanged: not judged again")
+            return
         latencies = [r.latency_ns for r in list(self.pipeline.stats.records) if r.latency_ns is not None]
         if len(latencies) < SENT_FOR_LATENCY and now_s - arrived_s < PARAMETER_LATENCY_WAIT_S:
             return
         self._fc_parameters = None
+        self._judged_parameters = (autopilot, values)
         latency_ms = float(np.median(latencies)) / 1e6 if len(latencies) >= SENT_FOR_LATENCY else None
         mavlink = self.config.mavlink
         expected = fc_params.Expected(lever_arm_m=tuple(float(v) for v in self.config.camera.T_body_camera[:3, 3]),
