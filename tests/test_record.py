@@ -380,7 +380,7 @@ def test_the_daemons_log_is_recorded_at_the_newest_frame(tmp_path, caplog):
         recorder(Frame(np.zeros((480, 640), np.uint8), t_ns, index + 10),
                  FrameRecord(index + 10, t_ns, t_ns, (0, 0, 0, 0), False, None, (), None, None))
         if index == 1:
-            logging.getLogger("companion").error(long_text)
+            logging.getLogger("companion").error(long_text.replace(" (", "\n("))   # one row, one line
             logging.getLogger("companion").debug("not recorded")
             logging.getLogger("elsewhere").warning("not ours")
     recorder.close()

@@ -447,9 +447,9 @@ class Recorder:
 
     def _write_event(self, newest: tuple[int, int] | None, level: str, text: str) -> None:
         """One events.csv row, on the frames' time base at the newest frame when it was logged (blank before
-        the first frame)."""
+        the first frame); one line, as every table's row is (a cut at the last whole line keeps whole rows)."""
         frame, t_ns = ("", "") if newest is None or self._t0_ns is None else (newest[0], newest[1] - self._t0_ns)
-        self._csv[EVENTS_FILE].writerow((frame, t_ns, level, text))
+        self._csv[EVENTS_FILE].writerow((frame, t_ns, level, " ".join(text.splitlines())))
 
     def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:
         if self._last_t_ns is not None and record.t_ns <= self._last_t_ns:
