@@ -223,6 +223,35 @@ def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links)
     assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
 
 
+def test_a_flight_controller_back_from_a_silence_confirms_its_origin_in_the_first_round(peers, links):
+    """A FC silent for longer than fc_timeout_s and back, not restarted (a radio dropout; SIGSTOP here): vision is
+    held until it confirms the origin, and it has one, so it ignores a SET (ArduPilot) and answers the request
+    for it. The request goes with the first SET: vision resumed only at the second round, origin_retry_s (2 s
+    here) later, or after origin_wait_s for a FC that answers only a SET it takes."""
+    import signal
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_request")
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, fc_timeout_s=1.5, heartbeat_interval_s=0.2,
+                 origin_retry_s=2.0, origin_wait_s=20.0)
+    publisher = Publisher(link)
+    peer.wait_for("VISION_POSITION_ESTIMATE", count=5)
+    publisher.stop()
+    peer.process.send_signal(signal.SIGSTOP)
+    try:
+        deadline = time.monotonic() + 10
+        while link.state is not LinkState.HANDSHAKE and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert link.state is LinkState.HANDSHAKE   # vision held: the FC may be restarting
+        sets_while_silent = link.counters.sent["SET_GPS_GLOBAL_ORIGIN"]
+    finally:
+        peer.process.send_signal(signal.SIGCONT)
+    deadline = time.monotonic() + 15
+    while not link.publish(estimate(time.monotonic_ns())) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert link.state is LinkState.STREAMING and link.counters.origin_confirmed == 2
+    assert link.counters.sent["SET_GPS_GLOBAL_ORIGIN"] - sets_while_silent == 1
+
+
 def test_a_udp_flight_controller_killed_without_an_origin_is_said_unheard_once_and_vision_goes_on(
         peers, links, caplog):
     """No origin: nothing waits for the FC, vision streams from the start. The UDP peer is killed (no goodbye,

@@ -877,14 +877,16 @@ class MavlinkLink:
             self._last_ekf_request_s = now_s
 
     def _origin_step(self, now_s: float) -> None:
+        """SET_GPS_GLOBAL_ORIGIN and a request for the FC's origin, every ``origin_retry_s``: a FC that sets it
+        answers the first, one that has one already (back from a silence, not restarted) ignores the SET
+        (ArduPilot) and answers the request, from the first round on."""
         if now_s - self._last_origin_sent_s >= self.params.origin_retry_s:
             origin = self.params.origin
             self._send(mm.set_gps_global_origin(self.fc_system_id, origin.latitude_deg, origin.longitude_deg,
                                                 origin.altitude_m, time.monotonic_ns()))
+            self._send(mm.request_gps_global_origin(self.fc_system_id, self.fc_component_id))
             if self._origin_first_sent_s is None:
                 self._origin_first_sent_s = now_s
-            else:
-                self._send(mm.request_gps_global_origin(self.fc_system_id, self.fc_component_id))
             self._last_origin_sent_s = now_s
         if now_s - self._origin_first_sent_s > self.params.origin_wait_s:
             self._give_up(f"origin not confirmed after {self.params.origin_wait_s:.1f} s",
