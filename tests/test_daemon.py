@@ -569,16 +569,18 @@ def test_a_recording_keeps_the_daemons_log_at_the_frame_each_line_was_logged(tmp
     assert int(again[0]["frame"]) > 12
     # the track ended for the gap, and the loss says so (it said 'filter gating')
     assert [e["text"] for e in events if "markers lost" in e["text"]] == ["markers lost: no frame for 3.1 s"]
-    # on timestamps.csv's time base: frame 12's time, and the frame the return was said at
+    # on timestamps.csv's time base, at their own times: the stall within the 3 s without frames (it was put at
+    # frame 12's time), the return at or after the frame it was said at
     recorded_ns = {int(r["frame"]): int(r["t_ns"]) for r in read_rows(flight / "timestamps.csv")}
-    assert int(stalled[0]["t_ns"]) == recorded_ns[12] and int(again[0]["t_ns"]) == recorded_ns[int(again[0]["frame"])]
+    assert recorded_ns[12] + 0.4e9 < int(stalled[0]["t_ns"]) < recorded_ns[13]
+    assert int(again[0]["t_ns"]) >= recorded_ns[int(again[0]["frame"])]
 
     run = subprocess.run([sys.executable, "-m", "companion", "report", str(flight)], capture_output=True,
                          text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     page = (flight / "report.html").read_text()
     assert "<h2>Log while recording</h2>" in page
-    assert re.search(rf"<td>{float(stalled[0]['t_ns']) * 1e-9:.2f}</td><td>12</td><td>ERROR</td>"
+    assert re.search(rf"<td>{int(stalled[0]['t_ns']) * 1e-9:.2f}</td><td>12</td><td>ERROR</td>"
                      rf"<td>{re.escape(stalled[0]['text'])}</td>", page)
     warnings = sum(e["level"] in ("CRITICAL", "WARNING", "ERROR") for e in events)
     assert f"<td>log lines</td><td>{len(events)} ({warnings} warning" in page

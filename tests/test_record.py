@@ -363,8 +363,8 @@ def test_attitude_samples_are_recorded_on_the_frames_clock(tmp_path):
 def test_the_daemons_log_is_recorded_at_the_newest_frame(tmp_path, caplog):
     """events.csv (frame,t_ns,level,text): the daemon's log (the companion logger and its children, INFO and
     up) from start to close: a line logged before the first frame has neither; one after frame k carries k
-    and its time on the recording's base; commas and quotes kept; DEBUG, other loggers and what is logged
-    after close are not."""
+    and on the recording's time base k's time plus the time since k came; commas and quotes kept; DEBUG,
+    other loggers and what is logged after close are not."""
     import logging
     from companion.daemon.pipeline import FrameRecord
     from companion.types import Frame
@@ -387,8 +387,10 @@ def test_the_daemons_log_is_recorded_at_the_newest_frame(tmp_path, caplog):
     logging.getLogger("companion").warning("after the recording")
     rows = [tuple(r.values()) for r in read_rows(tmp_path / "flight" / "events.csv")]
     assert rows[0][:3] == ("", "", "INFO") and rows[0][3].startswith(f"recording to {tmp_path / 'flight'}")
-    assert rows[1:] == [("", "", "WARNING", "link: no flight controller heard for 3.0 s"),
-                        ("11", "50000000", "ERROR", long_text)]
+    assert rows[1] == ("", "", "WARNING", "link: no flight controller heard for 3.0 s")
+    # frame 11 (50 ms after the first), its time and the little time since it came
+    assert rows[2][0] == "11" and rows[2][2:] == ("ERROR", long_text) and 50_000_000 <= int(rows[2][1]) < 1_050_000_000
+    assert len(rows) == 3
 
 
 def test_a_disk_without_room_refuses_the_recording_at_the_start_and_vision_goes_on(tmp_path):

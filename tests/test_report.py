@@ -136,6 +136,25 @@ def test_the_daemons_log_is_listed_at_its_frames(tmp_path):
     assert "<td>log lines</td><td>not recorded (no events.csv)</td>" in (folder / "report.html").read_text()
 
 
+def test_a_gap_without_frames_is_said_as_such_not_by_its_few_frames_verdict(tmp_path):
+    """The camera delivered nothing for 3 s (a stall, a lost camera): the gap's two frames after it say
+    "filter gating" (the new fix waits to be confirmed), but the reason is the missing frames."""
+    verdicts = ["ok"] * 60
+    verdicts[30:32] = ["filter gating"] * 2
+    write_estimates(tmp_path / "flight", verdicts)
+    path = tmp_path / "flight" / "estimates.csv"
+    rows = list(csv.DictReader(open(path)))
+    for row in rows[30:]:
+        row["t_ns"] = int(row["t_ns"]) + 3_000_000_000
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, ESTIMATE_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    gaps = read_flight(tmp_path / "flight").gaps()
+    assert [(g.frames, g.reason, g.reasons) for g in gaps] == [(2, "no frames for 3.0 s", {"filter gating": 2})]
+    assert gaps[0].duration_s == pytest.approx(3 + 3 / 30)
+
+
 def test_a_folder_without_estimates_is_a_one_line_error(tmp_path):
     run = report(str(HOVER))
     assert run.returncode == 2 and run.stderr.count("\n") == 1

@@ -10,8 +10,9 @@
     DIR/attitude.csv     t_ns,roll_deg,pitch_deg  the flight controller's attitude (when there is one:
                          each sample from the link; a replay's at each frame), same time base
     DIR/events.csv       frame,t_ns,level,text  the daemon's log while recording (INFO and above: every
-                         STATUSTEXT is among it, in its longer form), each line at the newest pipeline
-                         frame when it was logged (blank: before the first frame)
+                         STATUSTEXT is among it, in its longer form): the newest pipeline frame when
+                         it was logged, and its time plus the time since that frame (blank: before
+                         the first frame)
     DIR/groundtruth.csv  copied from a replayed sequence that has one (same frame numbers)
     DIR/map.yaml         a copy of the facility map
     DIR/sequence.yaml    camera, map (map.yaml), rate, counts, why the recording stopped
@@ -239,7 +240,8 @@ class Recorder:
         self._t0_ns: int | None = None
         self._last_t_ns: int | None = None
         self._last_attitude_t_ns: int | None = None
-        self._newest: tuple[int, int] | None = None   # (index, t_ns) of the newest pipeline frame queued
+        # (index, t_ns, monotonic ns when it came) of the newest pipeline frame queued
+        self._newest: tuple[int, int, int] | None = None
         self._log_handler = LogToEvents(self)
         self._rows: queue.Queue = queue.Queue(maxsize=MAX_QUEUED_ROWS)
         self._image_budget = threading.Semaphore(params.queue_frames)
@@ -319,7 +321,8 @@ class Recorder:
             self.counters.dropped_rows += 1
             if image is not None:
                 self._image_budget.release()
-        self._newest = (record.index, record.t_ns)   # after its row: an event that names it is queued after it
+        # after its row: an event that names it is queued after it
+        self._newest = (record.index, record.t_ns, time.monotonic_ns())
         if self.attitude_of_frames and record.attitude is not None:
             self.attitude(AttitudeSample(record.t_ns, record.attitude.roll_rad, record.attitude.pitch_rad))
 
@@ -338,7 +341,7 @@ class Recorder:
         if self._stopped.is_set():
             return
         try:
-            self._rows.put_nowait(("event", None, (self._newest, level, text)))
+            self._rows.put_nowait(("event", None, (self._newest, time.monotonic_ns(), level, text)))
         except queue.Full:
             self.counters.dropped_rows += 1
 
@@ -445,10 +448,16 @@ class Recorder:
         self._last_attitude_t_ns = sample.t_ns
         self._csv[ATTITUDE_FILE].writerow(attitude_row(sample, self._t0_ns))
 
-    def _write_event(self, newest: tuple[int, int] | None, level: str, text: str) -> None:
-        """One events.csv row, on the frames' time base at the newest frame when it was logged (blank before
-        the first frame); one line, as every table's row is (a cut at the last whole line keeps whole rows)."""
-        frame, t_ns = ("", "") if newest is None or self._t0_ns is None else (newest[0], newest[1] - self._t0_ns)
+    def _write_event(self, newest: tuple[int, int, int] | None, logged_ns: int, level: str, text: str) -> None:
+        """One events.csv row: the newest frame when it was logged, and on the frames' time base that frame's
+        capture time plus the time since the frame came (a line logged while no frame comes, a stalled
+        camera, is at its own time, not at the last frame's); blank before the first frame. One line, as every
+        table's row is (a cut at the last whole line keeps whole rows)."""
+        if newest is None or self._t0_ns is None:
+            frame, t_ns = "", ""
+        else:
+            index, capture_ns, came_ns = newest
+            frame, t_ns = index, capture_ns - self._t0_ns + max(logged_ns - came_ns, 0)
         self._csv[EVENTS_FILE].writerow((frame, t_ns, level, " ".join(text.splitlines())))
 
     def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:

@@ -37,7 +37,7 @@ class Gap:
     start_s: float
     end_s: float
     frames: int
-    reason: str                    # the most frequent verdict of its frames
+    reason: str                    # the most frequent verdict of its frames, or the frames' own absence
     reasons: dict[str, int]        # every verdict (and pose status) in it, with its frame count
 
     @property
@@ -137,6 +137,10 @@ class FlightLog:
             detail[f"pose withheld: {status}"] = count
         if reason == "pose withheld" and withheld:
             reason = f"pose withheld ({withheld.most_common(1)[0][0]})"
+        # a camera that delivered nothing for most of the gap is why, not the verdict of its few frames
+        longest_s = float(np.diff(self.t_s[max(first - 1, 0):stop + 1]).max(initial=0.0))
+        if longest_s > (end_s - start_s) / 2:
+            reason = f"no frames for {longest_s:.1f} s"
         return Gap(start_s, end_s, stop - first, reason, detail)
 
     def errors_m(self, which: str = "estimated") -> np.ndarray:
