@@ -222,7 +222,7 @@ class ReplaySource(ThreadedSource):
     thread_name = "replay"
 
     def __init__(self, recording: Recording, realtime: bool = True, loop: bool = False,
-                 backoff_initial_s: float = 0.5, backoff_max_s: float = 8.0):
+                 backoff_initial_s: float = 0.5, backoff_max_s: float = 2.0):
         super().__init__()
         self.recording = recording
         self.realtime = realtime

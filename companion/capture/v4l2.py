@@ -30,7 +30,7 @@ class CaptureSource(ThreadedSource):
 
     def __init__(self, open_capture: Callable[[], cv2.VideoCapture], name: str,
                  stall_timeout_s: float = 2.0, backoff_initial_s: float = 0.5,
-                 backoff_max_s: float = 8.0, diagnose: Callable[[], str] | None = None):
+                 backoff_max_s: float = 2.0, diagnose: Callable[[], str] | None = None):
         super().__init__()
         self.name = name
         self._open_capture = open_capture
