@@ -396,8 +396,8 @@ def test_missing_v4l2_camera_is_retried_with_backoff_until_closed():
 def test_a_looping_replay_whose_files_vanish_is_paced_reported_once_and_retried(tmp_path, caplog):
     """The files of a looping real-time replay are deleted while it runs: the unreadable
     frames are paced at the recorded rate (not read in a tight loop), the log says so a
-    few times (not once per frame), the source reports itself lost, and frames put back
-    are played again."""
+    few times (not once per frame), the source reports itself lost with the files missing,
+    and frames put back are played again."""
     folder = write_sequence(tmp_path / "seq", 10)  # 10 frames at 50 fps: 0.2 s a loop
     source = replay_source(folder, realtime=True, loop=True)
     source.backoff_initial_s, source.backoff_max_s = 0.05, 0.2
@@ -416,7 +416,8 @@ def test_a_looping_replay_whose_files_vanish_is_paced_reported_once_and_retried(
     hidden.rename(folder / "frames")
     back = drain_until(source, 10, took=lambda f: f)
     source.close()
-    assert lost_reason is not None and "unreadable" in lost_reason
+    # the files are gone, which the reason says (it said "N frames in a row unreadable")
+    assert lost_reason is not None and lost_reason.endswith(f" missing ({folder / 'frames'})"), lost_reason
     # At 50 fps, 1.5 s and more of vanished files are at most a few hundred frames, not hundreds of thousands.
     assert 0 < corrupt_while_gone < 200, corrupt_while_gone
     assert len(records_while_gone) <= 4, [r.getMessage() for r in records_while_gone]

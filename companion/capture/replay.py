@@ -292,7 +292,7 @@ class ReplaySource(ThreadedSource):
                 if self._stop.is_set():
                     return
                 if image is None:
-                    self._skip_unreadable(where)
+                    self._skip_unreadable(where, rec.video if rec.files is None else Path(where))
                     continue
                 self._readable_again()
                 readable += 1
@@ -314,7 +314,10 @@ class ReplaySource(ThreadedSource):
             offset_ns += time.monotonic_ns() - waited_ns
             backoff_s = min(2 * backoff_s, self.backoff_max_s)
 
-    def _skip_unreadable(self, where) -> None:
+    def _skip_unreadable(self, where, path: Path) -> None:
+        """One frame skipped (``where``: the frame; ``path``: its file, the video or the image); after
+        ``LOST_AFTER_S`` of them in a row the replay is lost: its files gone (a disk removed or unmounted),
+        or unreadable (the reason short enough to be read in a STATUSTEXT's 50 characters)."""
         self.counters.corrupt += 1
         self._unreadable_run += 1
         if self.lost_reason is not None:
@@ -323,7 +326,8 @@ class ReplaySource(ThreadedSource):
         self._unreadable_log.log(logging.WARNING, "replay: %s is unreadable; skipped (%d so far)",
                                  where, self.counters.corrupt)
         if self._unreadable_run * self.recording.period_ns >= LOST_AFTER_S * 1e9:
-            self.lost_reason = f"{self._unreadable_run} frames in a row unreadable (the last: {where})"
+            self.lost_reason = (f"{path.name} missing ({path.parent})" if not path.exists() else
+                                f"{self._unreadable_run} unreadable frames (the last: {where})")
             log.warning("replay: nothing readable for %.1f s of recording (%s); retrying, with a pause "
                         "after each loop that reads nothing", LOST_AFTER_S, self.lost_reason)
 
