@@ -1114,6 +1114,22 @@ def test_a_stop_while_the_daemon_starts_ends_it_cleanly_with_a_log_line(tmp_path
     assert "running:" not in stderr  # stopped before it began
 
 
+def test_an_interrupt_while_the_daemon_starts_stops_it_though_it_came_ignored(tmp_path):
+    """`companion run &` in a script starts it with SIGINT ignored; once running it stops on SIGINT as ever, but
+    one while its modules imported was lost, and it ran on (10 minutes in a fault tour): now it stops."""
+    command = [sys.executable, "-m", "companion", "run", "--config",
+               str(write_config(tmp_path, HOVER, free_port(), source={"loop": True}))]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        wait_until_importing(process)
+        process.send_signal(signal.SIGINT)
+    finally:
+        code, _, stderr = finish(process)
+    assert code == 0, stderr
+    assert "SIGINT while starting: stopping" in stderr and "Traceback" not in stderr, stderr
+
+
 def test_a_hangup_while_the_daemon_starts_is_said_and_it_runs_on(tmp_path, peers):
     """SIGHUP while `companion run` imports its modules (the ssh session that started it dropped at once):
     said in the log and the daemon runs on, as later. Before, the default SIGHUP ended it: 129, not a word."""

@@ -63,21 +63,23 @@ def build_parser(command: str | None = None, module: ModuleType | None = None) -
 # `companion run` is a service: a stop (SIGTERM) or a hangup (SIGHUP) while its modules import (a second or more
 # on a small computer) and its config loads, before it has handlers of its own, would end it with 143 or 129 and
 # not a word. Meanwhile they are noted here (``start_signals``), and `run` handles them once it can log:
-# a stop ends it cleanly (exit 0), a hangup is said and changes nothing, as later.
+# a stop ends it cleanly (exit 0), a hangup is said and changes nothing, as later. So is SIGINT when it came
+# ignored (`companion run &` in a script): `run` stops on it once started, and it was lost before.
 START_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 start_signals: list[int] = []
 
 
 @contextlib.contextmanager
 def signals_noted_while_starting(command: str | None):
-    """For `companion run`: SIGTERM and SIGHUP noted in ``start_signals`` (not their default: the end of the
-    process) until `run` installs its own handlers; the previous handlers back afterwards (``cli.main`` called
+    """For `companion run`: SIGTERM and SIGHUP (and SIGINT if it came ignored) noted in ``start_signals`` (not
+    their default: the end of the process) until `run` installs its own handlers; the previous handlers back afterwards (``cli.main`` called
     in-process, by a test)."""
     previous = {}
     if command == "run":
+        noted = START_SIGNALS + ((signal.SIGINT,) if signal.getsignal(signal.SIGINT) is signal.SIG_IGN else ())
         try:
             previous = {sig: signal.signal(sig, lambda signum, _frame: start_signals.append(signum))
-                        for sig in START_SIGNALS}
+                        for sig in noted}
         except ValueError:  # not the main thread: signals are not ours to handle
             previous = {}
     try:
