@@ -390,7 +390,7 @@ def test_the_daemons_log_is_recorded_at_the_newest_frame(tmp_path, caplog):
     assert rows[1] == ("", "", "WARNING", "link: no flight controller heard for 3.0 s")
     # frame 11 (50 ms after the first), its time and the little time since it came
     assert rows[2][0] == "11" and rows[2][2:] == ("ERROR", long_text) and 50_000_000 <= int(rows[2][1]) < 1_050_000_000
-    assert len(rows) == 3
+    assert rows[3][0] == "12" and rows[3][2:] == ("INFO", "recording stopped: the daemon stopped") and len(rows) == 4
 
 
 def test_a_disk_without_room_refuses_the_recording_at_the_start_and_vision_goes_on(tmp_path):
@@ -645,8 +645,11 @@ def test_a_disk_filled_under_the_recording_leaves_a_whole_folder_that_says_why(t
     assert info["frames"] == len(rows) > 0, info
     assert info["stopped"].startswith(("disk nearly full", "write failed: No space left", "video write failed")), info
     assert f"recorded {len(rows)} frames (0 dropped) to {folder}: {info['stopped']}" in log, log
-    for table in ("timestamps.csv", "estimates.csv", "detections.csv"):
+    for table in ("timestamps.csv", "estimates.csv", "detections.csv", "events.csv"):
         assert (folder / table).read_bytes().endswith(b"\r\n"), table
+    # the last line of the recording's log says why it stopped (written in the room kept for the end)
+    last = read_rows(folder / "events.csv")[-1]
+    assert (last["level"], last["text"]) == ("WARNING", f"recording stopped: {info['stopped']}"), last
     assert not (folder / ".reserve").exists()
     (small_disk / "filler").unlink()
     again = replayed(folder, tmp_path)

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import csv
 import datetime
+import io
 import logging
 import math
 import os
@@ -102,6 +103,7 @@ DETECTION_COLUMNS = ("frame", "t_ns", "symbol", "id", "path", "corrected", "qual
 MAX_QUEUED_ROWS = 2000
 FLUSH_INTERVAL_S = 1.0
 FOLDER_GONE = "the folder was removed"
+DAEMON_STOPPED = "the daemon stopped"
 # Kept below a file size limit (RLIMIT_FSIZE): the frame about to be written and what the video writer
 # still holds (its buffer: 256 KiB for OpenCV's FFmpeg, 32 KiB for its MJPEG writer) are at most two of the
 # largest steps the video's size was seen to take, at least this; and the index written on closing.
@@ -359,7 +361,7 @@ class Recorder:
     def close(self) -> None:
         """Stop taking frames, write what is queued, close the files; idempotent."""
         logging.getLogger(LOGGER).removeHandler(self._log_handler)
-        self._stop("the daemon stopped")
+        self._stop(DAEMON_STOPPED)
         if self._refused:
             return
         if self._thread.is_alive():
@@ -418,7 +420,7 @@ class Recorder:
                       "(the daemon goes on)", self.folder, self.counters.frames)
 
     def _limit_reached(self) -> bool:
-        return self._stopped.is_set() and self.stop_reason != "the daemon stopped"
+        return self._stopped.is_set() and self.stop_reason != DAEMON_STOPPED
 
     def _write(self, kind: str, image: np.ndarray | None, payload) -> None:
         if kind == "attitude":
@@ -449,6 +451,9 @@ class Recorder:
         self._csv[ATTITUDE_FILE].writerow(attitude_row(sample, self._t0_ns))
 
     def _write_event(self, newest: tuple[int, int, int] | None, logged_ns: int, level: str, text: str) -> None:
+        self._csv[EVENTS_FILE].writerow(self._event_row(newest, logged_ns, level, text))
+
+    def _event_row(self, newest: tuple[int, int, int] | None, logged_ns: int, level: str, text: str) -> tuple:
         """One events.csv row: the newest frame when it was logged, and on the frames' time base that frame's
         capture time plus the time since the frame came (a line logged while no frame comes, a stalled
         camera, is at its own time, not at the last frame's); blank before the first frame. One line, as every
@@ -458,7 +463,22 @@ class Recorder:
         else:
             index, capture_ns, came_ns = newest
             frame, t_ns = index, capture_ns - self._t0_ns + max(logged_ns - came_ns, 0)
-        self._csv[EVENTS_FILE].writerow((frame, t_ns, level, " ".join(text.splitlines())))
+        return frame, t_ns, level, " ".join(text.splitlines())
+
+    def _append_stop_event(self) -> None:
+        """events.csv's last line, once the tables are whole: why the recording stopped (the log's own line
+        about it comes after it stopped taking lines); left out, whole, when the disk refuses it."""
+        path = self.folder / EVENTS_FILE
+        line = io.StringIO()
+        csv.writer(line).writerow(self._event_row(self._newest, time.monotonic_ns(),
+                                                  "INFO" if self.stop_reason == DAEMON_STOPPED else "WARNING",
+                                                  f"recording stopped: {self.stop_reason}"))
+        size = path.stat().st_size
+        try:
+            with open(path, "ab") as handle:
+                handle.write(line.getvalue().encode())
+        except OSError:
+            os.truncate(path, size)
 
     def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:
         if self._last_t_ns is not None and record.t_ns <= self._last_t_ns:
@@ -568,6 +588,7 @@ class Recorder:
             log.error("recording: the last rows of %s could not be written (%s)", ", ".join(unwritten), why)
         try:
             self._make_whole()
+            self._append_stop_event()
             if self.counters.frames == 0:
                 self._remove_files()
                 log.warning("recording: no frame recorded (%s); %s %s", self.stop_reason or "recording",
