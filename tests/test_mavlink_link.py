@@ -577,6 +577,27 @@ def test_serial_device_with_baud_rate_over_a_pseudo_terminal(links):
     assert all(thread.is_alive() for thread in link._threads)
 
 
+def test_a_write_to_a_vanished_serial_device_is_an_error_not_a_line_on_stdout(capsys):
+    """pymavlink's serial write printed "Device ... is dead" on stdout (the daemon's status line stream) and
+    returned -1, so the link saw the loss only on a later read: now it is pyserial's error, an OSError the
+    link handles as a lost transport."""
+    import os
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = MavlinkLink(LinkParams(connection=f"{os.ttyname(slave)},921600"))
+    connection = link._open_connection()
+    try:
+        os.close(master)   # the device goes away: writes to it fail (EIO)
+        os.close(slave)
+        with pytest.raises(OSError):
+            for _ in range(3):
+                connection.write(b"\xfd" * 64)
+    finally:
+        connection.close()
+    assert capsys.readouterr().out == ""
+
+
 def test_a_serial_port_another_link_holds_is_not_opened_and_says_why(links):
     """`companion check-fc` on the UART of a running service: two readers split the tty's bytes, and both saw
     a flight controller going silent and parameters not reported. The second opener now stays out, saying why;

@@ -494,6 +494,9 @@ class MavlinkLink:
         connection = mavutil.mavlink_connection(device, **kwargs)
         if baud is not None:
             _claim_serial_port(connection, device)
+            # pymavlink's serial write prints "Device ... is dead" on stdout (the status line's stream) and
+            # returns -1: let pyserial's error (an OSError) through, to be handled as a lost transport
+            connection.write = lambda buf, port=connection.port: port.write(bytes(buf))
         # pymavlink's TCP/serial classes only print on EOF; make it an error we handle.
         connection.handle_eof = connection.handle_disconnect = self._raise_transport_lost
         return connection
