@@ -223,12 +223,13 @@ def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links)
     assert link.counters.origin_confirmed == 2 and link.state is LinkState.STREAMING
 
 
-def test_a_flight_controller_back_from_a_silence_confirms_its_origin_in_the_first_round(peers, links):
+def test_a_flight_controller_back_from_a_silence_confirms_its_origin_in_the_first_round(peers, links, caplog):
     """A FC silent for longer than fc_timeout_s and back, not restarted (a radio dropout; SIGSTOP here): vision is
     held until it confirms the origin, and it has one, so it ignores a SET (ArduPilot) and answers the request
     for it. The request goes with the first SET: vision resumed only at the second round, origin_retry_s (2 s
     here) later, or after origin_wait_s for a FC that answers only a SET it takes."""
     import signal
+    caplog.set_level(logging.INFO, logger="companion.mavlink.link")
     port = free_port()
     peer = peers(port, "--origin-reply", "on_request")
     link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, fc_timeout_s=1.5, heartbeat_interval_s=0.2,
@@ -250,6 +251,8 @@ def test_a_flight_controller_back_from_a_silence_confirms_its_origin_in_the_firs
         time.sleep(0.02)
     assert link.state is LinkState.STREAMING and link.counters.origin_confirmed == 2
     assert link.counters.sent["SET_GPS_GLOBAL_ORIGIN"] - sets_while_silent == 1
+    said = [r.getMessage() for r in caplog.records]
+    assert sum("EKF is initialised" in text for text in said) == 2, said   # at the start, and once back
 
 
 def test_a_udp_flight_controller_killed_without_an_origin_is_said_unheard_once_and_vision_goes_on(

@@ -680,6 +680,10 @@ class MavlinkLink:
 
     def _on_ekf_status(self, message) -> None:
         self.ekf_flags, self._ekf_report_s = message.flags, time.monotonic()
+        # one that comes back from a silence may answer before its heartbeat says it is back, which starts
+        # the handshake over: the EKF is judged from then on (it was said twice)
+        if not self.fc_seen:
+            return
         if not self._ekf_ready and mm.ekf_ready(message.flags):
             self._ekf_ready = True
             if self.state is LinkState.HANDSHAKE:
