@@ -495,12 +495,13 @@ def test_a_tcp_connection_that_never_worked_does_not_reset_the_backoff(links, ca
     ("udpin:0.0.0.0:14551", ("udpin:0.0.0.0:14551", None)),
     ("/dev/ttyAMA0,921600", ("/dev/ttyAMA0", 921600)),
     ("/dev/ttyACM0", ("/dev/ttyACM0", 57600)),
+    ("/tmp/ttyFC,115200", ("/tmp/ttyFC", 115200)),   # a pty socat made outside /dev (it was refused)
 ])
 def test_connection_strings_as_users_write_them(text, expected):
     assert parse_connection(text) == expected
 
 
-@pytest.mark.parametrize("text", ["udpout:127.0.0.1", "tcp::5760", "udpout:host:99999", "serial0",
+@pytest.mark.parametrize("text", ["udpout:127.0.0.1", "tcp::5760", "udpout:host:99999", "serial0", "ttyUSB0,57600",
                                   "/dev/ttyAMA0,fast", ""])
 def test_bad_connection_strings_are_rejected_with_the_string(text):
     with pytest.raises(LinkError, match="connection"):

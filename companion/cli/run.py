@@ -107,5 +107,6 @@ def _on_hangup() -> None:
 
 
 def _on_signal(daemon: Daemon, signum: int) -> None:
-    log.info("%s: stopping", signal.Signals(signum).name)
+    if not daemon.stop_event.is_set():   # a second one while stopping says nothing new
+        log.info("%s: stopping", signal.Signals(signum).name)
     daemon.stop_event.set()

@@ -108,7 +108,7 @@ RATE_JITTER_NS = 2_000_000
 SEVERITY_INFO = mm.SEVERITY_INFO
 SEVERITY_WARNING = mm.SEVERITY_WARNING
 NETWORK_PREFIXES = ("udpout:", "udpin:", "udp:", "tcp:", "tcpin:")
-SERIAL_PREFIXES = ("/dev/", "COM")
+SERIAL_PREFIXES = ("/", "COM")   # any absolute path: /dev/ttyAMA0, a udev link, a pty made by socat anywhere
 PARAMETER_ATTEMPTS = 3  # PARAM_REQUEST_READ sent this many times before a parameter counts as absent
 STATUSTEXT_QUEUE = 16   # STATUSTEXTs waiting for their turn; the least urgent is dropped beyond
 ARDUPILOT = mm.mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -226,7 +226,7 @@ def parse_connection(text: str) -> tuple[str, int | None]:
 
     ``udpout:HOST:PORT``, ``udpin:HOST:PORT`` (``udp:`` is udpin),
     ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``, or a serial device with its baud
-    rate: ``/dev/ttyAMA0,921600`` (57600 when no rate is given).
+    rate: ``/dev/ttyAMA0,921600`` (57600 when no rate is given; any absolute path).
     """
     if not isinstance(text, str) or not text:
         raise LinkError.of("connection", f"must be a string such as udpout:127.0.0.1:14550, got {text!r}")
@@ -242,7 +242,8 @@ def parse_connection(text: str) -> tuple[str, int | None]:
             raise LinkError.of("connection", f"{text!r}: the baud rate after the comma must be a number")
         return device, int(baud) if baud else 57600
     raise LinkError.of("connection", f"{text!r}: want udpout:HOST:PORT, udpin:HOST:PORT, tcp:HOST:PORT, "
-                                     "tcpin:HOST:PORT or a serial device such as /dev/ttyAMA0,921600")
+                                     "tcpin:HOST:PORT or a serial device's absolute path such as "
+                                     "/dev/ttyAMA0,921600")
 
 
 @dataclass(frozen=True, order=True)
