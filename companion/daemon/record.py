@@ -473,12 +473,18 @@ class Recorder:
         csv.writer(line).writerow(self._event_row(self._newest, time.monotonic_ns(),
                                                   "INFO" if self.stop_reason == DAEMON_STOPPED else "WARNING",
                                                   f"recording stopped: {self.stop_reason}"))
-        size = path.stat().st_size
+        try:
+            size = path.stat().st_size
+        except OSError:
+            return
         try:
             with open(path, "ab") as handle:
                 handle.write(line.getvalue().encode())
         except OSError:
-            os.truncate(path, size)
+            try:
+                os.truncate(path, size)   # no part of a line left behind
+            except OSError:
+                pass
 
     def _write_image(self, image: np.ndarray, record: FrameRecord) -> None:
         if self._last_t_ns is not None and record.t_ns <= self._last_t_ns:
