@@ -557,7 +557,9 @@ def test_a_recording_keeps_the_daemons_log_at_the_frame_each_line_was_logged(tmp
     code, _, stderr = finish(start_daemon(write_config(tmp_path, sequence, port, record={"path": str(flight)})),
                              timeout_s=40)
     assert code == 0, stderr
-    received = [r["fields"]["text"].removeprefix("companion: ") for r in peer.records("STATUSTEXT")]
+    # all but the last words at the stop, which come after the recording closed
+    received = [r["fields"]["text"].removeprefix("companion: ") for r in peer.records("STATUSTEXT")
+                if r["fields"]["text"] != "companion: stopped, no more vision"]
     events = read_rows(flight / "events.csv")
     said = [e["text"] for e in events]
     assert said[0].startswith(f"recording to {flight}")
@@ -613,7 +615,7 @@ def test_a_stall_is_told_within_a_second_though_a_silent_fc_left_its_parameters_
     delay_s = (stalled[0] - log_time_ns(stderr, "camera stalled")) * 1e-9
     print(f"camera stalled: STATUSTEXT at the peer {delay_s:.3f} s after the daemon logged it")
     assert -0.01 < delay_s < 1.5, texts   # one statustext_interval_s at most, and the log's ms rounding
-    parameter_texts = [text for _, text in texts if "vision" in text or "params" in text]
+    parameter_texts = [text for _, text in texts if ("vision" in text or "params" in text) and "stopped" not in text]
     assert parameter_texts == ["companion: VISO_TYPE=? blocks vision", "companion: FC did not report 9 params"]
     assert stderr.count("flight controller parameter ") == 10, stderr
 
@@ -1116,6 +1118,28 @@ def test_a_stop_while_the_daemon_starts_ends_it_cleanly_with_a_log_line(tmp_path
     assert code == 0, stderr
     assert f"{stop.name} while starting: stopping" in stderr and "Traceback" not in stderr, stderr
     assert "running:" not in stderr  # stopped before it began
+
+
+def test_a_stopped_daemon_says_so_to_the_flight_controller_last(tmp_path, peers):
+    """SIGTERM (systemd's stop): after the last vision the flight controller hears a STATUSTEXT saying vision ends,
+    so that a ground station tells a stop from a crash (both fall silent); it said nothing."""
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    process = start_daemon(write_config(tmp_path, HOVER, port, source={"loop": True}))
+    try:
+        wait_while_running(process, lambda: len(peer.records("VISION_POSITION_ESTIMATE")) >= 10)
+    finally:
+        process.send_signal(signal.SIGTERM)
+        code, _, stderr = finish(process)
+    assert code == 0, stderr
+    deadline = time.monotonic() + 5   # the datagram may still be on its way when the daemon has exited
+    while not any(r["fields"]["text"] == "companion: stopped, no more vision" for r in peer.records("STATUSTEXT")):
+        assert time.monotonic() < deadline, [r["fields"]["text"] for r in peer.records("STATUSTEXT")]
+        time.sleep(0.05)
+    names = [r["name"] if r["name"] != "STATUSTEXT" else r["fields"]["text"] for r in peer.records()]
+    # after the last vision (a heartbeat may still follow it)
+    assert names.index("companion: stopped, no more vision") > max(
+        i for i, name in enumerate(names) if name == "VISION_POSITION_ESTIMATE")
 
 
 def test_a_hangup_while_the_daemon_starts_is_said_and_it_runs_on(tmp_path, peers):

@@ -234,7 +234,7 @@ class Daemon:
         for observer in (self.recorder, self.live_view):
             if observer is not None:
                 observer.close()
-        self.link.close()
+        self.link.close("companion: failed, no more vision" if self.failed else "companion: stopped, no more vision")
         self.notifier.close()
         self._print_summary()
 

@@ -361,7 +361,11 @@ class MavlinkLink:
         for thread in self._threads:
             thread.start()
 
-    def close(self) -> None:
+    def close(self, last_words: str | None = None) -> None:
+        """Stop the link's threads and close the connection; ``last_words``, a STATUSTEXT sent first if the
+        link streams (the daemon's "stopped": a ground station tells a stop from a crash, which falls silent)."""
+        if last_words is not None and self.stream and self.state is not LinkState.DUPLICATE:
+            self._send(mm.statustext(SEVERITY_WARNING, last_words))   # while the link's thread keeps it open
         self._stop.set()
         for thread in self._threads:
             if thread.is_alive():
