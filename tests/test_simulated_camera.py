@@ -25,6 +25,13 @@ ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 M_PER_DEG = 0.011131884502145034 * 1e7
 
 
+def wait_for_lost_reason(source, timeout_s: float) -> None:
+    """Until the source says why it is lost (or ``timeout_s``); the caller asserts the reason."""
+    deadline = time.monotonic() + timeout_s
+    while source.lost_reason is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
 def test_ned_from_geodetic_by_hand():
     # 1e-5 degree north: 1.1131884502 m; 1e-5 degree east at 60 degrees: half that (cos 60)
     ned = frames.ned_from_geodetic(60.00001, 10.00001, 100.0, 60.0, 10.0, 102.5)
@@ -356,9 +363,7 @@ def test_a_simulator_that_was_asked_for_sim_state_and_sends_none_is_named_as_the
     assert len(source.state_stream.requests_due(time.monotonic(), 1, 1)) == 1
     source.start()
     try:
-        deadline = time.monotonic() + 2.0
-        while source.lost_reason is None and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_for_lost_reason(source, 2.0)
         assert "no SIM_STATE from the simulator yet (is it ArduPilot SITL" in source.lost_reason
     finally:
         source.close()
@@ -373,9 +378,7 @@ def test_camera_renders_from_the_state_and_stalls_without_it():
     source.start()
     try:
         # no flight controller: said a heartbeat period (1 s) plus stall_timeout_s after the start
-        deadline = time.monotonic() + 3.0
-        while source.lost_reason is None and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_for_lost_reason(source, 3.0)
         assert "waiting for the flight controller" in (source.lost_reason or "")
         assert source.get(0.05) is None
         # a state stream at 100 Hz: frames come, stamped with a state's time plus the latency
@@ -479,9 +482,7 @@ def test_a_start_waiting_for_the_flight_controller_is_no_missing_sim_state(tmp_p
     link.subscribe(source.state_stream)
     source.start()
     try:
-        deadline = time.monotonic() + 10
-        while source.lost_reason is None and time.monotonic() < deadline:
-            time.sleep(0.02)
+        wait_for_lost_reason(source, 10)
         assert "waiting for the flight controller" in source.lost_reason
         link.start()
         reasons, frame = [], None

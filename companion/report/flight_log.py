@@ -220,12 +220,7 @@ def marker_counts(path: Path) -> list[MarkerCounts]:
 def read_events(path: Path, t0_ns: int) -> list[Event]:
     """events.csv; its times on estimates.csv's base (``t0_ns``: that file's first time)."""
     table = _Table(path, ("frame", "t_ns", "level", "text"))
-    frames, t_ns = table.floats("frame"), table.floats("t_ns")
-    for column, values in (("frame", frames), ("t_ns", t_ns)):
-        bad = np.flatnonzero(np.isfinite(values) & (values != np.round(values)))
-        if len(bad):
-            raise ReportError(f"{path}: row {bad[0] + 2}, column {column}: must be an integer or empty, "
-                              f"got {table.rows[bad[0]].get(column)!r}")
+    frames, t_ns = table.integers("frame", empty_ok=True), table.integers("t_ns", empty_ok=True)
     return [Event(int(f) if np.isfinite(f) else None, (t - t0_ns) * 1e-9 if np.isfinite(t) else None,
                   level, text)
             for f, t, level, text in zip(frames, t_ns, table.texts("level"), table.texts("text"))]
@@ -274,10 +269,12 @@ class _Table:
                 raise ReportError(f"{self.path}: row {i + 2}, column {column}: not a number: {text!r}") from None
         return values
 
-    def integers(self, column: str) -> np.ndarray:
+    def integers(self, column: str, empty_ok: bool = False) -> np.ndarray:
+        """int64; with ``empty_ok`` empty cells are allowed and the array is float, NaN there."""
         values = self.floats(column)
-        bad = np.flatnonzero(~np.isfinite(values) | (values != np.round(values)))
+        empty = np.isnan(values) & empty_ok
+        bad = np.flatnonzero(~empty & (~np.isfinite(values) | (values != np.round(values))))
         if len(bad):
-            raise ReportError(f"{self.path}: row {bad[0] + 2}, column {column}: must be an integer, "
-                              f"got {self.rows[bad[0]].get(column)!r}")
-        return values.astype(np.int64)
+            raise ReportError(f"{self.path}: row {bad[0] + 2}, column {column}: must be an integer"
+                              f"{' or empty' if empty_ok else ''}, got {self.rows[bad[0]].get(column)!r}")
+        return values if empty_ok else values.astype(np.int64)
