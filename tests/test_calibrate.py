@@ -184,8 +184,11 @@ def test_ctrl_c_on_a_recording_stops_and_writes_nothing(tmp_path, recordings, ki
     them, overwrote the camera file, saved the views and exited 0 without a word about it."""
     out, views = tmp_path / "good.yaml", tmp_path / "views"
     out.write_text("the camera file of an earlier calibration\n")
+    # Ctrl-C at a terminal reaches a foreground process, whose SIGINT is at its default; a test run started in the
+    # background of a script (`pytest &`) would pass it on ignored, and calibrate then rightly ignores it too
     process = subprocess.Popen([sys.executable, "-m", "companion", "calibrate", str(recordings[kind]), "--out", str(out),
-                                "--save-views", str(views)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                "--save-views", str(views)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     taken = 0
     for line in process.stdout:
         taken += ": view" in line
