@@ -605,7 +605,7 @@ def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
 
     from companion.daemon.map_watch import MapWatch, MapWatchParams
     from companion.daemon.pipeline import FrameRecord
-    from companion.geometry.pose import PoseSolution
+    from companion.geometry.pose import MarkerOffset, PoseSolution
 
     facility_map = load_map(MAP)
     ids = {symbol: facility_map.marker_by_symbol(symbol).id for symbol in ("UP", "O", "N")}
@@ -613,7 +613,8 @@ def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
 
     def frame(index: int, rejected: tuple[str, ...]):
         used = tuple(ids[s] for s in ids if s not in rejected)
-        solution = PoseSolution(None, "ok", marker_ids=used, rejected_ids=tuple(ids[s] for s in rejected))
+        solution = PoseSolution(None, "ok", marker_ids=used, rejected_ids=tuple(ids[s] for s in rejected),
+                                rejected_offsets=tuple(MarkerOffset(ids[s], 0.1, 1.0) for s in rejected))
         watch(None, FrameRecord(index, index, index, (0, 0, 0, 0), False, None, (), solution, None))
 
     with caplog.at_level(logging.WARNING, logger="companion"):
@@ -628,8 +629,10 @@ def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
 
 def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog):
     """Rendered frames of O, N and DOWN on the north wall, N moved 10 cm along the wall in the map: the pose
-    stage poses from O and DOWN (the renderer's pose to a few mm) and names N in rejected_ids; the daemon's
-    pipeline with its MapWatch reports N within the watch's window (30 frames, 20 left out)."""
+    stage poses from O and DOWN (the renderer's pose to a few mm) and names N in rejected_ids, 10 cm off; the
+    daemon's pipeline with its MapWatch reports N within the watch's window (30 frames, 20 left out), with how
+    far off, and the pose stage weighs N as that uncertain from then on: N seen alone then gives a pose whose
+    covariance covers its 10 cm error, where before the report it claimed millimetres."""
     import logging
     from dataclasses import replace
 
@@ -637,7 +640,7 @@ def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog)
     from companion.daemon.pipeline import Pipeline
     from companion.detect.detector import Detector, DetectorParams
     from companion.fusion import PoseFilter
-    from companion.geometry.pose import PoseParams, PoseSolver
+    from companion.geometry.pose import PoseParams, PoseSolver, position_sd_m
     from companion.types import Frame
 
     truth = load_map(MAP)
@@ -652,23 +655,39 @@ def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog)
     pipeline = Pipeline(detector, PoseSolver(moved, model, PoseParams()), PoseFilter(), None,
                         frames.invert_transform(truth.T_ned_map))
     params = MapWatchParams()
-    watch = MapWatch(moved, link=None, params=params)
+    watch = MapWatch(moved, link=None, params=params, on_disagreement=pipeline.solver.loosen)
     pipeline.observers.append(watch)
-    reported_at = None
+    as_mapped = PoseSolver(moved, model, PoseParams())  # never told
+    reported_at, alone = None, []
     with caplog.at_level(logging.WARNING, logger="companion"):
         for index in range(params.window):
             rendered = sim.render_frame(index, index * 125_000_000)
             record = pipeline.process(Frame(rendered.image, rendered.t_ns, index))
             assert sorted(d.symbol for d in record.detections) == ["DOWN", "N", "O"]
-            solution = record.solution
+            solution = record.solution  # N left out before the report and after it
             assert solution.status == "ok" and solution.rejected_ids == (n.id,)
             assert sorted(moved.markers[m].symbol for m in solution.marker_ids) == ["DOWN", "O"]
+            assert abs(solution.rejected_offsets[0].position_m - 0.10) < 0.01
+            assert solution.rejected_offsets[0].angle_deg < 1.0
             error_m = np.linalg.norm(solution.measurement.T_map_body[:3, 3] - rendered.T_map_body[:3, 3])
             assert error_m < 0.005
             if watch.reported and reported_at is None:
                 reported_at = index
+            alone.append(([d for d in record.detections if d.symbol == "N"], rendered))
+            with_o = [d for d in record.detections if d.symbol in ("N", "O")]
     assert watch.reported == [n.id] and reported_at == params.min_rejected - 1
-    assert sum("marker N disagrees with the map" in r.getMessage() for r in caplog.records) == 1
+    said = [r.getMessage() for r in caplog.records if "marker N disagrees with the map" in r.getMessage()]
+    assert len(said) == 1 and "disagrees with the map by 10.0 cm" in said[0], said
+    # beside a single other marker, N spoilt the frame (a tie the pose stage cannot break); now it is left out
+    assert as_mapped.solve_detailed(with_o, 200 * 1_000_000_000).measurement is None
+    beside_o = pipeline.solver.solve_detailed(with_o, 200 * 1_000_000_000)
+    assert (beside_o.status, beside_o.marker_ids, beside_o.rejected_ids) == ("ok", (truth.marker_by_symbol("O").id,), (n.id,))
+    for solver, covered in ((as_mapped, False), (pipeline.solver, True)):
+        for index, (seen, rendered) in enumerate(alone[:5]):
+            measurement = solver.solve(seen, (100 + index) * 1_000_000_000)  # no recent prior
+            error_m = np.linalg.norm(measurement.T_map_body[:3, 3] - rendered.T_map_body[:3, 3])
+            assert 0.05 < error_m < 0.15
+            assert (error_m <= 3 * position_sd_m(measurement)) == covered, (error_m, position_sd_m(measurement))
 
 
 # ------------------------------------------------------------------ the systematic floor

@@ -7,12 +7,23 @@ is noise; a marker left out in most of its recent frames has most likely been
 moved, re-hung or swapped since the map was made. Then the watch says, once
 per marker, "marker X disagrees with the map" in the log and by STATUSTEXT,
 and the operator can run ``companion map check`` (docs/survey.md).
+
+It also says how far off: the median, over the frames that left the marker
+out, of where its own corners put it (``PoseSolution.rejected_offsets``),
+and hands that to ``on_disagreement`` (the daemon's: ``PoseSolver.loosen``).
+From then on the pose stage weighs the marker as that uncertain: seen
+alone, a marker 10 cm off gives poses whose covariance says decimetres, for
+the filter and the autopilot to weigh, where before it gave a confident
+pose 10 cm wrong and, after the filter gave up its track, a reset onto it.
 """
 from __future__ import annotations
 
 import collections
 import logging
 from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
 
 from companion.geometry.facility_map import FacilityMap
 from companion.mavlink.link import SEVERITY_WARNING, MavlinkLink
@@ -33,9 +44,14 @@ class MapWatch:
     """Counts, per marker, the frames where the pose consistency gate left it out; says it once when it
     keeps happening. Runs on the pipeline thread: a few dictionary updates per frame."""
 
-    def __init__(self, facility_map: FacilityMap, link: MavlinkLink | None, params: MapWatchParams = MapWatchParams()):
+    def __init__(self, facility_map: FacilityMap, link: MavlinkLink | None, params: MapWatchParams = MapWatchParams(),
+                 on_disagreement: Callable[[int, float, float], None] | None = None):
+        """on_disagreement(marker id, position m, angle deg): called once per marker reported, with how far off
+        it was seen."""
         self.facility_map, self.link, self.params = facility_map, link, params
+        self.on_disagreement = on_disagreement
         self._judged: dict[int, collections.deque] = {}
+        self._offsets: dict[int, collections.deque] = {}  # (position m, angle deg) of the frames that left it out
         self.reported: list[int] = []
 
     def __call__(self, frame, record) -> None:
@@ -44,6 +60,9 @@ class MapWatch:
             return
         self._count(solution.marker_ids, False)
         self._count(solution.rejected_ids, True)
+        for offset in solution.rejected_offsets:
+            offsets = self._offsets.setdefault(offset.marker_id, collections.deque(maxlen=self.params.window))
+            offsets.append((offset.position_m, offset.angle_deg))
         for marker_id in solution.rejected_ids:
             if marker_id not in self.reported and sum(self._judged[marker_id]) >= self.params.min_rejected:
                 self._report(marker_id)
@@ -56,7 +75,17 @@ class MapWatch:
     def _report(self, marker_id: int) -> None:
         self.reported.append(marker_id)
         text = f"marker {self.facility_map.markers[marker_id].symbol} disagrees with the map"
-        log.warning("%s (left out by the pose consistency gate in %d of its last %d frames; "
-                    "run companion map check)", text, sum(self._judged[marker_id]), len(self._judged[marker_id]))
+        judged = self._judged[marker_id]
+        offsets = self._offsets.get(marker_id)
+        if not offsets:  # (a solution that named it without saying how far: weighed as before)
+            log.warning("%s (left out by the pose consistency gate in %d of its last %d frames; "
+                        "run companion map check)", text, sum(judged), len(judged))
+        else:
+            position_m, angle_deg = np.median(np.array(offsets), axis=0)
+            log.warning("%s by %.1f cm and %.1f deg (left out by the pose consistency gate in %d of its last %d "
+                        "frames): weighed as that uncertain from now on; run companion map check", text,
+                        100 * position_m, angle_deg, sum(judged), len(judged))
+            if self.on_disagreement is not None:
+                self.on_disagreement(marker_id, float(position_m), float(angle_deg))
         if self.link is not None:
             self.link.statustext(f"companion: {text}", SEVERITY_WARNING)

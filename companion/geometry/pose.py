@@ -364,6 +364,19 @@ class Fit:
 
 
 @dataclass(frozen=True)
+class MarkerOffset:
+    """How far a marker the consistency gate left out sits from its map entry: its own corners (the IPPE
+    branch nearest the accepted pose) seen from the pose the other markers agree on.
+
+    position_m: its centre's distance from the mapped one; angle_deg: its turn against the mapped orientation.
+    """
+
+    marker_id: int
+    position_m: float
+    angle_deg: float
+
+
+@dataclass(frozen=True)
 class PoseSolution:
     """Everything the solver decided for one frame.
 
@@ -375,8 +388,9 @@ class PoseSolution:
         ``used_prior``).
     used_attitude: the flight controller's roll and pitch were part of the fit.
     marker_ids: ids of the markers used; rejected_ids: mapped markers seen
-        but left out as inconsistent; unmapped_ids: detections not in the map
-        (or seen twice).
+        but left out as inconsistent; rejected_offsets: how far off its map
+        entry each of them was seen, in the same order; unmapped_ids:
+        detections not in the map (or seen twice).
     """
 
     measurement: PoseMeasurement | None
@@ -386,6 +400,7 @@ class PoseSolution:
     used_attitude: bool = False
     marker_ids: tuple[int, ...] = ()
     rejected_ids: tuple[int, ...] = ()
+    rejected_offsets: tuple[MarkerOffset, ...] = ()
     unmapped_ids: tuple[int, ...] = ()
     fits: tuple[Fit, ...] = field(default=(), repr=False)
 
@@ -420,8 +435,9 @@ class _Gravity:
 class PoseSolver:
     """Turns one frame's detections into the vehicle pose in the map and NED.
 
-    Holds one piece of state: the last accepted pose, used as the prior for
-    the next frames within ``params.prior_max_age_s``.
+    Holds two pieces of state: the last accepted pose, used as the prior for
+    the next frames within ``params.prior_max_age_s``; and the markers found
+    off their map entry (``loosen``).
     """
 
     def __init__(self, facility_map: FacilityMap, camera: CameraModel, params: PoseParams | None = None):
@@ -434,6 +450,7 @@ class PoseSolver:
         self._T_camera_body = camera.T_camera_body
         self._R_ned_map = facility_map.T_ned_map[:3, :3]
         self._map_var = self._map_variances()
+        self._loose: dict[int, np.ndarray] = {}  # marker id -> its variances once found off the map (``loosen``)
 
     def solve(self, detections: list[Detection], t_ns: int, prior_T_map_body: np.ndarray | None = None,
               attitude: AttitudeSample | None = None) -> PoseMeasurement | None:
@@ -452,25 +469,54 @@ class PoseSolver:
         observations, unmapped = self.observations(detections)
         if not observations:
             return PoseSolution(None, "no mapped markers", unmapped_ids=unmapped)
-        points = _Points.of(observations, self.params, self._map_var)
+        # markers found off their map entry (``loosen``) are posed on only when no other is seen, and then
+        # with their loosened variances: beside others they would add nothing but their error
+        trusted = [o for o in observations if o.marker.id not in self._loose]
+        solved = trusted or observations
+        points = _Points.of(solved, self.params, self._map_var if trusted else {**self._map_var, **self._loose})
         prior = self._prior(t_ns, prior_T_map_body)
         gravity = None if attitude is None else self._gravity(attitude)
-        fits, choice = self._solve(points, len(observations), prior, gravity)
+        fits, choice = self._solve(points, len(solved), prior, gravity)
         if gravity is not None and choice.status != "ok":
-            fits, choice = self._solve(points, len(observations), prior, None)
+            fits, choice = self._solve(points, len(solved), prior, None)
         used = choice.fit.inliers if choice.fit is not None else ()
-        common = dict(ambiguous=choice.ambiguous, marker_ids=tuple(observations[i].marker.id for i in used),
+        common = dict(ambiguous=choice.ambiguous, marker_ids=tuple(solved[i].marker.id for i in used),
                       unmapped_ids=unmapped, fits=tuple(fits))
         if choice.status != "ok":
             return PoseSolution(None, choice.status, **common)
         with_attitude = choice.fit.with_attitude
-        measurement = self._measurement(choice.fit, points.of_markers(np.array(used)), observations, t_ns,
+        measurement = self._measurement(choice.fit, points.of_markers(np.array(used)), solved, t_ns,
                                         gravity if with_attitude else None,
                                         unambiguous=not (choice.ambiguous or choice.used_prior))
         self._last = (t_ns, measurement.T_map_body)
-        rejected = tuple(o.marker.id for i, o in enumerate(observations) if i not in used)
+        rejected = [o for o in observations if o.marker.id not in common["marker_ids"]]
         return PoseSolution(measurement, "ok", used_prior=choice.used_prior, used_attitude=with_attitude,
-                            rejected_ids=rejected, **common)
+                            rejected_ids=tuple(o.marker.id for o in rejected),
+                            rejected_offsets=tuple(self._offset(o, choice.fit.T_camera_map) for o in rejected),
+                            **common)
+
+    def loosen(self, marker_id: int, sd_m: float, sd_deg: float) -> None:
+        """Marker ``marker_id`` was found about ``sd_m`` and ``sd_deg`` off its map entry (the daemon's
+        ``MapWatch``): from now on it is left out beside other markers, and posed on alone with its map
+        variances raised to these (never lowered), so that its pose comes with a covariance that covers the
+        error, not a few millimetres'."""
+        loosened = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
+        self._loose[marker_id] = np.maximum(self._loose.get(marker_id, self._map_var[marker_id]), loosened)
+
+    def _offset(self, observation: MarkerObservation, T_camera_map: np.ndarray) -> MarkerOffset:
+        """Where an observed marker's own corners put it, seen from the accepted ``T_camera_map``, against its
+        map entry."""
+        marker = observation.marker
+        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker.corners_marker(), observation.points_px[:4].reshape(4, 1, 2),
+                                                     self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        # of its two IPPE poses T_camera_marker, the one turned least from where the map and the pose put it
+        mapped = T_camera_map @ marker.T_map_marker
+        T_camera_marker = min((_transform(cv2.Rodrigues(rvecs[i])[0], tvecs[i]) for i in range(count)),
+                              key=lambda T: frames.rotation_angle_rad(T[:3, :3], mapped[:3, :3]))
+        # T_map_marker as seen = T_map_camera T_camera_marker
+        T_seen = frames.invert_transform(T_camera_map) @ T_camera_marker
+        return MarkerOffset(marker.id, float(np.linalg.norm(T_seen[:3, 3] - marker.T_map_marker[:3, 3])),
+                            math.degrees(frames.rotation_angle_rad(T_seen[:3, :3], marker.T_map_marker[:3, :3])))
 
     def _solve(self, points: _Points, observed: int, prior: np.ndarray | None,
                gravity: _Gravity | None) -> tuple[list[Fit], _Choice]:
