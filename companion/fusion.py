@@ -26,6 +26,10 @@ Losing and re-acquiring the markers:
   If the re-acquired pose is more than ``reset_distance_m`` or
   ``reset_yaw_rad`` away from the last estimate returned, ``reset_counter``
   is incremented so the flight controller snaps to it instead of dragging.
+
+When coasting runs out, ``PoseFilter.loss`` says why at that frame
+(``TrackLoss``): a gap in the frames longer than ``max_coast_s`` (a stalled
+camera), or poses that stopped coming or passing the gate.
 """
 from __future__ import annotations
 
@@ -104,6 +108,21 @@ class FusionParams:
         if not (isinstance(self.confirm_frames, int) and not isinstance(self.confirm_frames, bool)
                 and self.confirm_frames >= 1):
             raise FusionError(f"fusion parameter confirm_frames must be an integer >= 1, got {self.confirm_frames!r}")
+
+
+@dataclass(frozen=True)
+class TrackLoss:
+    """Why the filter gave up its track at a frame.
+
+    without_fix_s: time since its last fix, past ``max_coast_s``.
+    frame_gap_s: how much of it came before this frame with no frame at all.
+    no_frames: that gap alone was longer than ``max_coast_s`` (the frames stopped); else the poses stopped
+        coming or passing the gate.
+    """
+
+    without_fix_s: float
+    frame_gap_s: float
+    no_frames: bool
 
 
 @dataclass
@@ -253,13 +272,17 @@ class PoseFilter:
         self._candidate: _Track | None = None
         self._candidate_count = 0
         self._last_t_ns: int | None = None
+        self._frame_gap_s = 0.0   # between the last two frames' capture times
         self._last_sent: Estimate | None = None
+        self.loss: TrackLoss | None = None  # the track's loss at the last step (None: not lost there)
 
     def step(self, t_ns: int, measurement: PoseMeasurement | None) -> Estimate | None:
         """Advance to capture time ``t_ns`` with this frame's pose (or None)."""
+        self.loss = None
         if self._last_t_ns is not None and t_ns <= self._last_t_ns:
             self.counters.out_of_order += 1
             return None
+        self._frame_gap_s = 0.0 if self._last_t_ns is None else (t_ns - self._last_t_ns) * 1e-9
         self._last_t_ns = t_ns
         if self.state is TrackState.ACQUIRING:
             estimate = self._acquire(measurement)
@@ -274,7 +297,7 @@ class PoseFilter:
         # Stale before this frame's pose is weighed: after a gap in the frames the prediction's covariance has
         # grown enough to pass any jump, which would then reach the autopilot with no reset.
         if self._is_stale(track, t_ns):
-            return self._lose_track(measurement)
+            return self._lose_track(t_ns, measurement)
         track.predict_to(t_ns)
         if measurement is not None:
             innovation = track.innovation(measurement)
@@ -285,13 +308,15 @@ class PoseFilter:
                 return track.estimate(self.reset_counter, tracking=True)
             self.counters.rejected += 1
         if self._is_stale(track, t_ns):
-            return self._lose_track(measurement)
+            return self._lose_track(t_ns, measurement)
         self.counters.coasted += 1
         self.state = TrackState.COASTING
         return track.estimate(self.reset_counter, tracking=False)
 
-    def _lose_track(self, measurement: PoseMeasurement | None) -> Estimate | None:
+    def _lose_track(self, t_ns: int, measurement: PoseMeasurement | None) -> Estimate | None:
         """No fix for ``max_coast_s``: acquire again, starting with this frame's pose (if any)."""
+        self.loss = TrackLoss((t_ns - self._track.t_last_fix_ns) * 1e-9, self._frame_gap_s,
+                              no_frames=self._frame_gap_s > self.params.max_coast_s)
         self.counters.lost += 1
         self.state = TrackState.ACQUIRING
         self._track = None

@@ -130,12 +130,17 @@ def test_coasting_is_bounded_then_nothing_is_sent():
     pf = PoseFilter(params)
     times = np.arange(0, 2, 1 / 30)
     last = run(pf, times, straight_line)[-1]
-    coast = []
+    coast, losses = [], []
     t = times[-1]
     for _ in range(12):  # 0.4 s without markers
         t += 1 / 30
         coast.append(pf.step(int(t * 1e9), None))
+        losses.append(pf.loss)
     sent = [e for e in coast if e is not None]
+    # said once, at the frame that ended the track: frames kept coming, the poses stopped
+    lost_at = [i for i, loss in enumerate(losses) if loss is not None]
+    assert lost_at == [len(sent)] and not losses[len(sent)].no_frames
+    assert 0.2 < losses[len(sent)].without_fix_s < 0.25 and losses[len(sent)].frame_gap_s == pytest.approx(1 / 30)
     assert 5 <= len(sent) <= 6 and all(e is not None for e in coast[:5])
     assert all(e is None for e in coast[7:])
     assert pf.state is TrackState.ACQUIRING and pf.counters.lost == 1
@@ -170,7 +175,10 @@ def test_a_jump_after_a_gap_in_the_frames_is_a_reacquisition_with_a_reset():
     last = run(pf, np.arange(0, 2, 1 / 30), still)[-1]
     assert last.tracking and last.reset_counter == 0
     moved = np.array([8.9, -0.2, -1.5])
-    after_gap = [pf.step(int(t * 1e9), measurement(t, moved, 0.3)) for t in (4.0, 4.033, 4.066)]
+    after_gap = [pf.step(int(4.0 * 1e9), measurement(4.0, moved, 0.3))]
+    assert pf.loss.no_frames and pf.loss.frame_gap_s == pytest.approx(2.033, abs=0.01)  # the gap ended the track
+    after_gap += [pf.step(int(t * 1e9), measurement(t, moved, 0.3)) for t in (4.033, 4.066)]
+    assert pf.loss is None
     assert pf.counters.lost == 1 and after_gap[0] is None   # lost, then acquired again on its own poses
     assert after_gap[-1].reset_counter == 1 and np.linalg.norm(after_gap[-1].position_ned_m - moved) < 0.05
     # a gap in place: acquired again, no reset

@@ -9,6 +9,7 @@ import pytest
 from companion.daemon.health import Health
 from companion.daemon.pipeline import FrameRecord
 from companion.daemon.status import DaemonStatus
+from companion.fusion import TrackLoss
 from companion.geometry.pose import PoseSolution
 from companion.mavlink import fc_params
 from companion.types import Detection, Estimate
@@ -35,14 +36,15 @@ def estimate(t_ns: int, tracking: bool = True, reset_counter: int = 0) -> Estima
 
 
 def record(t_ns: int, markers: int = 2, status: str | None = "ok", tracking: bool | None = True,
-           reset_counter: int = 0) -> FrameRecord:
+           reset_counter: int = 0, track_loss: TrackLoss | None = None) -> FrameRecord:
     solution = None
     if markers:
         measurement = object() if status == "ok" else None
         solution = PoseSolution(measurement, status)
     est = None if tracking is None else estimate(t_ns, tracking, reset_counter)
     return FrameRecord(index=0, t_ns=t_ns, done_ns=t_ns, stage_ns=(0, 0, 0, 0), sent=False, latency_ns=None,
-                       detections=tuple(detection() for _ in range(markers)), solution=solution, estimate=est)
+                       detections=tuple(detection() for _ in range(markers)), solution=solution, estimate=est,
+                       track_loss=track_loss)
 
 
 @pytest.fixture
@@ -187,16 +189,16 @@ def test_markers_lost_to_the_filter_gate_says_so(health):
 
 def test_markers_lost_after_a_gap_in_the_frames_says_the_gap_not_the_gate(health):
     """Frames stop for 3 s (a stalled camera) and the first pose after the gap waits to be confirmed as a new
-    fix: the track ended for the gap (longer than the filter's max_coast_s), which 'filter gating' misnamed
-    (a recorded stall said 'markers lost: filter gating'); a gap shorter than max_coast_s ends no track."""
+    fix: the filter says the gap ended its track, which 'filter gating' misnamed (a recorded stall said
+    'markers lost: filter gating'); a track the filter says ended with frames coming is the gate's."""
     monitor, clock, said = health
     play(monitor, clock, 10)
     clock.now_ns += 3_000_000_000
-    play(monitor, clock, 1, tracking=None)      # a pose, not yet a fix
+    play(monitor, clock, 1, tracking=None, track_loss=TrackLoss(3.07, 3.07, no_frames=True))  # a pose, not yet a fix
     assert said[-1] == ("markers lost: no frame for 3.1 s", 4)
     play(monitor, clock, 3, tracking=True)
-    clock.now_ns += 100_000_000                 # 0.17 s between captures: within max_coast_s (0.25 s)
-    play(monitor, clock, 1, tracking=None)
+    clock.now_ns += 100_000_000
+    play(monitor, clock, 1, tracking=None, track_loss=TrackLoss(0.26, 0.17, no_frames=False))
     assert said[-1] == ("markers lost: filter gating", 4)
     assert len("companion: markers lost: no frame for 999.9 s") <= 50
 

@@ -101,23 +101,19 @@ class Health:
 
     def __init__(self, emit: Emit, no_markers_after_s: float = 0.5, no_pose_after_s: float = 2.0,
                  clock_ns: Callable[[], int] = time.monotonic_ns, attitude_expected: bool = False,
-                 first_frame_within_s: float = STALL_MAX_S, track_ends_after_s: float = 0.25):
+                 first_frame_within_s: float = STALL_MAX_S):
         """first_frame_within_s: how long the first frame may take before it is a stall (a simulated camera
-        waits for the flight controller's first heartbeat, up to a second, before it can ask for a state).
-        track_ends_after_s: the filter's ``max_coast_s``: a longer gap between two frames' capture times ends
-        its track, which is then why the markers were lost."""
+        waits for the flight controller's first heartbeat, up to a second, before it can ask for a state)."""
         self._emit = emit
         self.no_markers_after_s = no_markers_after_s
         self.no_pose_after_s = no_pose_after_s
         self.first_frame_within_s = first_frame_within_s
-        self.track_ends_after_s = track_ends_after_s
         self._clock_ns = clock_ns
         self._lock = threading.Lock()
         self._started_ns = clock_ns()
         self._last_frame_ns: int | None = None        # when the newest frame was processed
         self._last_capture_ns: int | None = None      # its capture time
         self._periods_ns: collections.deque = collections.deque(maxlen=30)
-        self._gap_before_s = 0.0   # between the newest frame's capture and the one before it
         self._last_markers_ns: int | None = None
         self._markers_without_pose_ns: int | None = None  # first frame with markers since the last pose
         self._pose_statuses: collections.Counter = collections.Counter()  # since the last pose the filter took
@@ -137,7 +133,6 @@ class Health:
         with self._lock:
             if self._last_capture_ns is not None and record.t_ns > self._last_capture_ns:
                 self._periods_ns.append(record.t_ns - self._last_capture_ns)
-            self._gap_before_s = 0.0 if self._last_capture_ns is None else (record.t_ns - self._last_capture_ns) * 1e-9
             self._last_capture_ns = record.t_ns
             self._last_frame_ns = now_ns
             if record.markers:
@@ -180,13 +175,12 @@ class Health:
     def _lost_text(self, record: FrameRecord) -> str:
         """'markers lost', with the commonest reason since the filter last took a pose when markers are still in
         view: the pose stage's status, or 'filter gating' (a wrong camera or map loses the track with markers in
-        sight; short enough for one STATUSTEXT); after a gap in the frames that ended the track, the gap (the
-        first pose after it waits to be confirmed: not the gate's doing)."""
+        sight; short enough for one STATUSTEXT); when the filter says a gap in the frames ended its track, the
+        gap (the first pose after it waits to be confirmed: not the gate's doing)."""
         with self._lock:
             statuses = self._pose_statuses.most_common(1)
-            gap_s = self._gap_before_s
-        if gap_s > self.track_ends_after_s:
-            return f"markers lost: no frame for {gap_s:.1f} s"
+        if record.track_loss is not None and record.track_loss.no_frames:
+            return f"markers lost: no frame for {record.track_loss.frame_gap_s:.1f} s"
         if not record.markers or not statuses:
             return "markers lost"
         return f"markers lost: {statuses[0][0]}"

@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from companion.fusion import PoseFilter
+from companion.fusion import PoseFilter, TrackLoss
 from companion.geometry import frames
 from companion.geometry.attitude import AttitudeLookup
 from companion.geometry.pose import PoseSolution
@@ -45,6 +45,7 @@ class FrameRecord:
         (a replay faster than real time).
     attitude: the flight controller's roll and pitch at the capture time
         (None: no attitude source, or it was stale or missing).
+    track_loss: why the filter gave up its track at this frame (None: it did not).
     """
 
     index: int
@@ -57,6 +58,7 @@ class FrameRecord:
     solution: PoseSolution | None
     estimate: Estimate | None
     attitude: AttitudeSample | None = None
+    track_loss: TrackLoss | None = None
 
     @property
     def markers(self) -> int:
@@ -142,7 +144,7 @@ class Pipeline:
         done_ns = time.monotonic_ns()
         latency_ns = done_ns - frame.t_ns if sent and done_ns >= frame.t_ns else None
         record = FrameRecord(frame.index, frame.t_ns, done_ns, (t1 - t0, t2 - t1, t3 - t2, t4 - t3), sent, latency_ns,
-                             tuple(detections), solution, estimate, attitude)
+                             tuple(detections), solution, estimate, attitude, self.pose_filter.loss)
         self.stats.add(record)
         for observer in self.observers:
             observer(frame, record)

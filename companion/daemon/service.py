@@ -134,8 +134,7 @@ class Daemon:
         )
         self.pipeline.stats.records = collections.deque(maxlen=record_frames)
         self.health = Health(self._say, attitude_expected=attitude is not None,
-                             first_frame_within_s=first_frame_within_s(config),
-                             track_ends_after_s=config.fusion.max_coast_s)
+                             first_frame_within_s=first_frame_within_s(config))
         self.pipeline.observers.append(self.health.observe)
         # a marker the pose stage keeps leaving out is said once (docs/survey.md), and weighed from then on as
         # uncertain as it was seen to be off (the pipeline's solver: the one for the frames' size)
