@@ -6,6 +6,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -168,6 +169,29 @@ def test_two_disagreeing_markers_give_no_pose():
     solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
     assert solution.measurement is None
     assert solution.status == "inconsistent markers"
+
+
+def test_two_markers_that_pull_one_joint_fit_apart_are_said_to_disagree():
+    """The shipped aisle flight's frame 130 shows markers 2 and 32; with 32 hanging 10 cm off its map entry
+    (the daemon's default map sd) the two are gathered into one fit that neither agrees with, and each alone
+    fits: the frame was said as a bad reprojection ('markers lost: reprojection' pointed at the camera), it is
+    two markers that disagree."""
+    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
+    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
+    video = cv2.VideoCapture(str(sequence / "video.avi"))
+    video.set(cv2.CAP_PROP_POS_FRAMES, 130)
+    ok, image = video.read()
+    assert ok
+    detections = Detector(DetectorParams(parity=FACILITY.parity, dictionary=FACILITY.dictionary),
+                          camera=camera).detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    assert sorted(d.id for d in detections) == [2, 32]
+    assert PoseSolver(FACILITY, camera).solve_detailed(detections, t_ns=0).status == "ok"
+    marker = FACILITY.markers[32]
+    T_moved = marker.T_map_marker.copy()
+    T_moved[:3, 3] += 0.10 * T_moved[:3, 0]
+    moved_map = replace(FACILITY, markers={**FACILITY.markers, 32: replace(marker, T_map_marker=T_moved)})
+    solution = PoseSolver(moved_map, camera).solve_detailed(detections, t_ns=0)
+    assert solution.measurement is None and solution.status == "inconsistent markers"
 
 
 def test_distorted_corners_fail_reprojection():

@@ -622,12 +622,12 @@ class PoseSolver:
 
     def _hypothesis_fits(self, points: _Points, gravity: _Gravity | None) -> list[Fit]:
         """Refined fits from every marker's IPPE poses and from all markers at once, duplicates removed."""
-        starts = [T for m in range(len(points.counts)) for T in self._ippe_poses(points, m, gravity)]
+        starts = [(T, m) for m in range(len(points.counts)) for T in self._ippe_poses(points, m, gravity)]
         if len(points.counts) > 1:
-            starts.append(self._all_markers_pose(points))
+            starts.append((self._all_markers_pose(points), None))
         fits: list[Fit] = []
-        for T_camera_map in starts:
-            fit = self._grow_and_refine(T_camera_map, points, gravity)
+        for T_camera_map, seed in starts:
+            fit = self._grow_and_refine(T_camera_map, points, gravity, seed)
             if fit is not None and not self._same_pose_as_any(fit, fits):
                 fits.append(fit)
         return fits
@@ -667,11 +667,26 @@ class PoseSolver:
         limit = min(costs) + self.params.ambiguity_chi2
         return [T for T, c in zip(poses, costs) if c <= limit]
 
-    def _grow_and_refine(self, T_camera_map: np.ndarray, points: _Points, gravity: _Gravity | None) -> Fit | None:
-        """Refine a hypothesis on the markers it explains; None if it explains none."""
+    def _grow_and_refine(self, T_camera_map: np.ndarray, points: _Points, gravity: _Gravity | None,
+                         seed: int | None = None) -> Fit | None:
+        """Refine a hypothesis on the markers it explains; None if it explains none.
+
+        seed: the marker the hypothesis came from (its IPPE pose), if one did: when the markers gathered
+        pull each other so far that none agrees with their joint fit (two that disagree: too few to leave
+        one out), the hypothesis is refined on the seed alone, so that such a frame is said to have
+        inconsistent markers, not a bad reprojection."""
         errors = self.camera.project_from(T_camera_map, points.map) - points.px
         sse_m = np.add.reduceat(np.sum(errors ** 2, axis=1), points.starts)
         members = np.flatnonzero(sse_m < points.counts * self.params.hypothesis_gate_px ** 2)
+        fit = self._refined(T_camera_map, points, gravity, members)
+        if fit is None and seed is not None and not np.array_equal(members, [seed]):
+            fit = self._refined(T_camera_map, points, gravity, np.array([seed]))
+        return fit
+
+    def _refined(self, T_camera_map: np.ndarray, points: _Points, gravity: _Gravity | None,
+                 members: np.ndarray) -> Fit | None:
+        """The fit refined on ``members`` (indices), then on the markers that agree with it, up to three
+        times; None if none agrees."""
         # the weights at the start: the map error's share changes little while the pose is refined
         weights, solving = self._weights_tested_and_solved(T_camera_map, points)
         for _ in range(3):
