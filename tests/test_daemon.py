@@ -3,6 +3,7 @@ independent MAVLink peer (libmav, its own process) on loopback."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import datetime
 import json
 import math
@@ -22,7 +23,7 @@ import numpy as np
 import pytest
 import yaml
 
-from companion.geometry.facility_map import load_map
+from companion.geometry.facility_map import load_map, write_map
 from companion.capture.replay import open_recording
 from mavlink_peer import PeerProcess, free_port
 
@@ -1174,3 +1175,40 @@ def test_a_replay_as_fast_as_possible_is_filtered_as_in_real_time(tmp_path):
     last = [line for line in stdout.splitlines() if " fps | " in line][-1]
     assert "| tracking |" in last and "rejected 0 resets 0" in last, last
     assert float(last.split()[0]) > 0, last
+
+
+def test_a_marker_moved_since_the_map_was_made_is_said_with_how_far_and_weighed_by_it(tmp_path, peers):
+    """A rendered 2 s hover before the north wall (O, N and DOWN in view), replayed on a map where N hangs
+    10 cm off where it is: the daemon says once, in its log with how far off and to the flight controller
+    by STATUSTEXT, that N disagrees with the map, hands the offset to the pose stage (which from then on
+    leaves N out beside the others) and streams on, tracking, to the end of the replay."""
+    camera = tmp_path / "camera.yaml"
+    camera.write_text(yaml.safe_dump({"width": 640, "height": 480, "hfov_deg": 70.0,
+                                      "mount": {"facing": "forward", "tilt_down_deg": 0.0}}))
+    wall = tmp_path / "wall"
+    subprocess.run([sys.executable, "-m", "companion", "simulate", str(wall), "--map", str(MAP), "--camera",
+                    str(camera), "--pattern", "hover", "--center", "9.5,8.0,1.3", "--heading", "90", "--duration",
+                    "2", "--fps", "15", "--no-progress"], check=True, capture_output=True)
+    truth = load_map(MAP)
+    marker = truth.marker_by_symbol("N")
+    T_moved = marker.T_map_marker.copy()
+    T_moved[:3, 3] += 0.10 * T_moved[:3, 0]  # along the wall
+    moved = tmp_path / "moved.yaml"
+    write_map(dataclasses.replace(truth, markers={**truth.markers, marker.id: dataclasses.replace(
+        marker, T_map_marker=T_moved)}), moved)
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    config = write_config(tmp_path, wall, port)
+    config.write_text(yaml.safe_dump({**yaml.safe_load(config.read_text()), "map": str(moved)}))
+    code, stdout, stderr = finish(start_daemon(config), timeout_s=60)
+    assert code == 0, stderr
+    said = [line for line in stderr.splitlines() if "disagrees with the map" in line]
+    assert len(said) == 1 and "marker N disagrees with the map by " in said[0], stderr
+    offset_cm = float(said[0].split(" by ")[1].split(" cm")[0])
+    assert 9.0 < offset_cm < 11.0, said
+    assert "markers lost" not in stderr
+    told_ns = [r["t_ns"] for r in peer.records("STATUSTEXT")
+               if r["fields"]["text"] == "companion: marker N disagrees with the map"]
+    assert len(told_ns) == 1
+    # the frames after it were posed without N: vision went on
+    assert sum(r["t_ns"] > told_ns[0] for r in peer.records("VISION_POSITION_ESTIMATE")) >= 5
