@@ -11,10 +11,10 @@ and the operator can run ``companion map check`` (docs/survey.md).
 It also says how far off: the median, over the frames that left the marker
 out, of where its own corners put it (``PoseSolution.rejected_offsets``),
 and hands that to ``on_disagreement`` (the daemon's: ``PoseSolver.loosen``).
-From then on the pose stage weighs the marker as that uncertain: seen
-alone, a marker 10 cm off gives poses whose covariance says decimetres, for
-the filter and the autopilot to weigh, where before it gave a confident
-pose 10 cm wrong and, after the filter gave up its track, a reset onto it.
+From then on the pose stage leaves the marker out beside others and, seen
+alone, weighs it as that uncertain: a marker 10 cm off gives poses whose
+sd says 10 cm, for the filter and the autopilot to weigh, where before they
+said 2.4 cm (docs/survey.md, "The daemon's watch").
 """
 from __future__ import annotations
 
