@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from companion.capture.replay import open_recording, replay_source
-from companion.capture.source import LatestFrame, SourceError
+from companion.capture.source import Backoff, LatestFrame, SourceError
 from companion.capture.v4l2 import CaptureSource, v4l2_source
 from companion.types import Frame
 
@@ -468,3 +468,13 @@ def test_v4l2_cannot_open_names_the_group_that_may_read_the_device():
     finally:
         shutil.rmtree(folder)
     assert "permission" in problem and f"group {group}" in problem, problem
+
+
+def test_backoff_doubles_to_its_cap_and_starts_over_after_a_success():
+    """The camera's and the replay's waits between attempts (one schedule for both): doubling to its cap, so
+    that a camera lost for long is retried every 2 s (the sources' default cap), and from the start again
+    once it delivered."""
+    backoff = Backoff(0.5, 2.0)
+    assert [backoff.next_s() for _ in range(5)] == [0.5, 1.0, 2.0, 2.0, 2.0]
+    backoff.reset()
+    assert backoff.next_s() == 0.5

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from companion.capture.attitude_csv import AttitudeFileError, sequence_attitude
-from companion.capture.source import LogThrottle, SourceError, ThreadedSource, to_gray
+from companion.capture.source import Backoff, LogThrottle, SourceError, ThreadedSource, to_gray
 from companion.geometry.attitude import DEFAULT_MAX_AGE_S, AttitudeLookup, history_of
 from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, Frame
@@ -281,7 +281,7 @@ class ReplaySource(ThreadedSource):
         offset_ns = self.clock_offset_ns
         frames_per_loop = int(rec.frames[-1]) + 1
         loop_count = 0
-        backoff_s = self.backoff_initial_s
+        backoff = Backoff(self.backoff_initial_s, self.backoff_max_s)
         while not self._stop.is_set():
             readable = 0
             for image, number, recorded_t_ns, where in self._images():
@@ -305,14 +305,13 @@ class ReplaySource(ThreadedSource):
             offset_ns += loop_length_ns
             loop_count += 1
             if readable:
-                backoff_s = self.backoff_initial_s
+                backoff.reset()
                 continue
             # Nothing readable in a whole loop: wait before the next try, keeping time rising.
             waited_ns = time.monotonic_ns()
-            if self._stop.wait(backoff_s):
+            if self._stop.wait(backoff.next_s()):
                 return
             offset_ns += time.monotonic_ns() - waited_ns
-            backoff_s = min(2 * backoff_s, self.backoff_max_s)
 
     def _skip_unreadable(self, where, path: Path) -> None:
         """One frame skipped (``where``: the frame; ``path``: its file, the video or the image); after

@@ -12,12 +12,15 @@ monotonic clock:
 * real-time replay: the frame's recorded time shifted onto the monotonic
   clock (``t_ns = start_ns + t_recorded``); the frame is handed over at that
   moment, exactly as a camera would;
-* as-fast-as-possible replay: the moment the frame was read and decoded (the
-  replay waits for the pipeline instead of dropping frames). Time is
-  compressed, so this mode is for throughput, not for a flight controller.
+* as-fast-as-possible replay: its recorded time shifted the same way, so the
+  filter sees the flight's own motion (the replay waits for the pipeline
+  instead of dropping frames, and runs ahead of the clock). The messages go
+  out faster than the flight, so this mode is for throughput, not for a
+  flight controller.
 
 Unreadable frames are skipped and counted; a camera that vanishes or stalls
-is released and reopened with exponential backoff while the daemon runs on.
+is released and reopened with exponential backoff (:class:`Backoff`) while
+the daemon runs on.
 A source that cannot deliver says why in ``lost_reason`` (None while it
 delivers), which the daemon's health report shows; its log messages are
 throttled (:class:`LogThrottle`) so that a fault that repeats every frame
@@ -138,6 +141,24 @@ class LogThrottle:
             message += f" ({self._held_back} similar message(s) in the last {now_s - self._last_s:.0f} s)"
         self.logger.log(level, message, *args)
         self._last_s, self._held_back = now_s, 0
+
+
+class Backoff:
+    """The waits between attempts at what keeps failing (opening a camera, reading a replay): ``initial_s``,
+    doubling up to ``max_s`` (a camera plugged back after a long outage is retried within ``max_s``);
+    ``reset`` once it worked."""
+
+    def __init__(self, initial_s: float, max_s: float):
+        self.initial_s, self.max_s = initial_s, max_s
+        self.wait_s = initial_s
+
+    def next_s(self) -> float:
+        """The wait before the next attempt (the one after it is twice as long, up to ``max_s``)."""
+        wait_s, self.wait_s = self.wait_s, min(2 * self.wait_s, self.max_s)
+        return wait_s
+
+    def reset(self) -> None:
+        self.wait_s = self.initial_s
 
 
 class ThreadedSource:

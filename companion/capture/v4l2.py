@@ -12,7 +12,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from companion.capture.source import ThreadedSource, to_gray
+from companion.capture.source import Backoff, ThreadedSource, to_gray
 from companion.types import Frame
 
 log = logging.getLogger(__name__)
@@ -45,7 +45,7 @@ class CaptureSource(ThreadedSource):
         self._said: str | None = None  # the loss last logged, until a frame comes
 
     def _run(self) -> None:
-        backoff_s = self.backoff_initial_s
+        backoff = Backoff(self.backoff_initial_s, self.backoff_max_s)
         index = 0
         first_attempt = True
         while not self._stop.is_set():
@@ -55,9 +55,9 @@ class CaptureSource(ThreadedSource):
             capture = self._open_capture()
             if not capture.isOpened():
                 capture.release()
-                self._cannot_open(backoff_s)
-                self._stop.wait(backoff_s)
-                backoff_s = min(2 * backoff_s, self.backoff_max_s)
+                wait_s = backoff.next_s()
+                self._cannot_open(wait_s)
+                self._stop.wait(wait_s)
                 continue
             log.log(logging.INFO if self.lost_reason is None else logging.DEBUG, "camera %s: opened", self.name)
             if self.lost_reason is not None:  # still lost until a frame comes (the health says no more)
@@ -69,11 +69,11 @@ class CaptureSource(ThreadedSource):
                 capture.release()
                 self.connected.clear()
             if delivered:
-                backoff_s = self.backoff_initial_s
+                backoff.reset()
             if not self._stop.is_set():
-                self._lost(f"camera {self.name}: {why}", "reopening", backoff_s)
-                self._stop.wait(backoff_s)
-                backoff_s = min(2 * backoff_s, self.backoff_max_s)
+                wait_s = backoff.next_s()
+                self._lost(f"camera {self.name}: {why}", "reopening", wait_s)
+                self._stop.wait(wait_s)
 
     def _cannot_open(self, backoff_s: float) -> None:
         self._lost(f"camera {self.name}: cannot open: {self._diagnose()}", "retrying", backoff_s)
