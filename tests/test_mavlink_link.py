@@ -354,6 +354,9 @@ def test_a_flight_controller_that_streams_no_boot_time_is_asked_for_one_and_its_
     assert asked[0] - connected_ns >= BOOT_TIME_REQUEST_RETRY_S * 1e9 * 0.9
     assert any(t > rebooted_ns for t in asked)
     assert_vision_after_the_origin_again(peer, rebooted_ns)
+    told = [r["t_ns"] for r in peer.records("STATUSTEXT")
+            if r["fields"]["text"] == "companion: FC restarted, sending the origin again"]
+    assert len(told) == 1 and told[0] > rebooted_ns
 
 
 def test_tcp_link_reconnects_after_the_peer_goes_away(peers, links):

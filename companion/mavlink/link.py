@@ -647,6 +647,8 @@ class MavlinkLink:
         if restarted(self._fc_boot_ms, int(boot_ms)):
             log.warning("link: the flight controller restarted (its time_boot_ms went back from %.1f to %.1f s); "
                         "the origin again before any vision", self._fc_boot_ms / 1000, boot_ms / 1000)
+            # the ground station sees the vehicle's vision pause: this says why
+            self.statustext("companion: FC restarted, sending the origin again", SEVERITY_WARNING)
             self._start_over()
         self._fc_boot_ms = int(boot_ms)
 
