@@ -124,8 +124,9 @@ def test_the_daemons_log_is_listed_at_its_frames(tmp_path):
     assert run.returncode == 0, run.stderr
     page = (folder / "report.html").read_text()
     assert "<td>log lines</td><td>3 (2 warnings or errors)</td>" in page
-    assert "<td>before the first frame</td><td></td><td>WARNING</td><td>link: no FC heard</td>" in page
-    assert "<td>1.50</td><td>45</td><td>WARNING</td><td>" + html.escape(text) + "</td>" in page
+    assert "<tr class=warning><td>before the first frame</td><td></td><td>WARNING</td><td>link: no FC heard</td>" in page
+    assert "<tr class=warning><td>1.50</td><td>45</td><td>WARNING</td><td>" + html.escape(text) + "</td>" in page
+    assert "<tr><td>1.67</td><td>50</td><td>INFO</td><td>re-acquired (reset 1)</td>" in page  # the rest plain
 
     (folder / "events.csv").write_text("frame,t_ns,level,text\n4.5,100,INFO,x\n")
     with pytest.raises(ReportError, match=r"events.csv: row 2, column frame: must be an integer or empty, got '4.5'"):

@@ -35,6 +35,7 @@ h1 { font-size: 22px; } h2 { font-size: 17px; margin-top: 32px; border-bottom: 1
 table { border-collapse: collapse; margin: 8px 0; } td, th { padding: 3px 10px; border-bottom: 1px solid #e4e7eb;
 text-align: left; font-variant-numeric: tabular-nums; } th { background: #f3f5f7; }
 img { max-width: 100%; } .note { color: #5b6570; }
+tr.warning td { background: #fff4d6; } tr.error td { background: #fde2e1; }
 """
 
 
@@ -62,9 +63,12 @@ def write_report(log: FlightLog, facility_map: FacilityMap | None, out: Path | N
 
 # ------------------------------------------------------------------- tables
 
-def _rows(rows, header=None) -> str:
+def _rows(rows, header=None, classes=None) -> str:
+    """A table; ``classes``: a CSS class per row ('' for none)."""
     head = "<tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr>" if header else ""
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
+    classes = classes or [""] * len(rows)
+    body = "".join((f"<tr class={kind}>" if kind else "<tr>") + "".join(f"<td>{html.escape(str(c))}</td>" for c in row)
+                   + "</tr>" for row, kind in zip(rows, classes))
     return f"<table>{head}{body}</table>"
 
 
@@ -128,7 +132,12 @@ def events_table(log: FlightLog) -> str:
              e.level, e.text) for e in log.events]
     return ("<p class=note>Every line the daemon logged while it recorded (INFO and above; what the flight "
             "controller was told as STATUSTEXT is among them), at the newest frame when it was logged.</p>"
-            + _rows(rows, ("s", "frame", "level", "text")))
+            + _rows(rows, ("s", "frame", "level", "text"), [_level_class(e.level) for e in log.events]))
+
+
+def _level_class(level: str) -> str:
+    """The row's colour in the log table: warnings in amber, errors in red, the rest plain."""
+    return {"WARNING": "warning", "ERROR": "error", "CRITICAL": "error"}.get(level, "")
 
 
 def stage_table(log: FlightLog) -> str:
