@@ -163,6 +163,23 @@ def test_one_moved_marker_among_several_is_left_out():
     assert position_error_m(solution.measurement, AISLE_VIEW) < 1e-5
 
 
+def test_a_marker_left_out_says_how_far_off_its_corners_put_it_or_nan_when_they_give_no_pose():
+    """rejected_offsets (the daemon's map watch reads them): a marker shifted in the image is placed off its map
+    entry; one whose corners collapse to a point gives no pose of its own, NaN, and the frame is posed all the same."""
+    detections = detections_for(AISLE_VIEW)
+    detections[1] = moved(detections[1], [25.0, -10.0])
+    collapsed = detections[2]
+    detections[2] = Detection(collapsed.symbol, collapsed.id, np.repeat(collapsed.corners_px.mean(axis=0, keepdims=True), 4, axis=0),
+                              "square", 0, 1.0)
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
+    assert solution.status == "ok" and set(solution.rejected_ids) == {detections[1].id, detections[2].id}
+    offsets = {o.marker_id: o for o in solution.rejected_offsets}
+    assert offsets[detections[1].id].position_m > 0.05 and math.isfinite(offsets[detections[1].id].angle_deg)
+    assert math.isnan(offsets[detections[2].id].position_m) and math.isnan(offsets[detections[2].id].angle_deg)
+    # seen alone it gives no pose, and no exception (its IPPE's empty answer raised in min())
+    assert PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed([detections[2]], t_ns=0).measurement is None
+
+
 def test_two_disagreeing_markers_give_no_pose():
     detections = detections_for(AISLE_VIEW)[:2]
     detections[1] = moved(detections[1], [30.0, 0.0])

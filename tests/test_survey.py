@@ -627,6 +627,36 @@ def test_map_watch_says_once_when_one_marker_keeps_being_left_out(caplog):
     assert len(messages) == 1 and messages[0].startswith("marker O disagrees with the map")
 
 
+@pytest.mark.parametrize("offsets, handed", [([(math.nan, math.nan), (0.12, 0.5), (0.08, 1.5)], (0.10, 1.0)),
+                                              ([(math.nan, math.nan)] * 3, None)])
+def test_map_watch_hands_on_the_median_offset_of_the_frames_that_gave_one(caplog, offsets, handed):
+    """A rejected marker whose own corners gave no pose (degenerate: NaN offset) still counts as left out, but
+    not in how far off it is; with no offset at all it is reported without one and the pose stage is not told."""
+    import logging
+
+    from companion.daemon.map_watch import MapWatch, MapWatchParams
+    from companion.daemon.pipeline import FrameRecord
+    from companion.geometry.pose import MarkerOffset, PoseSolution
+
+    facility_map = load_map(MAP)
+    o, n = (facility_map.marker_by_symbol(symbol).id for symbol in ("O", "N"))
+    told = []
+    watch = MapWatch(facility_map, link=None, params=MapWatchParams(window=3, min_rejected=3),
+                     on_disagreement=lambda *offset: told.append(offset))
+    with caplog.at_level(logging.WARNING, logger="companion"):
+        for index, (position_m, angle_deg) in enumerate(offsets):
+            solution = PoseSolution(None, "ok", marker_ids=(n,), rejected_ids=(o,),
+                                    rejected_offsets=(MarkerOffset(o, position_m, angle_deg),))
+            watch(None, FrameRecord(index, index, index, (0, 0, 0, 0), False, None, (), solution, None))
+    assert watch.reported == [o]
+    said = [r.getMessage() for r in caplog.records if "disagrees with the map" in r.getMessage()]
+    if handed is None:
+        assert told == [] and len(said) == 1 and "disagrees with the map by" not in said[0]
+    else:
+        assert told == [(o, pytest.approx(handed[0]), pytest.approx(handed[1]))]
+        assert "marker O disagrees with the map by 10.0 cm and 1.0 deg" in said[0]
+
+
 def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog):
     """Rendered frames of O, N and DOWN on the north wall, N moved 10 cm along the wall in the map: the pose
     stage poses from O and DOWN (the renderer's pose to a few mm) and names N in rejected_ids, 10 cm off; the

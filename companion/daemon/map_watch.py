@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -61,8 +62,9 @@ class MapWatch:
         self._count(solution.marker_ids, False)
         self._count(solution.rejected_ids, True)
         for offset in solution.rejected_offsets:
-            offsets = self._offsets.setdefault(offset.marker_id, collections.deque(maxlen=self.params.window))
-            offsets.append((offset.position_m, offset.angle_deg))
+            if math.isfinite(offset.position_m) and math.isfinite(offset.angle_deg):  # (NaN: its corners gave no pose)
+                offsets = self._offsets.setdefault(offset.marker_id, collections.deque(maxlen=self.params.window))
+                offsets.append((offset.position_m, offset.angle_deg))
         for marker_id in solution.rejected_ids:
             if marker_id not in self.reported and sum(self._judged[marker_id]) >= self.params.min_rejected:
                 self._report(marker_id)
@@ -77,7 +79,7 @@ class MapWatch:
         text = f"marker {self.facility_map.markers[marker_id].symbol} disagrees with the map"
         judged = self._judged[marker_id]
         offsets = self._offsets.get(marker_id)
-        if not offsets:  # (a solution that named it without saying how far: weighed as before)
+        if not offsets:  # no frame said how far (its corners gave no pose of their own): weighed as before
             log.warning("%s (left out by the pose consistency gate in %d of its last %d frames; "
                         "run companion map check)", text, sum(judged), len(judged))
         else:

@@ -505,10 +505,12 @@ class PoseSolver:
 
     def _offset(self, observation: MarkerObservation, T_camera_map: np.ndarray) -> MarkerOffset:
         """Where an observed marker's own corners put it, seen from the accepted ``T_camera_map``, against its
-        map entry."""
+        map entry (NaN where its corners give no pose: degenerate)."""
         marker = observation.marker
         count, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker.corners_marker(), observation.points_px[:4].reshape(4, 1, 2),
                                                      self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        if count == 0:
+            return MarkerOffset(marker.id, math.nan, math.nan)
         # of its two IPPE poses T_camera_marker, the one turned least from where the map and the pose put it
         mapped = T_camera_map @ marker.T_map_marker
         T_camera_marker = min((_transform(cv2.Rodrigues(rvecs[i])[0], tvecs[i]) for i in range(count)),
@@ -656,6 +658,8 @@ class PoseSolver:
         square = marker.corners_marker()
         count, rvecs, tvecs, rms_px = cv2.solvePnPGeneric(square, corners_px.reshape(4, 1, 2), self.camera.K,
                                                            self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        if count == 0:  # degenerate corners (collapsed, collinear): no pose of its own
+            return []
         # T_camera_map = T_camera_marker T_marker_map
         T_marker_map = frames.invert_transform(T_map_marker)
         poses = [_transform(cv2.Rodrigues(rvecs[i])[0], tvecs[i]) @ T_marker_map for i in range(count)]
