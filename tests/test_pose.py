@@ -180,6 +180,20 @@ def test_a_marker_left_out_says_how_far_off_its_corners_put_it_or_nan_when_they_
     assert PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed([detections[2]], t_ns=0).measurement is None
 
 
+def test_corners_or_circles_that_are_not_finite_are_left_out_not_raised_on():
+    """OpenCV's SQPnP asserts on NaN points, which stopped the daemon's pipeline: a detection whose corners are
+    not finite is left out (unmapped_ids), a circle centre that is not finite is dropped, and the rest pose."""
+    detections = detections_for(AISLE_VIEW)
+    bad = detections[1]
+    detections[1] = Detection(bad.symbol, bad.id, np.full((4, 2), np.nan), "square", 0, 1.0)
+    other = detections[2]
+    detections[2] = Detection(other.symbol, other.id, other.corners_px, "circles", 0, 1.0,
+                              circles_px=np.array([[np.inf, 3.0]]), circle_ids=np.array([0]))
+    solution = PoseSolver(FACILITY, CAMERA, EXACT_MAP).solve_detailed(detections, t_ns=0)
+    assert solution.status == "ok" and bad.id in solution.unmapped_ids and other.id in solution.marker_ids
+    assert position_error_m(solution.measurement, AISLE_VIEW) < 1e-5
+
+
 def test_two_disagreeing_markers_give_no_pose():
     detections = detections_for(AISLE_VIEW)[:2]
     detections[1] = moved(detections[1], [30.0, 0.0])

@@ -390,7 +390,7 @@ class PoseSolution:
     marker_ids: ids of the markers used; rejected_ids: mapped markers seen
         but left out as inconsistent; rejected_offsets: how far off its map
         entry each of them was seen, in the same order; unmapped_ids:
-        detections not in the map (or seen twice).
+        detections not in the map (or seen twice, or with corners not finite).
     """
 
     measurement: PoseMeasurement | None
@@ -556,7 +556,9 @@ class PoseSolver:
         """Mapped markers seen once each (largest first), and the ids left out.
 
         A marker detected twice in one frame cannot be both places: both
-        detections are left out.
+        detections are left out; so is one whose corners are not all finite
+        (no stage of the detector makes one: a guard, since OpenCV's PnP
+        raises on them).
         """
         counts: dict[int, int] = {}
         for detection in detections:
@@ -564,7 +566,7 @@ class PoseSolver:
         observations, left_out = [], []
         for detection in detections:
             marker = self.facility_map.markers.get(detection.id)
-            if marker is None or counts[detection.id] > 1:
+            if marker is None or counts[detection.id] > 1 or not np.isfinite(detection.corners_px).all():
                 left_out.append(detection.id)
                 continue
             observations.append(self._observation(marker, detection))
@@ -578,9 +580,11 @@ class PoseSolver:
         points_map, points_px = corners_map, np.asarray(detection.corners_px, dtype=float).reshape(4, 2)
         if len(detection.circle_ids):
             ids = np.asarray(detection.circle_ids, dtype=int).reshape(-1)
-            valid = (ids >= 0) & (ids < len(circles_map))  # a detector bug must not stop the pipeline
+            circles_px = np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)
+            # a detector bug must not stop the pipeline
+            valid = (ids >= 0) & (ids < len(circles_map)) & np.isfinite(circles_px).all(axis=1)
             points_map = np.vstack([corners_map, circles_map[ids[valid]]])
-            points_px = np.vstack([points_px, np.asarray(detection.circles_px, dtype=float).reshape(-1, 2)[valid]])
+            points_px = np.vstack([points_px, circles_px[valid]])
         sigma_px = detection.corner_sigma_px
         if sigma_px is None or not (math.isfinite(sigma_px) and sigma_px > 0):
             sigma_px = self.params.corner_sigma_px
