@@ -564,6 +564,15 @@ def test_decoder_radius_shrinks_with_erasures(layout):
 
 # -------------------------------------------------------------------- inputs
 
+@pytest.mark.parametrize("shape", [(1, 1), (5, 5), (3, 640), (640, 3), (11, 11), (1, 10000)])
+def test_a_frame_too_small_for_any_marker_has_none_and_raises_nothing(detector, shape):
+    """Noise frames narrower than the smallest inner square either path reads (12 px): OpenCV's filters raised
+    on the empty rows of their reduced copies (`companion detect` on a 5 x 5 image printed a traceback)."""
+    image = np.random.default_rng(3).integers(0, 256, shape, dtype=np.uint8)
+    assert detector.detect(image) == []
+    assert detector.detect(image, expected_px=np.array([[[1.0, 1.0], [9.0, 1.0], [9.0, 9.0], [1.0, 9.0]]])) == []
+
+
 def test_bad_image_and_bad_params_raise_clear_errors(detector):
     with pytest.raises(DetectorError, match="uint8"):
         detector.detect(np.zeros((10, 10, 3), np.uint8))

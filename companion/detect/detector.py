@@ -172,6 +172,11 @@ class Detector:
         markers were found and an expected marker the square path could read (``square.min_side_px``) is not.
         """
         gray = _as_gray(gray)
+        if min(gray.shape) < min(self.params.square.min_side_px, self.params.circles.min_side_px):
+            # smaller than the smallest inner square either path reads: no marker fits (and OpenCV's filters
+            # refuse the empty rows a reduced copy of it would have)
+            self.last_stage_ms = {}
+            return []
         clock = _StageClock()
         run = self.params.circles.run
         dim = self.square.is_dim(gray)
