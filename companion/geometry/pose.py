@@ -507,14 +507,12 @@ class PoseSolver:
         """Where an observed marker's own corners put it, seen from the accepted ``T_camera_map``, against its
         map entry (NaN where its corners give no pose: degenerate)."""
         marker = observation.marker
-        count, rvecs, tvecs, _ = cv2.solvePnPGeneric(marker.corners_marker(), observation.points_px[:4].reshape(4, 1, 2),
-                                                     self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        if count == 0:
+        poses, _ = self._ippe_square(marker, observation.points_px[:4])
+        if not poses:
             return MarkerOffset(marker.id, math.nan, math.nan)
         # of its two IPPE poses T_camera_marker, the one turned least from where the map and the pose put it
         mapped = T_camera_map @ marker.T_map_marker
-        T_camera_marker = min((_transform(cv2.Rodrigues(rvecs[i])[0], tvecs[i]) for i in range(count)),
-                              key=lambda T: frames.rotation_angle_rad(T[:3, :3], mapped[:3, :3]))
+        T_camera_marker = min(poses, key=lambda T: frames.rotation_angle_rad(T[:3, :3], mapped[:3, :3]))
         # T_map_marker as seen = T_map_camera T_camera_marker
         T_seen = frames.invert_transform(T_camera_map) @ T_camera_marker
         return MarkerOffset(marker.id, float(np.linalg.norm(T_seen[:3, 3] - marker.T_map_marker[:3, 3])),
@@ -658,22 +656,27 @@ class PoseSolver:
         start = points.starts[m]
         corners_px = points.px[start:start + 4]
         marker = self.facility_map.markers[int(points.marker_ids[m])]
-        T_map_marker = marker.T_map_marker
-        square = marker.corners_marker()
-        count, rvecs, tvecs, rms_px = cv2.solvePnPGeneric(square, corners_px.reshape(4, 1, 2), self.camera.K,
-                                                           self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-        if count == 0:  # degenerate corners (collapsed, collinear): no pose of its own
+        camera_marker, rms_px = self._ippe_square(marker, corners_px)
+        if not camera_marker:  # degenerate corners (collapsed, collinear): no pose of its own
             return []
         # T_camera_map = T_camera_marker T_marker_map
-        T_marker_map = frames.invert_transform(T_map_marker)
-        poses = [_transform(cv2.Rodrigues(rvecs[i])[0], tvecs[i]) @ T_marker_map for i in range(count)]
+        T_marker_map = frames.invert_transform(marker.T_map_marker)
+        poses = [T @ T_marker_map for T in camera_marker]
         # OpenCV's RMS is over the 8 coordinates: sse = 8 rms^2, chi-square = sse / sigma^2
         weight = 1.0 / points.sigma_px[m] ** 2
-        costs = [8.0 * float(np.asarray(rms_px).reshape(-1)[i]) ** 2 * weight for i in range(count)]
+        costs = [8.0 * float(rms) ** 2 * weight for rms in rms_px]
         if gravity is not None:
             costs = [c + float(np.sum(gravity.residual(self._R_map_body(T))[0] ** 2)) for c, T in zip(costs, poses)]
         limit = min(costs) + self.params.ambiguity_chi2
         return [T for T, c in zip(poses, costs) if c <= limit]
+
+    def _ippe_square(self, marker: MapMarker, corners_px: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """IPPE_SQUARE on a marker's (4, 2) inner corners: its T_camera_marker candidates (none for degenerate
+        corners) and each one's RMS over the 8 coordinates (px)."""
+        count, rvecs, tvecs, rms_px = cv2.solvePnPGeneric(marker.corners_marker(), corners_px.reshape(4, 1, 2),
+                                                           self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        return ([_transform(cv2.Rodrigues(rvecs[i])[0], tvecs[i]) for i in range(count)],
+                np.asarray(rms_px).reshape(-1)[:count])
 
     def _grow_and_refine(self, T_camera_map: np.ndarray, points: _Points, gravity: _Gravity | None,
                          seed: int | None = None) -> Fit | None:
