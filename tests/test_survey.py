@@ -657,6 +657,79 @@ def test_map_watch_hands_on_the_median_offset_of_the_frames_that_gave_one(caplog
         assert "marker O disagrees with the map by 10.0 cm and 1.0 deg" in said[0]
 
 
+@pytest.mark.parametrize("agreed, blamed", [(("O",), ["N"]), ((), []), (("O", "N"), [])])
+def test_of_two_markers_that_disagree_the_watch_counts_the_one_never_seen_agreeing_with_another(agreed, blamed):
+    """Two markers that disagree leave a frame without a pose, neither outvoting the other: the watch counts
+    the one left out only when the other has been used beside a third marker in an accepted pose and it never
+    has; the offset it hands on is the one seen from the other."""
+    from companion.daemon.map_watch import MapWatch, MapWatchParams
+    from companion.daemon.pipeline import FrameRecord
+    from companion.geometry.pose import MarkerOffset, PoseSolution
+
+    facility_map = load_map(MAP)
+    ids = {symbol: facility_map.marker_by_symbol(symbol).id for symbol in ("O", "N", "UP")}
+    told = []
+    watch = MapWatch(facility_map, link=None, params=MapWatchParams(window=5, min_rejected=3),
+                     on_disagreement=lambda *offset: told.append(offset))
+
+    def record(index, solution):
+        return FrameRecord(index, index, index, (0, 0, 0, 0), False, None, (), solution, None)
+
+    for index, symbol in enumerate(agreed):
+        watch(None, record(index, PoseSolution(None, "ok", marker_ids=(ids[symbol], ids["UP"]))))
+    pair = (ids["N"], ids["O"])
+    for index in range(3):
+        watch(None, record(10 + index, PoseSolution(
+            None, "inconsistent markers", marker_ids=(ids["O"],), rejected_ids=pair,
+            rejected_offsets=(MarkerOffset(ids["N"], 0.10, 0.5), MarkerOffset(ids["O"], 0.11, 0.6)))))
+    assert [facility_map.markers[m].symbol for m in watch.reported] == blamed
+    assert told == ([(ids["N"], pytest.approx(0.10), pytest.approx(0.5))] if blamed else [])
+
+
+def test_a_moved_marker_seen_beside_one_other_is_reported_and_the_frames_posed_on_the_other():
+    """The shipped aisle flight, marker 32 moved 10 cm in the map: it is seen beside 1 (17 frames), then
+    beside 1 and 2 (4 frames, left out), then beside 2 alone (33 frames). 1 and 2 have been seen agreeing with
+    other markers, 32 never has: the watch reports 32 after 20 frames, and the frames beside 2 are posed on 2,
+    where before all 50 pair frames went without a pose ("inconsistent markers")."""
+    from dataclasses import replace
+
+    from companion.daemon.map_watch import MapWatch
+    from companion.daemon.pipeline import Pipeline
+    from companion.detect.detector import Detector, DetectorParams
+    from companion.fusion import PoseFilter
+    from companion.geometry.pose import PoseParams, PoseSolver
+    from companion.types import Frame
+
+    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
+    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
+    truth_csv = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)
+    truth = load_map(MAP)
+    marker = truth.markers[32]
+    T_moved = marker.T_map_marker.copy()
+    T_moved[:3, 3] += 0.10 * T_moved[:3, 0]
+    moved = replace(truth, markers={**truth.markers, 32: replace(marker, T_map_marker=T_moved)})
+    detector = Detector(DetectorParams(parity=truth.parity, dictionary=truth.dictionary), camera=camera)
+    pipeline = Pipeline(detector, PoseSolver(moved, camera, PoseParams()), PoseFilter(), None,
+                        frames.invert_transform(truth.T_ned_map))
+    watch = MapWatch(moved, link=None, on_disagreement=pipeline.solver.loosen)
+    pipeline.observers.append(watch)
+    video = cv2.VideoCapture(str(sequence / "video.avi"))
+    beside_2 = []
+    for index in range(len(truth_csv)):
+        ok, image = video.read()
+        assert ok
+        record = pipeline.process(Frame(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), int(truth_csv[index, 1]), index))
+        if sorted(d.id for d in record.detections) == [2, 32]:
+            beside_2.append((record, truth_csv[index]))
+    assert watch.reported == [32]
+    assert len(beside_2) > 25
+    posed = [(r, row) for r, row in beside_2 if r.solution.status == "ok"]
+    assert len(posed) > 25
+    for record, row in posed:
+        assert record.solution.marker_ids == (2,) and record.solution.rejected_ids == (32,)
+        assert np.linalg.norm(record.measurement.T_map_body[:3, 3] - row[2:5]) < 0.03
+
+
 def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog):
     """Rendered frames of O, N and DOWN on the north wall, N moved 10 cm along the wall in the map: the pose
     stage poses from O and DOWN (the renderer's pose to a few mm) and names N in rejected_ids, 10 cm off; the

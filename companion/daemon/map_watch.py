@@ -8,6 +8,11 @@ moved, re-hung or swapped since the map was made. Then the watch says, once
 per marker, "marker X disagrees with the map" in the log and by STATUSTEXT,
 and the operator can run ``companion map check`` (docs/survey.md).
 
+Two markers that disagree leave the frame without a pose ("inconsistent
+markers"): neither outvotes the other. If one of them has been seen agreeing
+with a third marker in an accepted pose and the other never has, the other
+is counted as left out, as if the third had been in view.
+
 It also says how far off: the median, over the frames that left the marker
 out, of where its own corners put it (``PoseSolution.rejected_offsets``),
 and hands that to ``on_disagreement`` (the daemon's: ``PoseSolver.loosen``).
@@ -53,19 +58,37 @@ class MapWatch:
         self.on_disagreement = on_disagreement
         self._judged: dict[int, collections.deque] = {}
         self._offsets: dict[int, collections.deque] = {}  # (position m, angle deg) of the frames that left it out
+        self._agreed: set[int] = set()  # markers used beside another in an accepted pose, not reported since
         self.reported: list[int] = []
 
     def __call__(self, frame, record) -> None:
         solution = record.solution
         if solution is None:
             return
-        self._count(solution.marker_ids, False)
-        self._count(solution.rejected_ids, True)
-        for offset in solution.rejected_offsets:
+        if solution.status == "ok":
+            if len(solution.marker_ids) > 1:
+                self._agreed.update(solution.marker_ids)
+            self._count(solution.marker_ids, False)
+            self._left_out(solution.rejected_ids, solution.rejected_offsets)
+        elif solution.status == "inconsistent markers":
+            self._left_out(*self._outvoted(solution))
+
+    def _outvoted(self, solution) -> tuple[tuple[int, ...], tuple]:
+        """Of two markers that disagree, the one never seen to agree with another marker, when the other has
+        been: (its id, its offset seen from the other), or nothing to count."""
+        doubtful = [i for i, marker_id in enumerate(solution.rejected_ids) if marker_id not in self._agreed]
+        if len(solution.rejected_ids) != 2 or len(doubtful) != 1:
+            return (), ()
+        i = doubtful[0]
+        return solution.rejected_ids[i:i + 1], solution.rejected_offsets[i:i + 1]
+
+    def _left_out(self, marker_ids: tuple[int, ...], offsets) -> None:
+        self._count(marker_ids, True)
+        for offset in offsets:
             if math.isfinite(offset.position_m) and math.isfinite(offset.angle_deg):  # (NaN: its corners gave no pose)
-                offsets = self._offsets.setdefault(offset.marker_id, collections.deque(maxlen=self.params.window))
-                offsets.append((offset.position_m, offset.angle_deg))
-        for marker_id in solution.rejected_ids:
+                kept = self._offsets.setdefault(offset.marker_id, collections.deque(maxlen=self.params.window))
+                kept.append((offset.position_m, offset.angle_deg))
+        for marker_id in marker_ids:
             if marker_id not in self.reported and sum(self._judged[marker_id]) >= self.params.min_rejected:
                 self._report(marker_id)
 
@@ -76,6 +99,7 @@ class MapWatch:
 
     def _report(self, marker_id: int) -> None:
         self.reported.append(marker_id)
+        self._agreed.discard(marker_id)
         text = f"marker {self.facility_map.markers[marker_id].symbol} disagrees with the map"
         judged = self._judged[marker_id]
         offsets = self._offsets.get(marker_id)

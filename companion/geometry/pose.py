@@ -387,9 +387,12 @@ class PoseSolution:
     ambiguous: another pose fitted nearly as well (resolved by the prior if
         ``used_prior``).
     used_attitude: the flight controller's roll and pitch were part of the fit.
-    marker_ids: ids of the markers used; rejected_ids: mapped markers seen
-        but left out as inconsistent; rejected_offsets: how far off its map
-        entry each of them was seen, in the same order; unmapped_ids:
+    marker_ids: ids of the markers used (without a pose: of the fit it came
+        nearest with); rejected_ids: mapped markers seen but left out as
+        inconsistent, with "inconsistent markers" every mapped marker seen;
+        rejected_offsets: how far off its map entry each of them was seen,
+        in the same order (with "inconsistent markers": seen from the best fit
+        that left it out, NaN where none did); unmapped_ids:
         detections not in the map (or seen twice, or with corners not finite).
     """
 
@@ -482,6 +485,10 @@ class PoseSolver:
         used = choice.fit.inliers if choice.fit is not None else ()
         common = dict(ambiguous=choice.ambiguous, marker_ids=tuple(solved[i].marker.id for i in used),
                       unmapped_ids=unmapped, fits=tuple(fits))
+        if choice.status == "inconsistent markers":  # every marker seen was left out, none outvoted
+            return PoseSolution(None, choice.status, rejected_ids=tuple(o.marker.id for o in observations),
+                                rejected_offsets=tuple(self._offset_from_the_others(o, solved, fits)
+                                                       for o in observations), **common)
         if choice.status != "ok":
             return PoseSolution(None, choice.status, **common)
         with_attitude = choice.fit.with_attitude
@@ -502,6 +509,15 @@ class PoseSolver:
         error, not a few millimetres'."""
         loosened = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
         self._loose[marker_id] = np.maximum(self._loose.get(marker_id, self._map_var[marker_id]), loosened)
+
+    def _offset_from_the_others(self, observation: MarkerObservation, solved: list[MarkerObservation],
+                                fits: list[Fit]) -> MarkerOffset:
+        """A marker's offset seen from the best plausible fit that leaves it out (NaN where none does)."""
+        index = next((i for i, o in enumerate(solved) if o is observation), None)
+        best = _best([f for f in fits if index not in f.inliers and self._plausible(f)])
+        if best is None:
+            return MarkerOffset(observation.marker.id, math.nan, math.nan)
+        return self._offset(observation, best.T_camera_map)
 
     def _offset(self, observation: MarkerObservation, T_camera_map: np.ndarray) -> MarkerOffset:
         """Where an observed marker's own corners put it, seen from the accepted ``T_camera_map``, against its
