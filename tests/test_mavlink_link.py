@@ -204,6 +204,26 @@ def test_a_health_change_goes_out_before_queued_texts_and_replaces_its_stale_one
     assert min(np.diff([r["t_ns"] for r in rows])) >= 0.25e9
 
 
+def test_texts_still_queued_at_close_go_out_before_the_last_words(peers):
+    """A fault said just before the daemon stops (a fast replay's last frames) waits its turn in the queue:
+    close sends what is queued, most urgent first, then the last words, not just the last words."""
+    port = free_port()
+    peer = peers(port)
+    link = MavlinkLink(LinkParams(connection=f"udpout:127.0.0.1:{port}", heartbeat_interval_s=0.2,
+                                  statustext_interval_s=30.0))
+    link.start()
+    peer.wait_for("HEARTBEAT")
+    link.statustext("companion: first", mm.SEVERITY_WARNING)
+    peer.wait_for("STATUSTEXT")
+    link.statustext("companion: w1", mm.SEVERITY_WARNING)
+    link.statustext("companion: camera/FC board yaw off by +30 deg", mm.SEVERITY_CRITICAL)
+    link.close("companion: stopped, no more vision")
+    rows = peer.wait_for("STATUSTEXT", count=4)
+    assert [(r["fields"]["text"], r["fields"]["severity"]) for r in rows] == [
+        ("companion: first", mm.SEVERITY_WARNING), ("companion: camera/FC board yaw off by +30 deg", mm.SEVERITY_CRITICAL),
+        ("companion: w1", mm.SEVERITY_WARNING), ("companion: stopped, no more vision", mm.SEVERITY_WARNING)]
+
+
 def test_udp_peer_going_away_and_coming_back_gets_the_origin_again(peers, links):
     port = free_port()
     first = peers(port, "--origin-reply", "on_set", name="first")

@@ -362,10 +362,15 @@ class MavlinkLink:
             thread.start()
 
     def close(self, last_words: str | None = None) -> None:
-        """Stop the link's threads and close the connection; ``last_words``, a STATUSTEXT sent first if the
-        link streams (the daemon's "stopped": a ground station tells a stop from a crash, which falls silent)."""
-        if last_words is not None and self.stream and self.state is not LinkState.DUPLICATE:
-            self._send(mm.statustext(SEVERITY_WARNING, last_words))   # while the link's thread keeps it open
+        """Stop the link's threads and close the connection. If the link streams, first the STATUSTEXTs still
+        queued (a fault said just before a stop would be lost) and then ``last_words`` (the daemon's "stopped":
+        a ground station tells a stop from a crash, which falls silent) are sent at once."""
+        if self.stream and self.state is not LinkState.DUPLICATE:
+            with self._statustext_lock:
+                queued, self._statustexts = self._statustexts, []
+            final = [(q.severity, q.text) for q in queued] + ([] if last_words is None else [(SEVERITY_WARNING, last_words)])
+            for severity, text in final:   # while the link's thread keeps the connection open
+                self._send(mm.statustext(severity, text))
         self._stop.set()
         for thread in self._threads:
             if thread.is_alive():
