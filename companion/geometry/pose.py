@@ -42,7 +42,8 @@ the reason in ``status``). The steps:
 4. Choice: most agreeing markers, then the lowest squared error. Markers
    left out must be a minority of at least two agreeing markers, else the
    frame is rejected as inconsistent; the whole fit must pass the same
-   chi-square test and ``max_rms_px``. A pose whose body is tilted beyond
+   chi-square test and ``max_rms_px`` (on what the map's stated error
+   does not explain). A pose whose body is tilted beyond
    ``max_tilt_deg`` is implausible for a flying vehicle and never chosen.
    If the fit with the attitude fails these tests, the frame is solved again
    without it (an attitude that disagrees with the markers is not trusted).
@@ -105,7 +106,9 @@ class PoseParams:
     gate_probability: probability that corner noise alone passes the
         chi-square tests (0.999: one honest marker in a thousand fails; 1.0
         turns them off).
-    max_rms_px: reject any fit whose RMS point error is above this.
+    max_rms_px: reject any fit whose RMS point error beyond what the
+        map's stated error explains is above this (a bound on the points'
+        own noise whatever the detector states).
     hypothesis_gate_px: loose RMS gate to gather markers before refining a
         hypothesis made from one marker.
     ambiguity_chi2: a distinct pose whose chi-square exceeds the best's by
@@ -303,6 +306,7 @@ class _Weights:
 
     points: _Points
     inverse_roots: list[np.ndarray] | None
+    map_px2: np.ndarray | None = None  # (M,) per marker: trace(G S G^T), the squared pixel errors its map error explains
 
     def whiten(self, values: np.ndarray) -> np.ndarray:
         """(K, 2, ...) point errors (or their derivatives) -> whitened, the same shape."""
@@ -322,7 +326,7 @@ class _Weights:
     def of_markers(self, members: np.ndarray) -> _Weights:
         """The weights of the observations ``members`` (indices, ascending)."""
         roots = None if self.inverse_roots is None else [self.inverse_roots[m] for m in members]
-        return _Weights(self.points.of_markers(members), roots)
+        return _Weights(self.points.of_markers(members), roots, None if self.map_px2 is None else self.map_px2[members])
 
 
 @dataclass(frozen=True)
@@ -335,7 +339,8 @@ class Fit:
         of every observed marker (inf if a point falls behind the camera).
     chi2: over the inliers' points; attitude_chi2: the attitude prior's
         (0 without an attitude); sse_px2, n_points: squared point errors in
-        pixels^2 and point count over the inliers.
+        pixels^2 and point count over the inliers; map_px2: the squared pixel
+        errors the inliers' stated map error explains (its expectation).
     """
 
     T_camera_map: np.ndarray
@@ -346,6 +351,13 @@ class Fit:
     sse_px2: float
     n_points: int
     with_attitude: bool = False
+    map_px2: float = 0.0
+
+    @property
+    def unexplained_rms_px(self) -> float:
+        """RMS point error over the inliers beyond what the map's stated error explains (their expected
+        squared pixel errors from it, ``map_px2``, taken out)."""
+        return math.sqrt(max(self.sse_px2 - self.map_px2, 0.0) / self.n_points)
 
     @property
     def rms_px(self) -> float:
@@ -735,7 +747,8 @@ class PoseSolver:
         if gravity is not None:
             attitude_chi2 = float(np.sum(gravity.residual(self._R_map_body(T_camera_map))[0] ** 2))
         return Fit(T_camera_map, tuple(int(i) for i in members), chi2_m, float(chi2_m[members].sum()), attitude_chi2,
-                   float(sse_m[members].sum()), int(points.counts[members].sum()), gravity is not None)
+                   float(sse_m[members].sum()), int(points.counts[members].sum()), gravity is not None,
+                   0.0 if weights.map_px2 is None else float(weights.map_px2[members].sum()))
 
     def _consensus(self, T_camera_map: np.ndarray, weights: _Weights, solving: _Weights, members: np.ndarray,
                    gravity: _Gravity | None) -> np.ndarray:
@@ -849,6 +862,7 @@ class PoseSolver:
             r = points.map - np.repeat(points.centres, points.counts, axis=0)
             G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
         roots: list[np.ndarray | None] = [None] * len(points.counts)
+        map_px2 = np.zeros(len(points.counts)) if map_error else None
         for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
             markers = np.flatnonzero(points.counts == count)
             noise = np.stack([points.noise_px2(m) for m in markers])
@@ -858,6 +872,7 @@ class PoseSolver:
                 # S = diag(each marker's variances of its mapped pose): (n, 1, 6) against g's (n, 2 count, 6)
                 S = points.map_var[markers, None, :]
                 sigma = noise + (g * S) @ g.transpose(0, 2, 1)
+                map_px2[markers] = np.sum(g ** 2 * S, axis=(1, 2))  # trace(G S G^T), S diagonal
                 # the smallest variance of the points' own noise: no direction of Sigma is surer than that
                 floor = np.linalg.eigvalsh(noise)[:, :1] if points.correlated else points.sigma_px[markers, None] ** 2
             # Sigma = N + G S G^T = V diag(l) V^T; Sigma^-1/2 = V diag(l^-1/2) V^T (l >= the floor: a
@@ -866,7 +881,7 @@ class PoseSolver:
             inverse_roots = (vectors / np.sqrt(np.maximum(values, floor))[:, None, :]) @ vectors.transpose(0, 2, 1)
             for m, root in zip(markers, inverse_roots):
                 roots[m] = root
-        return _Weights(points, roots)
+        return _Weights(points, roots, map_px2)
 
     # --------------------------------------------------------------- choice
 
@@ -882,7 +897,7 @@ class PoseSolver:
         outliers = observed - len(best.inliers)
         if outliers and (len(best.inliers) < 2 or len(best.inliers) <= outliers):
             return "inconsistent markers"
-        if best.rms_px > self.params.max_rms_px or not self._within_noise(best.cost, best.dof):
+        if best.unexplained_rms_px > self.params.max_rms_px or not self._within_noise(best.cost, best.dof):
             return "reprojection"
         return "ok"
 
