@@ -680,12 +680,14 @@ def test_frames_of_a_scaled_size_scale_the_intrinsics_and_the_pose_is_right(tmp_
 
 
 def test_markers_but_no_pose_say_why_in_the_status_line_and_the_log(tmp_path, peers):
-    """Every pose is rejected (a reprojection bound no fit meets): after 2 s the status line and the log
-    say 'no pose' with the pose stage's reason counted, instead of a silent 'sent 0'."""
+    """Every pose is rejected (a reprojection bound no fit meets, on a map stated exact: no error of the map
+    explains any): after 2 s the status line and the log say 'no pose' with the pose stage's reason counted,
+    instead of a silent 'sent 0'."""
     port = free_port()
     peers(port, "--origin-reply", "on_set")
     notify = NotifyListener(tmp_path / "notify.sock")
-    config = write_config(tmp_path, HOVER, port, source={"loop": True}, pose={"max_rms_px": 1e-6})
+    config = write_config(tmp_path, HOVER, port, source={"loop": True},
+                          pose={"max_rms_px": 1e-6, "map_sd_m": 0.0, "map_sd_deg": 0.0})
     process = start_daemon(config, env={"NOTIFY_SOCKET": notify.path})
     deadline = time.monotonic() + 20
     while not any("no pose" in s and "reprojection" in s for s in notify.statuses()) and time.monotonic() < deadline:
