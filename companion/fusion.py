@@ -27,6 +27,13 @@ Losing and re-acquiring the markers:
   ``reset_yaw_rad`` away from the last estimate returned, ``reset_counter``
   is incremented so the flight controller snaps to it instead of dragging.
 
+The covariance sent: the filter averages frames as if their errors were
+independent. The share of a pose's error that comes from the map
+(``PoseMeasurement.map_covariance_ned``: a marker hung 2 cm from its entry
+puts every frame that sees it 2 cm off) does not shrink that way, so the
+estimate's position and yaw covariance is never below the last accepted
+pose's map share (``covering``).
+
 When coasting runs out, ``PoseFilter.loss`` says why at that frame
 (``TrackLoss``): a gap in the frames longer than ``max_coast_s`` (a stalled
 camera), or poses that stopped coming or passing the gate.
@@ -152,6 +159,30 @@ def measurement_vector(measurement: PoseMeasurement) -> tuple[np.ndarray, np.nda
     return z, R, roll, pitch
 
 
+def map_share(measurement: PoseMeasurement) -> np.ndarray:
+    """(4, 4) the map's share of R (``measurement_vector``): zero for an exact map."""
+    share = measurement.map_covariance_ned
+    if share is None:
+        return np.zeros((MEASUREMENT_DIM, MEASUREMENT_DIM))
+    return share[np.ix_(MEASURED_COV_INDICES, MEASURED_COV_INDICES)]
+
+
+def covering(P: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """(n, n) a covariance not below P nor M: M where M is the larger, P elsewhere.
+
+    P (n, n) positive definite, M (n, n) positive semi-definite. With P = L L^T and L^-1 M L^-T = V diag(w) V^T,
+    it is L V diag(max(w, 1)) V^T L^T: P itself when M is below it, M when M is above it in every direction.
+    """
+    try:
+        L = np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        return P + M
+    L_inv = np.linalg.inv(L)
+    w, V = np.linalg.eigh(L_inv @ M @ L_inv.T)
+    B = L @ V
+    return (B * np.maximum(w, 1.0)) @ B.T
+
+
 @dataclass(frozen=True)
 class _Innovation:
     """A measurement against a track's prediction.
@@ -186,6 +217,7 @@ class _Track:
         self.t_ns = measurement.t_ns
         self.t_last_fix_ns = measurement.t_ns
         self.rotation_cov = measurement.covariance_ned[3:6, 3:6].copy()
+        self.map_share = map_share(measurement)
 
     def predict_to(self, t_ns: int) -> None:
         dt = (t_ns - self.t_ns) * 1e-9
@@ -211,6 +243,7 @@ class _Track:
         self.kf.update(innovation.z.reshape(MEASUREMENT_DIM, 1), R=innovation.R)
         self.roll_rad, self.pitch_rad = innovation.roll_rad, innovation.pitch_rad
         self.rotation_cov = measurement.covariance_ned[3:6, 3:6].copy()
+        self.map_share = map_share(measurement)
         self.t_last_fix_ns = measurement.t_ns
 
     def position_ned_m(self) -> np.ndarray:
@@ -221,11 +254,13 @@ class _Track:
 
     def estimate(self, reset_counter: int, tracking: bool) -> Estimate:
         P = self.kf.P
+        # over [north, east, down, yaw] (the state's first four)
+        sent = covering(P[0:4, 0:4], self.map_share)
         cov = np.zeros((6, 6))
-        cov[0:3, 0:3] = P[POS, POS]
-        cov[0:3, 5] = cov[5, 0:3] = P[POS, YAW]
+        cov[0:3, 0:3] = sent[0:3, 0:3]
+        cov[0:3, 5] = cov[5, 0:3] = sent[0:3, 3]
         cov[3:5, 3:5] = self.rotation_cov[0:2, 0:2]
-        cov[5, 5] = P[YAW, YAW]
+        cov[5, 5] = sent[3, 3]
         return Estimate(
             t_ns=self.t_ns,
             position_ned_m=self.position_ned_m(),

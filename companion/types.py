@@ -114,6 +114,10 @@ class PoseMeasurement:
     unambiguous: the pose stage ruled out every other pose on its own (by
         the image or the flight controller's attitude), without a prior: a
         fix that needs no confirmation by further frames.
+    map_covariance_ned: (6, 6) the share of ``covariance_ned`` that comes
+        from the map's stated error of the markers used: the same error in
+        every frame that sees them, so averaging frames does not shrink it
+        (None: none, an exact map).
     """
 
     t_ns: int
@@ -123,6 +127,7 @@ class PoseMeasurement:
     marker_ids: tuple[int, ...]
     reprojection_rms_px: float
     unambiguous: bool = False
+    map_covariance_ned: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,8 @@ import pytest
 
 from companion.daemon.config import ConfigError, config_from_dict
 from companion.geometry import frames
-from companion.fusion import FusionError, FusionParams, PoseFilter, TrackState, process_noise, wrap_angle_rad
+from companion.fusion import (FusionError, FusionParams, PoseFilter, TrackState, covering, process_noise,
+                              wrap_angle_rad)
 from companion.types import PoseMeasurement
 
 REPO = Path(__file__).resolve().parents[1]
@@ -226,6 +227,42 @@ def test_estimate_covariance_is_symmetric_positive_definite_and_carries_rotation
     assert 0 < C[5, 5] < YAW_STD_RAD ** 2
     Cv = est.velocity_covariance_ned
     assert Cv.shape == (3, 3) and np.all(np.linalg.eigvalsh(Cv) > 0)
+
+
+def test_covering_is_above_both_and_equal_to_the_larger_where_one_is():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        A, B = rng.normal(size=(4, 4)), rng.normal(size=(4, 2))
+        P, M = A @ A.T + 0.01 * np.eye(4), B @ B.T  # M of rank 2: below P in two directions at least
+        C = covering(P, M)
+        np.testing.assert_allclose(C, C.T, atol=1e-12)
+        assert np.linalg.eigvalsh(C - P).min() > -1e-9 and np.linalg.eigvalsh(C - M).min() > -1e-9
+        np.testing.assert_allclose(covering(P, 0.5 * P), P, atol=1e-12)
+        np.testing.assert_allclose(covering(P, 2.0 * P), 2.0 * P, atol=1e-12)
+        assert np.trace(C) < np.trace(P + M)  # not the sum: no more than needed
+
+
+def test_the_maps_share_of_a_poses_error_is_not_averaged_away():
+    """Sixty frames that see the same markers, each pose 3 cm sd of which 2.5 cm (and 1 deg of yaw) is the map's
+    error (the same in every frame): the filter averages the rest, but what it sends still states at least the
+    map's share. Without a share stated, the covariance shrinks well below it, as it should for noise alone."""
+    share = np.diag([0.025 ** 2] * 3 + [0.0] * 2 + [math.radians(1.0) ** 2])
+
+    def with_share(m):
+        return PoseMeasurement(m.t_ns, m.T_map_body, m.T_ned_body, m.covariance_ned, m.marker_ids,
+                               m.reprojection_rms_px, map_covariance_ned=share)
+
+    times_s = np.arange(0, 2, 1 / 30)
+    plain, shared = PoseFilter(FusionParams(confirm_frames=1)), PoseFilter(FusionParams(confirm_frames=1))
+    for t in times_s:
+        p = straight_line(t)
+        last_plain = plain.step(int(round(t * 1e9)), measurement(t, p, 0.3))
+        last_shared = shared.step(int(round(t * 1e9)), with_share(measurement(t, p, 0.3)))
+    assert np.sqrt(last_plain.covariance_ned[0, 0]) < 0.02  # below the 2.5 cm share
+    sent = last_shared.covariance_ned[np.ix_([0, 1, 2, 5], [0, 1, 2, 5])]
+    assert np.linalg.eigvalsh(sent - share[np.ix_([0, 1, 2, 5], [0, 1, 2, 5])]).min() > -1e-12
+    assert np.sqrt(sent[0, 0]) == pytest.approx(0.025, rel=0.1)
+    np.testing.assert_allclose(last_shared.position_ned_m, last_plain.position_ned_m)  # weighed as before
 
 
 def test_roll_and_pitch_pass_through_from_the_newest_pose():

@@ -307,6 +307,7 @@ class _Weights:
     points: _Points
     inverse_roots: list[np.ndarray] | None
     map_px2: np.ndarray | None = None  # (M,) per marker: trace(G S G^T), the squared pixel errors its map error explains
+    map_roots: list[np.ndarray] | None = None  # per marker: (2n, 6) Sigma^-1/2 G S^1/2, its map error whitened
 
     def whiten(self, values: np.ndarray) -> np.ndarray:
         """(K, 2, ...) point errors (or their derivatives) -> whitened, the same shape."""
@@ -326,7 +327,8 @@ class _Weights:
     def of_markers(self, members: np.ndarray) -> _Weights:
         """The weights of the observations ``members`` (indices, ascending)."""
         roots = None if self.inverse_roots is None else [self.inverse_roots[m] for m in members]
-        return _Weights(self.points.of_markers(members), roots, None if self.map_px2 is None else self.map_px2[members])
+        return _Weights(self.points.of_markers(members), roots, None if self.map_px2 is None else self.map_px2[members],
+                        None if self.map_roots is None else [self.map_roots[m] for m in members])
 
 
 @dataclass(frozen=True)
@@ -863,6 +865,7 @@ class PoseSolver:
             G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
         roots: list[np.ndarray | None] = [None] * len(points.counts)
         map_px2 = np.zeros(len(points.counts)) if map_error else None
+        map_roots: list[np.ndarray | None] | None = [None] * len(points.counts) if map_error else None
         for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
             markers = np.flatnonzero(points.counts == count)
             noise = np.stack([points.noise_px2(m) for m in markers])
@@ -881,7 +884,10 @@ class PoseSolver:
             inverse_roots = (vectors / np.sqrt(np.maximum(values, floor))[:, None, :]) @ vectors.transpose(0, 2, 1)
             for m, root in zip(markers, inverse_roots):
                 roots[m] = root
-        return _Weights(points, roots, map_px2)
+            if map_error:
+                for m, map_root in zip(markers, inverse_roots @ (g * np.sqrt(S))):
+                    map_roots[m] = map_root
+        return _Weights(points, roots, map_px2, map_roots)
 
     # --------------------------------------------------------------- choice
 
@@ -937,20 +943,23 @@ class PoseSolver:
     def _measurement(self, fit: Fit, points: _Points, observations: list[MarkerObservation], t_ns: int,
                      gravity: _Gravity | None, unambiguous: bool) -> PoseMeasurement:
         T_map_body = _body_pose(fit.T_camera_map, self._T_camera_body)
-        covariance_map = self._covariance_map(T_map_body, points, gravity)
-        T_ned_map = self.facility_map.T_ned_map
+        covariance_map, map_share = self._covariance_map(T_map_body, points, gravity)
+        R_ned_map = self.facility_map.T_ned_map[:3, :3]
         return PoseMeasurement(
             t_ns=t_ns,
             T_map_body=T_map_body,
-            T_ned_body=T_ned_map @ T_map_body,
-            covariance_ned=frames.rotate_pose_covariance(covariance_map, T_ned_map[:3, :3]),
+            T_ned_body=self.facility_map.T_ned_map @ T_map_body,
+            covariance_ned=frames.rotate_pose_covariance(covariance_map, R_ned_map),
+            map_covariance_ned=frames.rotate_pose_covariance(map_share, R_ned_map),
             marker_ids=tuple(observations[i].marker.id for i in fit.inliers),
             reprojection_rms_px=fit.rms_px,
             unambiguous=unambiguous,
         )
 
-    def _covariance_map(self, T_map_body: np.ndarray, points: _Points, gravity: _Gravity | None) -> np.ndarray:
-        """(6, 6) covariance of [body position (3), small rotation (3)], both on map axes.
+    def _covariance_map(self, T_map_body: np.ndarray, points: _Points,
+                        gravity: _Gravity | None) -> tuple[np.ndarray, np.ndarray]:
+        """(6, 6) covariance of [body position (3), small rotation (3)], both on map axes, and (6, 6) the map
+        error's share of it.
 
         C = (J^T W J + A^T A)^-1: J = d(pixels)/d(pose), W the points' inverse
         covariance (``_Weights``: their noise and the map's error, as the pose was solved: without the
@@ -958,6 +967,10 @@ class PoseSolver:
         plus that shift's own share: it moves the surveyed markers' points by G dX (G = d(pixels)/dX_map,
         on their points only) and the pose by K dX, K = C J^T W G, so C += s^2 K K^T (s^2: the shift's
         variance on each axis).
+
+        The map's share: the pose is C J^T W times the point errors, of which the map's are G_m dm for each
+        marker m (dm its mapped pose's error, covariance S_m): C (sum_m J_m^T W_m G_m S_m G_m^T W_m J_m) C,
+        plus the shift's. It is the part of C that frames seeing the same markers share.
         """
         common = points.common_shift_var
         weights = self._weights(self._T_camera_map(T_map_body), points.without_common_shift())
@@ -968,12 +981,19 @@ class PoseSolver:
             A = np.hstack([np.zeros((2, 3)), gravity.residual(T_map_body[:3, :3])[1]])
             information += A.T @ A
         C = np.linalg.pinv(information)
+        map_share = np.zeros((6, 6))
+        if weights.map_roots is not None:
+            J_m = np.split(J, 2 * np.cumsum(points.counts)[:-1])
+            # sum_m (J_m^T W_m^1/2 G_m S_m^1/2)(...)^T, W_m^1/2 G_m S_m^1/2 = the marker's map root
+            X = np.hstack([J_mi.T @ root for J_mi, root in zip(J_m, weights.map_roots)])
+            map_share = C @ X @ X.T @ C
         if common > 0.0:
             # a map point moved by dX moves as the body moved by -dX: G = -d(pixels)/d(position)
             G = -jacobian[..., :3] * np.repeat(points.surveyed, points.counts)[:, None, None]
             K = C @ J.T @ weights.whiten(G).reshape(-1, 3)
             C = C + common * K @ K.T
-        return C
+            map_share = map_share + common * K @ K.T
+        return C, map_share
 
     def _pose_jacobian(self, T_map_body: np.ndarray, points_map: np.ndarray) -> np.ndarray:
         """(2K, 6) derivative of the projected pixels by [dp_map (3), dtheta_map (3)].
