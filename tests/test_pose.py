@@ -202,19 +202,30 @@ def test_two_disagreeing_markers_give_no_pose():
     assert solution.status == "inconsistent markers"
 
 
+def aisle_flight(start: int = 0, count: int | None = None):
+    """The shipped aisle flight from frame ``start`` on (``count`` frames, default all): (its camera, its
+    ground-truth rows, the detections of each frame)."""
+    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
+    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
+    truth = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)[start:]
+    truth = truth if count is None else truth[:count]
+    detector = Detector(DetectorParams(parity=FACILITY.parity, dictionary=FACILITY.dictionary), camera=camera)
+    video = cv2.VideoCapture(str(sequence / "video.avi"))
+    video.set(cv2.CAP_PROP_POS_FRAMES, start)
+    detections = []
+    for _ in truth:
+        ok, image = video.read()
+        assert ok
+        detections.append(detector.detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)))
+    return camera, truth, detections
+
+
 def test_two_markers_that_pull_one_joint_fit_apart_are_said_to_disagree():
     """The shipped aisle flight's frame 130 shows markers 2 and 32; with 32 hanging 10 cm off its map entry
     (the daemon's default map sd) the two are gathered into one fit that neither agrees with, and each alone
     fits: the frame was said as a bad reprojection ('markers lost: reprojection' pointed at the camera), it is
     two markers that disagree."""
-    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
-    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
-    video = cv2.VideoCapture(str(sequence / "video.avi"))
-    video.set(cv2.CAP_PROP_POS_FRAMES, 130)
-    ok, image = video.read()
-    assert ok
-    detections = Detector(DetectorParams(parity=FACILITY.parity, dictionary=FACILITY.dictionary),
-                          camera=camera).detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    camera, _, (detections,) = aisle_flight(start=130, count=1)
     assert sorted(d.id for d in detections) == [2, 32]
     assert PoseSolver(FACILITY, camera).solve_detailed(detections, t_ns=0).status == "ok"
     marker = FACILITY.markers[32]
@@ -236,15 +247,7 @@ def test_two_markers_of_a_tape_map_that_disagree_by_its_stated_error_give_a_pose
     leaves 3.2 px RMS, all of it what the stated map error explains; the RMS gate (2 px) rejected the frame as
     'reprojection', as it did 92-157 of the flight's 157 frames with two or three markers on three random
     tape maps. It is a pose whose sd covers its error."""
-    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
-    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
-    truth = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)
-    video = cv2.VideoCapture(str(sequence / "video.avi"))
-    video.set(cv2.CAP_PROP_POS_FRAMES, 130)
-    ok, image = video.read()
-    assert ok
-    detections = Detector(DetectorParams(parity=FACILITY.parity, dictionary=FACILITY.dictionary),
-                          camera=camera).detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    camera, truth, (detections,) = aisle_flight(start=130, count=1)
     taped = dict(FACILITY.markers)
     for marker_id, sign in ((2, 1), (32, -1)):
         off = frames.make_transform(cv2.Rodrigues(np.array([0.0, sign * math.radians(2.0), 0.0]))[0], [sign * 0.02, 0, 0])
@@ -253,7 +256,7 @@ def test_two_markers_of_a_tape_map_that_disagree_by_its_stated_error_give_a_pose
                           PoseParams(map_sd_m=0.02, map_sd_deg=2.0)).solve_detailed(detections, t_ns=0)
     assert solution.status == "ok" and sorted(solution.marker_ids) == [2, 32]
     assert solution.fits[0].rms_px > 2.0  # beyond max_rms_px: the map's error, not the points'
-    error_m = np.linalg.norm(solution.measurement.T_map_body[:3, 3] - truth[130, 2:5])
+    error_m = np.linalg.norm(solution.measurement.T_map_body[:3, 3] - truth[0, 2:5])
     assert 0.005 < error_m < 3 * position_sd_m(solution.measurement)
 
 
@@ -266,14 +269,7 @@ def test_on_tape_maps_the_poses_and_the_estimates_sent_cover_their_errors():
     map's share)."""
     from companion.fusion import PoseFilter
 
-    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
-    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
-    truth = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)
-    detector = Detector(DetectorParams(parity=FACILITY.parity, dictionary=FACILITY.dictionary), camera=camera)
-    video = cv2.VideoCapture(str(sequence / "video.avi"))
-    detections = []
-    while (read := video.read())[0]:
-        detections.append(detector.detect(cv2.cvtColor(read[1], cv2.COLOR_BGR2GRAY)))
+    camera, truth, detections = aisle_flight()
     bound = chi2_quantile(0.99, 3)
     for seed in range(3):
         rng = np.random.default_rng(seed)
