@@ -235,7 +235,7 @@ def test_two_markers_that_pull_one_joint_fit_apart_are_said_to_disagree():
     solution = PoseSolver(moved_map, camera).solve_detailed(detections, t_ns=0)
     assert solution.measurement is None and solution.status == "inconsistent markers"
     # both were left out, each seen about 10 cm off from the fit of the other (for the daemon's MapWatch)
-    assert sorted(solution.rejected_ids) == [2, 32]
+    assert solution.marker_ids == () and sorted(solution.rejected_ids) == [2, 32]
     assert [o.marker_id for o in solution.rejected_offsets] == list(solution.rejected_ids)
     for offset in solution.rejected_offsets:
         assert 0.09 < offset.position_m < 0.11 and offset.angle_deg < 1.0, offset

@@ -402,8 +402,9 @@ class PoseSolution:
         ``used_prior``).
     used_attitude: the flight controller's roll and pitch were part of the fit.
     marker_ids: ids of the markers used (without a pose: of the fit it came
-        nearest with); rejected_ids: mapped markers seen but left out as
-        inconsistent, with "inconsistent markers" every mapped marker seen;
+        nearest with; none with "inconsistent markers"); rejected_ids: mapped
+        markers seen but left out as inconsistent, with "inconsistent markers"
+        every mapped marker seen;
         rejected_offsets: how far off its map entry each of them was seen,
         in the same order (with "inconsistent markers": seen from the best fit
         that left it out, NaN where none did); unmapped_ids:
@@ -502,7 +503,7 @@ class PoseSolver:
         if choice.status == "inconsistent markers":  # every marker seen was left out, none outvoted
             return PoseSolution(None, choice.status, rejected_ids=tuple(o.marker.id for o in observations),
                                 rejected_offsets=tuple(self._offset_from_the_others(o, solved, fits)
-                                                       for o in observations), **common)
+                                                       for o in observations), **{**common, "marker_ids": ()})
         if choice.status != "ok":
             return PoseSolution(None, choice.status, **common)
         with_attitude = choice.fit.with_attitude
