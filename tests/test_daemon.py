@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import yaml
 
+from companion.geometry.frames import make_transform
 from companion.geometry.facility_map import load_map, write_map
 from companion.capture.replay import open_recording
 from mavlink_peer import PeerProcess, free_port
@@ -1214,3 +1215,28 @@ def test_a_marker_moved_since_the_map_was_made_is_said_with_how_far_and_weighed_
     assert len(told_ns) == 1
     # the frames after it were posed without N: vision went on
     assert sum(r["t_ns"] > told_ns[0] for r in peer.records("VISION_POSITION_ESTIMATE")) >= 5
+
+
+def test_a_map_less_accurate_than_the_config_says_is_told_and_weighed_as_it_is(tmp_path, peers):
+    """The shipped aisle flight replayed (as fast as possible) on a tape-measured map (every entry off by 2 cm
+    and 2 degrees sd) with the config's default accuracy (5 mm, 0.2 deg): most frames of two markers went
+    without a pose. The daemon says once, in its log and by STATUSTEXT, that markers disagree with each other
+    by more than the map states, and weighs every marker as that uncertain from then on: vision goes on."""
+    truth = load_map(MAP)
+    rng = np.random.default_rng(0)
+    taped = tmp_path / "taped.yaml"
+    write_map(dataclasses.replace(truth, markers={i: dataclasses.replace(m, T_map_marker=m.T_map_marker @ make_transform(
+        cv2.Rodrigues(np.radians(rng.normal(0, 2.0, 3)))[0], rng.normal(0, 0.02, 3))) for i, m in truth.markers.items()}),
+              taped)
+    port = free_port()
+    peer = peers(port, "--origin-reply", "on_set")
+    config = write_config(tmp_path, AISLE, port, source={"realtime": False})
+    config.write_text(yaml.safe_dump({**yaml.safe_load(config.read_text()), "map": str(taped)}))
+    code, _, stderr = finish(start_daemon(config), timeout_s=60)
+    assert code == 0, stderr
+    said = [line for line in stderr.splitlines() if "markers disagree with each other by" in line]
+    assert len(said) == 1 and "the map is less accurate than the config states (pose.map_sd_m" in said[0], stderr
+    assert "disagrees with the map" not in stderr  # no one marker is blamed
+    told = [r for r in peer.records("STATUSTEXT") if r["fields"]["text"].startswith("companion: markers disagree by")]
+    assert len(told) == 1
+    assert sum(r["t_ns"] > told[0]["t_ns"] for r in peer.records("VISION_POSITION_ESTIMATE")) >= 50

@@ -686,6 +686,88 @@ def test_of_two_markers_that_disagree_the_watch_counts_the_one_never_seen_agreei
     assert told == ([(ids["N"], pytest.approx(0.10), pytest.approx(0.5))] if blamed else [])
 
 
+@pytest.mark.parametrize("pairs, said", [
+    ((("O", "N"), ("N", "UP"), ("UP", "DOWN"), ("DOWN", "O")), True),   # all over the map: its accuracy
+    ((("O", "N"), ("N", "UP"), ("N", "DOWN")), False),                 # N in every one: N moved (said as itself)
+])
+def test_the_watch_says_once_when_markers_all_over_the_map_disagree_more_than_it_states(caplog, pairs, said):
+    """Frames of two markers that disagree (no pose), 40 of the last 60 frames with two or more: when no one
+    marker is in most of them, the map as a whole is less accurate than stated; the watch says so once, with
+    the median disagreement, and hands on half of it as each marker's uncertainty."""
+    import logging
+
+    from companion.daemon.map_watch import MapWatch, MapWatchParams
+    from companion.daemon.pipeline import FrameRecord
+    from companion.geometry.pose import MarkerOffset, PoseSolution
+
+    facility_map = load_map(MAP)
+    ids = {symbol: facility_map.marker_by_symbol(symbol).id for symbol in ("O", "N", "UP", "DOWN")}
+    told = []
+    watch = MapWatch(facility_map, link=None, params=MapWatchParams(window=1000, min_rejected=1000),
+                     on_map_error=lambda *sd: told.append(sd))
+    with caplog.at_level(logging.WARNING, logger="companion"):
+        for index in range(90):
+            if index % 3 == 2:  # a third of the frames agree
+                solution = PoseSolution(None, "ok", marker_ids=(ids["O"], ids["UP"]))
+            else:
+                a, b = (ids[s] for s in pairs[index % len(pairs)])
+                solution = PoseSolution(None, "inconsistent markers", rejected_ids=(a, b), rejected_offsets=(
+                    MarkerOffset(a, 0.06 + 0.001 * (index % 5), 4.0), MarkerOffset(b, 0.06, 4.0)))
+            watch(None, FrameRecord(index, index, index, (0, 0, 0, 0), False, None, (), solution, None))
+    messages = [r.getMessage() for r in caplog.records if "markers disagree with each other" in r.getMessage()]
+    assert watch.map_reported == said and len(messages) == int(said)
+    if said:
+        assert told == [(pytest.approx(0.03, abs=0.001), pytest.approx(2.0))]
+        assert "by 6.0 cm and 4.0 deg" in messages[0] and "pose.map_sd_m" in messages[0]
+    else:
+        assert told == []
+
+
+def test_a_tape_map_stated_as_surveyed_is_found_out_and_weighed_as_it_is():
+    """The shipped aisle flight on a tape map (each entry off by 2 cm and 2 degrees sd), the config stating the
+    default 5 mm and 0.2 deg: two markers seen together disagree in most frames, which went without a pose.
+    The watch finds the map less accurate than stated within 60 frames of two or more markers and loosens
+    every marker: far more frames are sent, with covariances that cover their errors more often."""
+    from dataclasses import replace
+
+    from companion.daemon.map_watch import MapWatch
+    from companion.daemon.pipeline import Pipeline
+    from companion.detect.detector import Detector, DetectorParams
+    from companion.fusion import PoseFilter
+    from companion.geometry.pose import PoseParams, PoseSolver
+    from companion.types import Frame
+
+    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
+    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
+    truth_csv = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)
+    truth = load_map(MAP)
+    rng = np.random.default_rng(0)
+    taped = replace(truth, markers={i: replace(m, T_map_marker=m.T_map_marker @ frames.make_transform(
+        cv2.Rodrigues(np.radians(rng.normal(0, 2.0, 3)))[0], rng.normal(0, 0.02, 3))) for i, m in truth.markers.items()})
+    video = cv2.VideoCapture(str(sequence / "video.avi"))
+    images = [cv2.cvtColor(video.read()[1], cv2.COLOR_BGR2GRAY) for _ in truth_csv]
+    detector = Detector(DetectorParams(parity=truth.parity, dictionary=truth.dictionary), camera=camera)
+    outcome = {}
+    for watched in (False, True):
+        pipeline = Pipeline(detector, PoseSolver(taped, camera, PoseParams()), PoseFilter(), None,
+                            frames.invert_transform(truth.T_ned_map))
+        watch = MapWatch(taped, link=None, on_disagreement=pipeline.solver.loosen,
+                         on_map_error=pipeline.solver.loosen_all)
+        if watched:
+            pipeline.observers.append(watch)
+        sent, covered = 0, 0
+        for row, image in zip(truth_csv, images):
+            estimate = pipeline.process(Frame(image, int(row[1]), int(row[0]))).estimate
+            if estimate is not None:
+                error = estimate.position_ned_m - row[9:12]
+                sent += 1
+                covered += float(error @ np.linalg.solve(estimate.covariance_ned[:3, :3], error)) <= 11.34
+        outcome[watched] = (sent, covered, watch.map_reported, watch.reported)
+    (sent_before, covered_before, _, _), (sent_after, covered_after, map_said, markers_said) = outcome[False], outcome[True]
+    assert map_said and markers_said == []
+    assert sent_after > sent_before + 50 and covered_after > covered_before + 50, outcome
+
+
 def test_a_moved_marker_seen_beside_one_other_is_reported_and_the_frames_posed_on_the_other():
     """The shipped aisle flight, marker 32 moved 10 cm in the map: it is seen beside 1 (17 frames), then
     beside 1 and 2 (4 frames, left out), then beside 2 alone (33 frames). 1 and 2 have been seen agreeing with

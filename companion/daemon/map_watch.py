@@ -40,10 +40,17 @@ log = logging.getLogger("companion")
 @dataclass(frozen=True)
 class MapWatchParams:
     """window: a marker's last frames that count (those where the gate judged it: used or left out);
-    min_rejected: left out in at least this many of them."""
+    min_rejected: left out in at least this many of them.
+    map_window: the last frames of two or more mapped markers that count for the map as a whole;
+    map_min_disagreeing: markers disagreed in at least this many of them, map_max_share: and no one marker was
+    left out in more than this share of those (one moved marker is said as itself): the map is less accurate
+    than stated."""
 
     window: int = 30
     min_rejected: int = 20
+    map_window: int = 60
+    map_min_disagreeing: int = 30
+    map_max_share: float = 0.67
 
 
 class MapWatch:
@@ -51,11 +58,16 @@ class MapWatch:
     keeps happening. Runs on the pipeline thread: a few dictionary updates per frame."""
 
     def __init__(self, facility_map: FacilityMap, link: MavlinkLink | None, params: MapWatchParams = MapWatchParams(),
-                 on_disagreement: Callable[[int, float, float], None] | None = None):
+                 on_disagreement: Callable[[int, float, float], None] | None = None,
+                 on_map_error: Callable[[float, float], None] | None = None):
         """on_disagreement(marker id, position m, angle deg): called once per marker reported, with how far off
-        it was seen."""
+        it was seen; on_map_error(sd m, sd deg): called once if the map as a whole is found less accurate than
+        stated, with how uncertain each marker is taken to be."""
         self.facility_map, self.link, self.params = facility_map, link, params
-        self.on_disagreement = on_disagreement
+        self.on_disagreement, self.on_map_error = on_disagreement, on_map_error
+        self._map_frames: collections.deque = collections.deque(maxlen=params.map_window)  # the ids left out
+        self._map_offsets: collections.deque = collections.deque(maxlen=2 * params.map_window)
+        self.map_reported = False
         self._judged: dict[int, collections.deque] = {}
         self._offsets: dict[int, collections.deque] = {}  # (position m, angle deg) of the frames that left it out
         self._agreed: set[int] = set()  # markers used beside another in an accepted pose, not reported since
@@ -72,6 +84,38 @@ class MapWatch:
             self._left_out(solution.rejected_ids, solution.rejected_offsets)
         elif solution.status == "inconsistent markers":
             self._left_out(*self._outvoted(solution))
+        else:
+            return
+        if len(solution.marker_ids) + len(solution.rejected_ids) > 1 and not self.map_reported:
+            self._judge_map(solution)
+
+    def _judge_map(self, solution) -> None:
+        """The map as a whole, from a frame of two or more markers: did any disagree (reported ones aside)?"""
+        left_out = [o for o in solution.rejected_offsets if o.marker_id not in self.reported]
+        self._map_frames.append(frozenset(o.marker_id for o in left_out))
+        self._map_offsets.extend(o for o in left_out if math.isfinite(o.position_m) and math.isfinite(o.angle_deg))
+        disagreeing = [ids for ids in self._map_frames if ids]
+        if len(self._map_frames) < self.params.map_window or len(disagreeing) < self.params.map_min_disagreeing:
+            return
+        most = collections.Counter(i for ids in disagreeing for i in ids).most_common(1)[0][1]
+        if most <= self.params.map_max_share * len(disagreeing) and self._map_offsets:
+            self._report_map(len(disagreeing))
+
+    def _report_map(self, disagreeing: int) -> None:
+        self.map_reported = True
+        position_m, angle_deg = np.median([(o.position_m, o.angle_deg) for o in self._map_offsets], axis=0)
+        # each of two markers that disagree carries about half of what separates them
+        sd_m, sd_deg = float(position_m) / 2, float(angle_deg) / 2
+        log.warning("markers disagree with each other by %.1f cm and %.1f deg (median, in %d of the last %d frames "
+                    "with two or more, not one marker's doing): the map is less accurate than the config states "
+                    "(pose.map_sd_m, map_sd_deg); every marker weighed as %.1f cm and %.1f deg uncertain from now "
+                    "on; state the map's accuracy, or survey the site (companion survey)",
+                    100 * position_m, angle_deg, disagreeing, len(self._map_frames), 100 * sd_m, sd_deg)
+        if self.on_map_error is not None:
+            self.on_map_error(sd_m, sd_deg)
+        if self.link is not None:
+            self.link.statustext(f"companion: markers disagree by {100 * position_m:.0f} cm {angle_deg:.0f} deg",
+                                 SEVERITY_WARNING)
 
     def _outvoted(self, solution) -> tuple[tuple[int, ...], tuple]:
         """Of two markers that disagree, the one never seen to agree with another marker, when the other has

@@ -138,8 +138,9 @@ class Daemon:
         self.pipeline.observers.append(self.health.observe)
         # a marker the pose stage keeps leaving out is said once (docs/survey.md), and weighed from then on as
         # uncertain as it was seen to be off (the pipeline's solver: the one for the frames' size)
-        self.pipeline.observers.append(MapWatch(config.facility_map, self.link, on_disagreement=lambda *offset:
-                                                self.pipeline.solver.loosen(*offset)))
+        self.pipeline.observers.append(MapWatch(
+            config.facility_map, self.link, on_disagreement=lambda *offset: self.pipeline.solver.loosen(*offset),
+            on_map_error=lambda *sd: self.pipeline.solver.loosen_all(*sd)))
         # so is a camera mount (or FC level) that puts the markers' down away from the FC's
         self.pipeline.observers.append(MountWatch(self.link, MountWatchParams(
             min_angle_deg=MOUNT_WATCH_SDS * config.pose.attitude_sd_deg)))

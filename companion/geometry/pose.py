@@ -525,6 +525,14 @@ class PoseSolver:
         loosened = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
         self._loose[marker_id] = np.maximum(self._loose.get(marker_id, self._map_var[marker_id]), loosened)
 
+    def loosen_all(self, sd_m: float, sd_deg: float) -> None:
+        """The map as a whole was found less accurate than stated (the daemon's ``MapWatch``): every marker's map
+        variances are raised to these (never lowered), so that markers may disagree by that much and the
+        covariance says so."""
+        loosened = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
+        self._map_var = {marker_id: np.maximum(v, loosened) for marker_id, v in self._map_var.items()}
+        self._loose = {marker_id: np.maximum(v, loosened) for marker_id, v in self._loose.items()}
+
     def _offset_from_the_others(self, observation: MarkerObservation, solved: list[MarkerObservation],
                                 fits: list[Fit]) -> MarkerOffset:
         """A marker's offset seen from the best plausible fit that leaves it out (NaN where none does)."""
