@@ -20,6 +20,13 @@ From then on the pose stage leaves the marker out beside others and, seen
 alone, weighs it as that uncertain: a marker 10 cm off gives poses whose
 sd says 10 cm, for the filter and the autopilot to weigh, where before they
 said 2.4 cm (docs/survey.md, "The daemon's watch").
+
+The map as a whole: when markers keep disagreeing all over the site, not one
+marker in most of it (a tape-measured map under a config that states a
+surveyed one's accuracy), the watch says once that the map is less accurate
+than stated, and hands half the median disagreement to ``on_map_error``
+(the daemon's: ``PoseSolver.loosen_all``): every marker is weighed as that
+uncertain from then on.
 """
 from __future__ import annotations
 
@@ -54,8 +61,9 @@ class MapWatchParams:
 
 
 class MapWatch:
-    """Counts, per marker, the frames where the pose consistency gate left it out; says it once when it
-    keeps happening. Runs on the pipeline thread: a few dictionary updates per frame."""
+    """Counts, per marker, the frames where the pose consistency gate left it out, and for the map as a whole
+    the frames where markers disagreed; says each once when it keeps happening. Runs on the pipeline thread: a
+    few dictionary updates per frame."""
 
     def __init__(self, facility_map: FacilityMap, link: MavlinkLink | None, params: MapWatchParams = MapWatchParams(),
                  on_disagreement: Callable[[int, float, float], None] | None = None,
