@@ -522,14 +522,14 @@ class PoseSolver:
         ``MapWatch``): from now on it is left out beside other markers, and posed on alone with its map
         variances raised to these (never lowered), so that its pose comes with a covariance that covers the
         error, not a few millimetres'."""
-        loosened = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
+        loosened = _pose_variances(sd_m, sd_deg)
         self._loose[marker_id] = np.maximum(self._loose.get(marker_id, self._map_var[marker_id]), loosened)
 
     def loosen_all(self, sd_m: float, sd_deg: float) -> None:
         """The map as a whole was found less accurate than stated (the daemon's ``MapWatch``): every marker's map
         variances are raised to these (never lowered), so that markers may disagree by that much and the
         covariance says so."""
-        loosened = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
+        loosened = _pose_variances(sd_m, sd_deg)
         self._map_var = {marker_id: np.maximum(v, loosened) for marker_id, v in self._map_var.items()}
         self._loose = {marker_id: np.maximum(v, loosened) for marker_id, v in self._loose.items()}
 
@@ -635,7 +635,7 @@ class PoseSolver:
         for marker in self.facility_map.markers.values():
             sd_m = self.params.map_sd_m if marker.sd_position_m is None else marker.sd_position_m
             sd_deg = self.params.map_sd_deg if marker.sd_angle_deg is None else marker.sd_angle_deg
-            variances[marker.id] = np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
+            variances[marker.id] = _pose_variances(sd_m, sd_deg)
         return variances
 
     def _points_of(self, marker: MapMarker) -> tuple[np.ndarray, np.ndarray]:
@@ -1035,6 +1035,11 @@ class PoseSolver:
 def position_sd_m(measurement: PoseMeasurement) -> float:
     """Standard deviation of the position along its worst axis, metres."""
     return math.sqrt(max(float(np.linalg.eigvalsh(measurement.covariance_ned[:3, :3])[-1]), 0.0))
+
+
+def _pose_variances(sd_m: float, sd_deg: float) -> np.ndarray:
+    """(6,) variances of a pose, [m^2 (3), rad^2 (3)], from its position and angle sd."""
+    return np.array([sd_m ** 2] * 3 + [math.radians(sd_deg) ** 2] * 3)
 
 
 def _corner_cov_px2(cov_px2) -> np.ndarray | None:
