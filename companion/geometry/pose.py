@@ -306,7 +306,7 @@ class _Weights:
 
     points: _Points
     inverse_roots: list[np.ndarray] | None
-    map_px2: np.ndarray | None = None  # (M,) per marker: trace(G S G^T), the squared pixel errors its map error explains
+    map_px2: np.ndarray | None = None  # (M,) per marker: trace(G S G^T), its map error in squared pixels
     map_roots: list[np.ndarray] | None = None  # per marker: (2n, 6) Sigma^-1/2 G S^1/2, its map error whitened
 
     def whiten(self, values: np.ndarray) -> np.ndarray:
@@ -859,8 +859,9 @@ class PoseSolver:
             return weights, weights
         return weights, self._weights(T_camera_map, points.without_common_shift())
 
-    def _weights(self, T_camera_map: np.ndarray, points: _Points) -> _Weights:
-        """The points' weights at a camera pose (see ``_Weights``)."""
+    def _weights(self, T_camera_map: np.ndarray, points: _Points, with_map_roots: bool = False) -> _Weights:
+        """The points' weights at a camera pose (see ``_Weights``); ``map_roots`` only ``with_map_roots`` (the
+        covariance's, once per pose: not every hypothesis's)."""
         map_error = bool(points.map_var.any())
         if not map_error and not points.correlated:
             return _Weights(points, None)
@@ -874,7 +875,9 @@ class PoseSolver:
             G = np.concatenate([D, _cross(r[:, None, :], D)], axis=2)
         roots: list[np.ndarray | None] = [None] * len(points.counts)
         map_px2 = np.zeros(len(points.counts)) if map_error else None
-        map_roots: list[np.ndarray | None] | None = [None] * len(points.counts) if map_error else None
+        map_roots: list[np.ndarray | None] | None = None
+        if map_error and with_map_roots:
+            map_roots = [None] * len(points.counts)
         for count in np.unique(points.counts):  # one batch per point count (4: every square-path marker)
             markers = np.flatnonzero(points.counts == count)
             noise = np.stack([points.noise_px2(m) for m in markers])
@@ -893,7 +896,7 @@ class PoseSolver:
             inverse_roots = (vectors / np.sqrt(np.maximum(values, floor))[:, None, :]) @ vectors.transpose(0, 2, 1)
             for m, root in zip(markers, inverse_roots):
                 roots[m] = root
-            if map_error:
+            if map_roots is not None:
                 for m, map_root in zip(markers, inverse_roots @ (g * np.sqrt(S))):
                     map_roots[m] = map_root
         return _Weights(points, roots, map_px2, map_roots)
@@ -982,7 +985,7 @@ class PoseSolver:
         plus the shift's. It is the part of C that frames seeing the same markers share.
         """
         common = points.common_shift_var
-        weights = self._weights(self._T_camera_map(T_map_body), points.without_common_shift())
+        weights = self._weights(self._T_camera_map(T_map_body), points.without_common_shift(), with_map_roots=True)
         jacobian = self._pose_jacobian(T_map_body, points.map).reshape(-1, 2, 6)
         J = weights.whiten(jacobian).reshape(-1, 6)
         information = J.T @ J

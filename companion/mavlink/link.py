@@ -368,7 +368,9 @@ class MavlinkLink:
         if self.stream and self.state is not LinkState.DUPLICATE:
             with self._statustext_lock:
                 queued, self._statustexts = self._statustexts, []
-            final = [(q.severity, q.text) for q in queued] + ([] if last_words is None else [(SEVERITY_WARNING, last_words)])
+            final = [(q.severity, q.text) for q in queued]
+            if last_words is not None:
+                final.append((SEVERITY_WARNING, last_words))
             for severity, text in final:   # while the link's thread keeps the connection open
                 self._send(mm.statustext(severity, text))
         self._stop.set()
