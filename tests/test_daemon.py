@@ -23,9 +23,9 @@ import numpy as np
 import pytest
 import yaml
 
-from companion.geometry.frames import make_transform
 from companion.geometry.facility_map import load_map, write_map
 from companion.capture.replay import open_recording
+from aisle import tape_map
 from mavlink_peer import PeerProcess, free_port
 
 REPO = Path(__file__).resolve().parent.parent
@@ -1222,12 +1222,8 @@ def test_a_map_less_accurate_than_the_config_says_is_told_and_weighed_as_it_is(t
     and 2 degrees sd) with the config's default accuracy (5 mm, 0.2 deg): most frames of two markers went
     without a pose. The daemon says once, in its log and by STATUSTEXT, that markers disagree with each other
     by more than the map states, and weighs every marker as that uncertain from then on: vision goes on."""
-    truth = load_map(MAP)
-    rng = np.random.default_rng(0)
     taped = tmp_path / "taped.yaml"
-    write_map(dataclasses.replace(truth, markers={i: dataclasses.replace(m, T_map_marker=m.T_map_marker @ make_transform(
-        cv2.Rodrigues(np.radians(rng.normal(0, 2.0, 3)))[0], rng.normal(0, 0.02, 3))) for i, m in truth.markers.items()}),
-              taped)
+    write_map(tape_map(load_map(MAP), 0), taped)
     port = free_port()
     peer = peers(port, "--origin-reply", "on_set")
     config = write_config(tmp_path, AISLE, port, source={"realtime": False})

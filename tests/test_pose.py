@@ -1,4 +1,5 @@
 """Pose solver on synthetic projections of the example map: accuracy against truth."""
+import itertools
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -6,7 +7,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
 
 from companion.geometry import frames
 from companion.geometry.camera import CameraModel
@@ -17,6 +17,7 @@ from companion.geometry.pose import PoseParams, PoseSolver, chi2_quantile, posit
 from companion.markers.layout import MarkerLayout
 from companion.sim import occluders, raster
 from companion.types import Detection
+from aisle import aisle_flight, tape_map
 
 REPO = Path(__file__).resolve().parents[1]
 FACILITY = load_map(REPO / "maps" / "warehouse.yaml")
@@ -202,22 +203,16 @@ def test_two_disagreeing_markers_give_no_pose():
     assert solution.status == "inconsistent markers"
 
 
-def aisle_flight(start: int = 0, count: int | None = None):
-    """The shipped aisle flight from frame ``start`` on (``count`` frames, default all): (its camera, its
-    ground-truth rows, the detections of each frame)."""
-    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
-    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
-    truth = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)[start:]
-    truth = truth if count is None else truth[:count]
+def aisle_detections(start: int = 0, count: int | None = None):
+    """The shipped aisle flight: (its camera, the sequence read back with its truth, the detections of its
+    frames from ``start`` on, ``count`` of them, default all)."""
+    camera, sequence = aisle_flight()
+    stop = len(sequence.t_ns) if count is None else start + count
     detector = Detector(DetectorParams(parity=FACILITY.parity, dictionary=FACILITY.dictionary), camera=camera)
-    video = cv2.VideoCapture(str(sequence / "video.avi"))
-    video.set(cv2.CAP_PROP_POS_FRAMES, start)
-    detections = []
-    for _ in truth:
-        ok, image = video.read()
-        assert ok
-        detections.append(detector.detect(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)))
-    return camera, truth, detections
+    detections = [detector.detect(image) for index, image in itertools.takewhile(
+        lambda frame: frame[0] < stop, sequence.images()) if index >= start]
+    assert len(detections) == stop - start
+    return camera, sequence, detections
 
 
 def test_two_markers_that_pull_one_joint_fit_apart_are_said_to_disagree():
@@ -225,7 +220,7 @@ def test_two_markers_that_pull_one_joint_fit_apart_are_said_to_disagree():
     (the daemon's default map sd) the two are gathered into one fit that neither agrees with, and each alone
     fits: the frame was said as a bad reprojection ('markers lost: reprojection' pointed at the camera), it is
     two markers that disagree."""
-    camera, _, (detections,) = aisle_flight(start=130, count=1)
+    camera, _, (detections,) = aisle_detections(start=130, count=1)
     assert sorted(d.id for d in detections) == [2, 32]
     assert PoseSolver(FACILITY, camera).solve_detailed(detections, t_ns=0).status == "ok"
     marker = FACILITY.markers[32]
@@ -247,7 +242,7 @@ def test_two_markers_of_a_tape_map_that_disagree_by_its_stated_error_give_a_pose
     leaves 3.2 px RMS, all of it what the stated map error explains; the RMS gate (2 px) rejected the frame as
     'reprojection', as it did 92-157 of the flight's 157 frames with two or three markers on three random
     tape maps. It is a pose whose sd covers its error."""
-    camera, truth, (detections,) = aisle_flight(start=130, count=1)
+    camera, sequence, (detections,) = aisle_detections(start=130, count=1)
     taped = dict(FACILITY.markers)
     for marker_id, sign in ((2, 1), (32, -1)):
         off = frames.make_transform(cv2.Rodrigues(np.array([0.0, sign * math.radians(2.0), 0.0]))[0], [sign * 0.02, 0, 0])
@@ -256,7 +251,7 @@ def test_two_markers_of_a_tape_map_that_disagree_by_its_stated_error_give_a_pose
                           PoseParams(map_sd_m=0.02, map_sd_deg=2.0)).solve_detailed(detections, t_ns=0)
     assert solution.status == "ok" and sorted(solution.marker_ids) == [2, 32]
     assert solution.fits[0].rms_px > 2.0  # beyond max_rms_px: the map's error, not the points'
-    error_m = np.linalg.norm(solution.measurement.T_map_body[:3, 3] - truth[0, 2:5])
+    error_m = np.linalg.norm(solution.measurement.T_map_body[:3, 3] - sequence.T_map_body[130][:3, 3])
     assert 0.005 < error_m < 3 * position_sd_m(solution.measurement)
 
 
@@ -269,18 +264,15 @@ def test_on_tape_maps_the_poses_and_the_estimates_sent_cover_their_errors():
     map's share)."""
     from companion.fusion import PoseFilter
 
-    camera, truth, detections = aisle_flight()
+    camera, sequence, detections = aisle_detections()
     bound = chi2_quantile(0.99, 3)
     for seed in range(3):
-        rng = np.random.default_rng(seed)
-        taped = {i: replace(m, T_map_marker=m.T_map_marker @ frames.make_transform(
-            cv2.Rodrigues(np.radians(rng.normal(0, 2.0, 3)))[0], rng.normal(0, 0.02, 3))) for i, m in FACILITY.markers.items()}
-        solver = PoseSolver(replace(FACILITY, markers=taped), camera, PoseParams(map_sd_m=0.02, map_sd_deg=2.0))
+        solver = PoseSolver(tape_map(FACILITY, seed), camera, PoseParams(map_sd_m=0.02, map_sd_deg=2.0))
         pose_filter = PoseFilter()
         within = {"pose": [], "estimate": []}
-        for row, seen in zip(truth, detections):
-            measurement = solver.solve(seen, int(row[1]))
-            estimate = pose_filter.step(int(row[1]), measurement)
+        for t_ns, T_ned_body, seen in zip(sequence.t_ns, sequence.T_ned_body, detections):
+            measurement = solver.solve(seen, int(t_ns))
+            estimate = pose_filter.step(int(t_ns), measurement)
             sent = [] if estimate is None else [("estimate", estimate.position_ned_m, estimate.covariance_ned)]
             if measurement is not None:
                 sent.append(("pose", measurement.T_ned_body[:3, 3], measurement.covariance_ned))
@@ -289,7 +281,7 @@ def test_on_tape_maps_the_poses_and_the_estimates_sent_cover_their_errors():
                 assert np.linalg.eigvalsh(measurement.covariance_ned - share).min() > -1e-9
                 assert np.trace(share[:3, :3]) > 0.5 * np.trace(measurement.covariance_ned[:3, :3])
             for kind, position_ned_m, covariance in sent:
-                error = position_ned_m - row[9:12]
+                error = position_ned_m - T_ned_body[:3, 3]
                 within[kind].append(float(error @ np.linalg.solve(covariance[:3, :3], error)) <= bound)
         assert len(within["pose"]) > 200 and len(within["estimate"]) > 230, seed
         assert np.mean(within["pose"]) > 0.95 and np.mean(within["estimate"]) > 0.95, (seed, {

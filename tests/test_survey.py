@@ -20,6 +20,7 @@ from companion.geometry import frames
 from companion.geometry.camera import CameraModel
 from companion.geometry.facility_map import MapError, load_map, map_from_dict, write_map
 from companion.sim import simulate, trajectory
+from aisle import aisle_flight, tape_map
 
 REPO = Path(__file__).resolve().parent.parent
 MAP = REPO / "maps" / "warehouse.yaml"
@@ -728,8 +729,6 @@ def test_a_tape_map_stated_as_surveyed_is_found_out_and_weighed_as_it_is():
     default 5 mm and 0.2 deg: two markers seen together disagree in most frames, which went without a pose.
     The watch finds the map less accurate than stated within 60 frames of two or more markers and loosens
     every marker: far more frames are sent, with covariances that cover their errors more often."""
-    from dataclasses import replace
-
     from companion.daemon.map_watch import MapWatch
     from companion.daemon.pipeline import Pipeline
     from companion.detect.detector import Detector, DetectorParams
@@ -737,15 +736,10 @@ def test_a_tape_map_stated_as_surveyed_is_found_out_and_weighed_as_it_is():
     from companion.geometry.pose import PoseParams, PoseSolver
     from companion.types import Frame
 
-    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
-    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
-    truth_csv = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)
+    camera, sequence = aisle_flight()
     truth = load_map(MAP)
-    rng = np.random.default_rng(0)
-    taped = replace(truth, markers={i: replace(m, T_map_marker=m.T_map_marker @ frames.make_transform(
-        cv2.Rodrigues(np.radians(rng.normal(0, 2.0, 3)))[0], rng.normal(0, 0.02, 3))) for i, m in truth.markers.items()})
-    video = cv2.VideoCapture(str(sequence / "video.avi"))
-    images = [cv2.cvtColor(video.read()[1], cv2.COLOR_BGR2GRAY) for _ in truth_csv]
+    taped = tape_map(truth, 0)
+    images = [image for _, image in sequence.images()]
     detector = Detector(DetectorParams(parity=truth.parity, dictionary=truth.dictionary), camera=camera)
     outcome = {}
     for watched in (False, True):
@@ -756,10 +750,10 @@ def test_a_tape_map_stated_as_surveyed_is_found_out_and_weighed_as_it_is():
         if watched:
             pipeline.observers.append(watch)
         sent, covered = 0, 0
-        for row, image in zip(truth_csv, images):
-            estimate = pipeline.process(Frame(image, int(row[1]), int(row[0]))).estimate
+        for index, (t_ns, T_ned_body, image) in enumerate(zip(sequence.t_ns, sequence.T_ned_body, images)):
+            estimate = pipeline.process(Frame(image, int(t_ns), index)).estimate
             if estimate is not None:
-                error = estimate.position_ned_m - row[9:12]
+                error = estimate.position_ned_m - T_ned_body[:3, 3]
                 sent += 1
                 covered += float(error @ np.linalg.solve(estimate.covariance_ned[:3, :3], error)) <= 11.34
         outcome[watched] = (sent, covered, watch.map_reported, watch.reported)
@@ -782,9 +776,7 @@ def test_a_moved_marker_seen_beside_one_other_is_reported_and_the_frames_posed_o
     from companion.geometry.pose import PoseParams, PoseSolver
     from companion.types import Frame
 
-    sequence = REPO / "companion" / "data" / "sequences" / "warehouse_aisle"
-    camera = CameraModel.from_config(yaml.safe_load((sequence / "sequence.yaml").read_text())["camera"], "aisle")
-    truth_csv = np.loadtxt(sequence / "groundtruth.csv", delimiter=",", skiprows=1)
+    camera, sequence = aisle_flight()
     truth = load_map(MAP)
     marker = truth.markers[32]
     T_moved = marker.T_map_marker.copy()
@@ -795,21 +787,18 @@ def test_a_moved_marker_seen_beside_one_other_is_reported_and_the_frames_posed_o
                         frames.invert_transform(truth.T_ned_map))
     watch = MapWatch(moved, link=None, on_disagreement=pipeline.solver.loosen)
     pipeline.observers.append(watch)
-    video = cv2.VideoCapture(str(sequence / "video.avi"))
     beside_2 = []
-    for index in range(len(truth_csv)):
-        ok, image = video.read()
-        assert ok
-        record = pipeline.process(Frame(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), int(truth_csv[index, 1]), index))
+    for index, image in sequence.images():
+        record = pipeline.process(Frame(image, int(sequence.t_ns[index]), index))
         if sorted(d.id for d in record.detections) == [2, 32]:
-            beside_2.append((record, truth_csv[index]))
+            beside_2.append((record, sequence.T_map_body[index]))
     assert watch.reported == [32]
     assert len(beside_2) > 25
-    posed = [(r, row) for r, row in beside_2 if r.solution.status == "ok"]
+    posed = [(r, T_map_body) for r, T_map_body in beside_2 if r.solution.status == "ok"]
     assert len(posed) > 25
-    for record, row in posed:
+    for record, T_map_body in posed:
         assert record.solution.marker_ids == (2,) and record.solution.rejected_ids == (32,)
-        assert np.linalg.norm(record.measurement.T_map_body[:3, 3] - row[2:5]) < 0.03
+        assert np.linalg.norm(record.measurement.T_map_body[:3, 3] - T_map_body[:3, 3]) < 0.03
 
 
 def test_a_moved_marker_among_three_is_left_out_and_the_watch_reports_it(caplog):
