@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -22,6 +23,30 @@ import numpy as np
 import yaml
 
 REQUIRED = object()  # the default of a key that must be given
+
+
+class _InputLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, stricter and kinder: a key given twice in one mapping is an error (PyYAML keeps
+    the last and drops the first without a word: a second ``markers:`` would delete the first list), and
+    ``1e9`` or ``2e-1`` are numbers (YAML 1.1, which PyYAML follows, wants a dot: ``1.0e9``)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # "<<: *defaults": its keys may be given again, that is what it is for
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, (str, int, float, bool)):
+                if key in seen:
+                    raise yaml.constructor.ConstructorError("while reading a mapping", node.start_mark,
+                                                            f"key {key!r} given twice", key_node.start_mark)
+                seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+# YAML 1.1's floats, and numbers with an exponent but no dot (1e9, -2E-3)
+_InputLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*[eE][-+]?[0-9]+$"),
+                                   list("-+0123456789"))
 
 
 def read_yaml(path, error_type: type[ValueError], what: str) -> dict:
@@ -36,7 +61,7 @@ def read_yaml(path, error_type: type[ValueError], what: str) -> dict:
     except (OSError, UnicodeDecodeError) as error:
         raise where.error(f"cannot read {what}: {getattr(error, 'strerror', None) or error}") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_InputLoader)
     except yaml.YAMLError as error:
         raise where.error(f"not valid YAML: {_one_line(error)}") from None
     return where.mapping(data, f"the {what}")

@@ -215,3 +215,41 @@ def test_unreadable_and_malformed_files(tmp_path):
     bad.write_text("- just a list\n")
     with pytest.raises(MapError, match="must be a mapping"):
         load_map(bad)
+
+
+def test_a_key_given_twice_is_an_error_naming_the_key_and_its_line(tmp_path):
+    # PyYAML keeps the last of two equal keys: a second markers: list would drop the first without a word
+    path = tmp_path / "twice.yaml"
+    path.write_text("frame: {origin: here, x_bearing_deg: 0}\n"
+                    "markers:\n  - {symbol: A, position_m: [1, 2, 3], facing: +y, size_m: 0.18}\n"
+                    "markers:\n  - {symbol: B, position_m: [1, 2, 3], facing: +y, size_m: 0.18}\n")
+    with pytest.raises(MapError, match=r"twice.yaml: not valid YAML: line 4, column 1: key 'markers' given twice"):
+        load_map(path)
+    path.write_text("frame: {origin: here, x_bearing_deg: 0}\n"
+                    "markers:\n  - {symbol: A, position_m: [1, 2, 3], facing: +y, size_m: 0.18, size_m: 0.2}\n")
+    with pytest.raises(MapError, match=r"line 3, column \d+: key 'size_m' given twice"):
+        load_map(path)
+
+
+def test_numbers_with_an_exponent_and_no_dot_are_numbers(tmp_path):
+    # YAML 1.1 (PyYAML) reads 2e-1 as a string; a person writes it as a number
+    path = tmp_path / "exp.yaml"
+    path.write_text("frame: {origin: here, x_bearing_deg: 0}\ndefault_size_m: 2e-1\n"
+                    "markers:\n  - {symbol: A, position_m: [1e0, 2, 3E-1], facing: +y}\n")
+    marker = load_map(path).marker_by_symbol("A")
+    assert marker.size_m == 0.2
+    assert np.allclose(marker.T_map_marker[:3, 3], [1.0, 2.0, 0.3])
+
+
+@pytest.mark.parametrize("top, marker, place", [({"default_size_m": 180}, {}, "key 'default_size_m'"),
+                                                 ({}, {"size_m": 18.0}, r"\(A\): key 'size_m'"),
+                                                 ({"survey": {"sizes_m": {"B": 150}}}, {}, "survey.sizes_m: key 'B'")])
+def test_a_marker_size_in_centimetres_or_millimetres_is_refused(tmp_path, top, marker, place):
+    with pytest.raises(MapError, match=rf"{place}: must be at most 10 m .* got (180|18|150): centimetres or millimetres given"):
+        load_map(write_map(tmp_path, one(**marker), **top))
+
+
+def test_a_survey_size_for_one_of_the_maps_own_markers_must_be_its_entrys(tmp_path):
+    with pytest.raises(MapError, match=r"survey.sizes_m: key 'A': 0.2 m, but A is a marker of this map, of size_m 0.15"):
+        load_map(write_map(tmp_path, one(), survey={"sizes_m": {"A": 0.2}}))
+    assert load_map(write_map(tmp_path, one(), survey={"sizes_m": {"A": 0.15, "B": 0.2}})).survey.sizes_m["B"] == 0.2

@@ -10,7 +10,7 @@ from pathlib import Path
 from companion.capture.source import SourceError
 from companion.cli.output import OutputError, output_dir, output_file, write_failed
 from companion.geometry.camera import CameraError
-from companion.geometry.facility_map import MapError, load_map, write_map
+from companion.geometry.facility_map import MAX_MARKER_SIZE_M, MapError, load_map, write_map
 from companion.survey.observations import SurveyError, check_footage, footage_camera
 from companion.survey.survey import LOOSE_SD_M, MAX_CORNER_MISFIT, SurveyOptions, SurveyResult, survey
 
@@ -41,8 +41,9 @@ def main(args) -> int:
     progress = sys.stderr.isatty() if args.progress is None else args.progress
     writing = args.out
     try:
-        if args.size_m is not None and not (math.isfinite(args.size_m) and args.size_m > 0):
-            raise SurveyError(f"--size-m must be a positive number of metres, got {args.size_m:g}")
+        if args.size_m is not None and not (math.isfinite(args.size_m) and 0 < args.size_m <= MAX_MARKER_SIZE_M):
+            raise SurveyError(f"--size-m must be a positive number of metres up to {MAX_MARKER_SIZE_M:g}, got "
+                              f"{args.size_m:g}")
         anchors = load_map(args.anchors or args.existing)
         check_footage([Path(s) for s in args.sequences], args.fps)
         camera = footage_camera([Path(s) for s in args.sequences], args.camera)

@@ -31,6 +31,9 @@ SD_DIGITS = 4           # significant digits of a written sd
 ROTATION_KEYS = ("facing", "rpy_deg", "quaternion_wxyz")
 FACING_WORDS = {"+x": 0.0, "+y": 90.0, "-x": 180.0, "-y": -90.0, "up": "up", "down": "down"}
 PARITIES = (2, 4)
+# the largest inner square believed (as `companion markers` prints at most): a larger size was given in
+# centimetres or millimetres, and a survey with it puts markers kilometres away
+MAX_MARKER_SIZE_M = 10.0
 QUATERNION_NORM_TOLERANCE = 0.01
 
 
@@ -173,10 +176,11 @@ def map_from_dict(data, path: str) -> FacilityMap:
     parity = data.get("parity", 2)
     if parity not in PARITIES:
         raise where.error(f"must be one of {PARITIES}, got {parity!r}", "parity")
-    default_size_m = where.positive(data, "default_size_m", None)
+    default_size_m = _size_m(where, data, "default_size_m", None)
     frame = _frame(where.value(data, "frame"), where.sub("frame"))
     markers = _markers(where.value(data, "markers"), where, dictionary, default_size_m)
     survey = _survey(data.get("survey"), where.sub("survey"), dictionary)
+    _check_survey_sizes(survey, markers, where.sub("survey.sizes_m"))
     return FacilityMap(
         name=str(data.get("name", Path(path).stem)),
         path=path,
@@ -244,7 +248,7 @@ def _survey(section, where: Where, dictionary) -> SurveyHints:
     else:
         raise where.error(f"must be 'all' or a list of symbols, got {walls!r}", "on_vertical_wall")
     sizes = where.mapping(section.get("sizes_m"), "symbol: size_m")
-    sizes_m = {known(symbol, "sizes_m"): where.sub("sizes_m").positive(sizes, symbol) for symbol in sizes}
+    sizes_m = {known(symbol, "sizes_m"): _size_m(where.sub("sizes_m"), sizes, symbol) for symbol in sizes}
     defaults = SurveyHints()
     return SurveyHints(
         on_vertical_wall=on_vertical_wall,
@@ -253,6 +257,25 @@ def _survey(section, where: Where, dictionary) -> SurveyHints:
         anchor_sd_deg=where.positive(section, "anchor_sd_deg", defaults.anchor_sd_deg),
         wall_sd_deg=where.positive(section, "wall_sd_deg", defaults.wall_sd_deg),
     )
+
+
+def _check_survey_sizes(survey: SurveyHints, markers: dict[int, MapMarker], where: Where) -> None:
+    """A size in ``survey.sizes_m`` is for a marker the survey places: one of the map's own markers keeps its
+    entry's ``size_m``, and a different one there would be dropped without a word."""
+    for marker in markers.values():
+        size_m = survey.sizes_m.get(marker.symbol)
+        if size_m is not None and size_m != marker.size_m:
+            raise where.error(f"{size_m:g} m, but {marker.symbol} is a marker of this map, of size_m {marker.size_m:g} "
+                              f"(its entry's size is the one used)", marker.symbol)
+
+
+def _size_m(where: Where, mapping: dict, key: str, default=REQUIRED) -> float | None:
+    """A marker size in metres: positive, at most ``MAX_MARKER_SIZE_M`` (None for an absent key, default None)."""
+    size_m = where.positive(mapping, key, default)
+    if size_m is not None and size_m > MAX_MARKER_SIZE_M:
+        raise where.error(f"must be at most {MAX_MARKER_SIZE_M:g} m (the printed inner square's side in metres), got "
+                          f"{size_m:g}: centimetres or millimetres given?", key)
+    return size_m
 
 
 def _markers(section, where: Where, dictionary, default_size_m) -> dict[int, MapMarker]:
@@ -281,7 +304,7 @@ def _marker(entry, top: Where, index: int, dictionary, default_size_m) -> MapMar
     where.reject_unknown(entry, MARKER_KEYS)
     symbol, marker_id = _identity(entry, where, dictionary)
     where = top.sub(_label(index, symbol))
-    size_m = where.positive(entry, "size_m", REQUIRED if default_size_m is None else default_size_m)
+    size_m = _size_m(where, entry, "size_m", REQUIRED if default_size_m is None else default_size_m)
     position_m = where.numbers(entry, "position_m", (3,))
     R_map_marker = _orientation(entry, where)
     sd_position_m, sd_angle_deg = _sd(entry.get("sd"), where)
