@@ -105,19 +105,28 @@ def sequence_pose_params(sequence: Path, map_path: str | None, **given) -> PoseP
     return PoseParams(**given, **stated)
 
 
+GROUNDTRUTH_COLUMNS = ("frame", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")
+
+
 def groundtruth(sequence: Path) -> dict[int, np.ndarray] | None:
     """T_map_body (4, 4) by frame number from groundtruth.csv, or None without one."""
-    if not (sequence / "groundtruth.csv").is_file():
+    path = sequence / "groundtruth.csv"
+    if not path.is_file():
         return None
     truth = {}
-    with open(sequence / "groundtruth.csv", newline="") as handle:
-        for row in csv.DictReader(handle):
+    with open(path, newline="") as handle:
+        rows = csv.DictReader(handle)
+        missing = [column for column in GROUNDTRUTH_COLUMNS if column not in (rows.fieldnames or ())]
+        if missing:
+            raise LocalizeError(f"{path}: line 1: no column {', '.join(missing)} (a header of "
+                                f"{', '.join(GROUNDTRUTH_COLUMNS)} is needed)")
+        for row in rows:
             try:
                 q = [float(row[k]) for k in ("qw", "qx", "qy", "qz")]
                 p = [float(row[k]) for k in ("x_m", "y_m", "z_m")]
                 truth[int(row["frame"])] = frames.make_transform(frames.rotation_from_quaternion(q), p)
-            except (KeyError, ValueError) as error:
-                raise LocalizeError(f"{sequence / 'groundtruth.csv'}: bad row {row}: {error}") from None
+            except (TypeError, ValueError) as error:  # TypeError: a short row's missing values are None
+                raise LocalizeError(f"{path}: line {rows.line_num}: bad row {row}: {error}") from None
     return truth
 
 

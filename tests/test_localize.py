@@ -217,3 +217,21 @@ def test_a_sequence_says_its_map_is_exact_and_localize_weighs_by_it(tmp_path, ca
     assert cli.main(["localize", str(copy)]) == 2
     err = capsys.readouterr().err.strip()
     assert "map_sd_m" in err and "Traceback" not in err and len(err.splitlines()) == 1
+
+
+def test_a_truncated_or_headless_groundtruth_is_an_error_naming_the_file_and_line(tmp_path, capsys):
+    from companion.localize import LocalizeError
+
+    hover = SEQUENCES["warehouse_hover"]
+    lines = (hover / "groundtruth.csv").read_text().splitlines()
+    (tmp_path / "groundtruth.csv").write_text("\n".join(lines[:3] + [lines[3][:8]]) + "\n")  # a write cut short
+    with pytest.raises(LocalizeError, match=r"groundtruth.csv: line 4: bad row"):
+        groundtruth(tmp_path)
+    (tmp_path / "groundtruth.csv").write_text("junk\n" + "\n".join(lines[1:]) + "\n")
+    with pytest.raises(LocalizeError, match=r"groundtruth.csv: line 1: no column frame, x_m, y_m, z_m, qw, qx, qy, qz"):
+        groundtruth(tmp_path)
+    folder = tmp_path / "hover"
+    shutil.copytree(hover, folder)
+    (folder / "groundtruth.csv").write_text("\n".join(lines[:3] + [lines[3][:8]]) + "\n")
+    assert cli.main(["localize", str(folder), "--map", str(REPO / "maps" / "warehouse.yaml")]) == 2
+    assert "groundtruth.csv: line 4: bad row" in capsys.readouterr().err
