@@ -9,8 +9,10 @@ from __future__ import annotations
 import os
 import resource
 import signal
+import stat
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 from companion.files import write_whole
@@ -72,3 +74,23 @@ def test_a_file_written_whole_gets_the_permissions_open_gives_and_keeps_a_replac
     write_whole(whole, b"a: 2\n")
     assert whole.read_bytes() == b"a: 2\n" and whole.stat().st_mode & 0o777 == 0o640
     assert sorted(p.name for p in tmp_path.iterdir()) == ["plain.yaml", "whole.yaml"]
+
+
+def test_a_file_written_whole_through_a_link_replaces_what_it_names_and_a_pipe_is_written_into(tmp_path):
+    # the rename would put a plain file in place of the link (leaving the file it names as it was) or of the pipe
+    (tmp_path / "real").mkdir()
+    real = tmp_path / "real" / "camera.yaml"
+    real.write_text("old\n")
+    link = tmp_path / "camera.yaml"
+    link.symlink_to(real)
+    write_whole(link, "new\n")
+    assert link.is_symlink() and real.read_text() == "new\n"
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    received = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()))
+    reader.start()
+    write_whole(fifo, b"through the pipe\n")
+    reader.join(10)
+    assert received == [b"through the pipe\n"] and stat.S_ISFIFO(fifo.stat().st_mode)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["camera.yaml", "fifo", "real"]
