@@ -91,7 +91,7 @@ def test_markers_cli_writes_the_board_and_names_its_calibrate_options(tmp_path):
 
 
 @pytest.mark.parametrize("options, message", [
-    (["--charuco", "12x16", "--square-mm", "30"], "more than a a4 page offers"),
+    (["--charuco", "12x16", "--square-mm", "30"], "more than one A4 page offers"),
     (["--charuco", "--marker-mm", "25"], "must be positive and smaller than the square"),
     (["--charuco", "--aruco-dictionary", "DICT_9X9"], "unknown OpenCV dictionary"),
     (["--charuco", "20x20", "--square-mm", "5", "--marker-mm", "3"], "more than the 100 of DICT_5X5_100"),

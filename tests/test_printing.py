@@ -519,7 +519,7 @@ def test_the_readme_example_tiles_150_mm_markers_over_a4_pages_that_join_into_th
     out = capsys.readouterr().out
     # one page: the 20-cell cut square plus 2 x 4 mm of crop marks in 210 - 2 x 8 mm: 186 mm = 20 cells of
     # 9.3 mm, an inner square of 8 x 9.3 = 74.4 mm
-    assert "each tiled on 2 x 3 a4 pages (24 pages)" in out and "the largest that fits one a4 page is 74.4 mm" in out
+    assert "each tiled on 2 x 3 A4 pages (24 pages)" in out and "the largest that fits one A4 page is 74.4 mm" in out
     (pdf_path,) = tmp_path.glob("*.pdf")
     layout = MarkerLayout(4)
     marker = printing.MarkerPrint(layout, 0, 150.0, 1)
@@ -621,8 +621,8 @@ def test_a_charuco_board_too_small_to_print_is_refused(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("options, message", [
-    (["--symbols", "A", "--size-mm", "1e6"], "one 125000 mm cell does not fit a a4 page; use a smaller --size-mm"),
-    (["--all", "--size-mm", "300"], "50 marker(s) of 300 mm would take 600 a4 pages (at most 500); use --format svg, "
+    (["--symbols", "A", "--size-mm", "1e6"], "one 125000 mm cell does not fit one A4 page; use a smaller --size-mm"),
+    (["--all", "--size-mm", "300"], "50 marker(s) of 300 mm would take 600 A4 pages (at most 500); use --format svg, "
                                     "or fewer or smaller markers"),
 ])
 def test_a_refused_pdf_leaves_no_output_folder(tmp_path, capsys, options, message):

@@ -15,7 +15,7 @@ from companion.markers.layout import MarkerLayout
 from companion.markers.printing import (DEFAULT_DICTIONARY, PAGES_MM, MarkerPrint, PrintingError, check_dpi,
                                         check_pdf, check_png_size, check_printable, check_size_mm, check_svg_size,
                                         fits_one_page, largest_on_one_page_mm, marker_png, marker_svg, markers_pdf,
-                                        num, resolve_marker_ids, sheet_geometry, tile_geometry)
+                                        num, page_name, resolve_marker_ids, sheet_geometry, tile_geometry)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
@@ -129,9 +129,10 @@ def describe_pdf(markers: list[MarkerPrint], page: str) -> str:
     sizes = f"inner square {num(first.size_mm)} mm, cut square {num(first.outer_mm)} mm"
     if fits_one_page(markers, page):
         n_pages = sheet_geometry(markers, page).page_count(len(markers))
-        return f"{len(markers)} markers on {n_pages} {page} page(s), {sizes}"
+        return (f"{len(markers)} marker{'s' * (len(markers) > 1)} on {n_pages} {page_name(page)} "
+                f"page{'s' * (n_pages > 1)}, {sizes}")
     tiles = tile_geometry(first, page)
-    return (f"{len(markers)} markers, each tiled on {tiles.rows} x {tiles.columns} {page} pages "
-            f"({tiles.per_marker * len(markers)} pages), {sizes}; the largest that fits one {page} page is "
+    return (f"{len(markers)} markers, each tiled on {tiles.rows} x {tiles.columns} {page_name(page)} pages "
+            f"({tiles.per_marker * len(markers)} pages), {sizes}; the largest that fits one {page_name(page)} page is "
             f"{largest_on_one_page_mm(first, page):.1f} mm: cut the tiles at their crop marks and butt them, "
             "cell edges aligned by the ticks")

@@ -27,7 +27,7 @@ import numpy as np
 from reportlab.lib.units import mm as PT_PER_MM  # 72 / 25.4 points per millimetre
 from reportlab.pdfgen.canvas import Canvas
 
-from companion.markers.printing import MIN_CELL_MM, PAGE_MARGIN_MM, PAGES_MM, SCALE_BAR_MM, SheetPage, cell_runs, num
+from companion.markers.printing import MIN_CELL_MM, PAGE_MARGIN_MM, PAGES_MM, SCALE_BAR_MM, SheetPage, cell_runs, num, page_name
 
 DEFAULT_DICTIONARY = "DICT_5X5_100"
 LABEL_PT = 8.0
@@ -131,7 +131,7 @@ def charuco_pdf(spec: CharucoSpec, page: str = "a4") -> bytes:
     board_w, board_h = spec.columns * spec.square_mm, spec.rows * spec.square_mm
     usable_w, usable_h = page_w - 2 * PAGE_MARGIN_MM, page_h - 2 * PAGE_MARGIN_MM - FOOTER_MM
     if board_w > usable_w or board_h > usable_h:
-        raise CharucoError(f"the board is {num(board_w)} x {num(board_h)} mm, more than a {page} page offers "
+        raise CharucoError(f"the board is {num(board_w)} x {num(board_h)} mm, more than one {page_name(page)} page offers "
                            f"({num(usable_w)} x {num(usable_h)} mm inside the margins); use a smaller --square-mm "
                            "or fewer squares")
     left, top = (page_w - board_w) / 2, PAGE_MARGIN_MM + (usable_h - board_h) / 2

@@ -47,6 +47,12 @@ from companion.markers.layout import MarkerLayout, cell_edges_px, cell_point_to_
 
 MM_PER_INCH = 25.4
 PAGES_MM = {"a4": (210.0, 297.0), "letter": (215.9, 279.4), "a3": (297.0, 420.0)}
+
+
+def page_name(page: str) -> str:
+    """A page size as people write it: "A4", "A3", "letter"."""
+    return page.upper() if page.startswith("a") else page
+
 # A PNG side beyond this (144 MB of pixels) is refused: large markers are for SVG or PDF.
 MAX_PNG_SIDE_PX = 12_000
 # A PNG cell of fewer pixels cannot draw the corner circles (0.8 cell across) round.
@@ -391,8 +397,8 @@ def sheet_geometry(markers: list[MarkerPrint], page: str) -> SheetGeometry:
         page_w, page_h = PAGES_MM[page]
         usable_w, usable_h = page_w - 2 * PAGE_MARGIN_MM, page_h - 2 * PAGE_MARGIN_MM - FOOTER_MM
         raise PrintingError(f"a marker with a {num(marker.size_mm)} mm inner square needs a "
-                            f"{num(geometry.slot_mm[0])} x {num(geometry.slot_mm[1])} mm slot, more than a {page} "
-                            f"page offers ({num(usable_w)} x {num(usable_h)} mm inside the margins); the largest "
+                            f"{num(geometry.slot_mm[0])} x {num(geometry.slot_mm[1])} mm slot, more than one "
+                            f"{page_name(page)} page offers ({num(usable_w)} x {num(usable_h)} mm inside the margins); the largest "
                             f"that fits is {largest_on_one_page_mm(marker, page):.1f} mm")
     return geometry
 
@@ -498,7 +504,7 @@ def tile_geometry(marker: MarkerPrint, page: str) -> TileGeometry:
     tile_h = page_h - 2 * PAGE_MARGIN_MM - FOOTER_MM - 2 * mark_reach - LABEL_LINE_MM
     cells_w, cells_h = int(tile_w // marker.cell_mm), int(tile_h // marker.cell_mm)
     if cells_w < 1 or cells_h < 1:
-        raise PrintingError(f"one {num(marker.cell_mm)} mm cell does not fit a {page} page; use a smaller --size-mm")
+        raise PrintingError(f"one {num(marker.cell_mm)} mm cell does not fit one {page_name(page)} page; use a smaller --size-mm")
     n = marker.outer_cells
     columns, rows = -(-n // cells_w), -(-n // cells_h)
     # even cuts: tile k starts at round(k n / count) (no tile is wider than cells_w)
@@ -553,7 +559,7 @@ def tiled_pages(markers: list[MarkerPrint], page: str) -> TileGeometry:
     geometry = tile_geometry(markers[0], page)
     n_pages = geometry.per_marker * len(markers)
     if n_pages > MAX_TILED_PAGES:
-        raise PrintingError(f"{len(markers)} marker(s) of {num(markers[0].size_mm)} mm would take {n_pages} {page} "
+        raise PrintingError(f"{len(markers)} marker(s) of {num(markers[0].size_mm)} mm would take {n_pages} {page_name(page)} "
                             f"pages (at most {MAX_TILED_PAGES}); use --format svg, or fewer or smaller markers")
     return geometry
 
