@@ -91,6 +91,18 @@ def test_cli_rejects_a_missing_folder(tmp_path):
     assert run.returncode == 2 and "no such file or directory" in run.stderr
 
 
+def test_a_view_of_another_size_is_named_and_left_out_whichever_sorts_first(views):
+    odd = {"aaa.png": cv2.resize(views["view0.png"], (1280, 960))}
+    result = calibrate({**odd, **views}, BOARD)
+    assert ("aaa.png", "1280x960, not 640x480 like most views") in result.rejected
+    np.testing.assert_allclose(result.K, K_TRUE, rtol=0.01, atol=2.0)
+
+
+def test_cli_names_an_empty_folder(tmp_path):
+    run = subprocess.run([sys.executable, "-m", "companion", "calibrate", str(tmp_path)], capture_output=True, text=True)
+    assert run.returncode == 2 and f"{tmp_path}: no images in the folder (.bmp, " in run.stderr
+
+
 # ------------------------------------------------------------ the command's options
 
 @pytest.fixture

@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.capture.replay import TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files, open_recording
+from companion.capture.replay import IMAGE_SUFFIXES, TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files, open_recording
 from companion.capture.source import SourceError
 from companion.cli.output import output_dir, output_file, removed_if_left_empty, write_failed
 from companion.files import write_whole
@@ -42,7 +42,11 @@ def split_inputs(inputs: list[str]) -> tuple[list[Path], list[Path]]:
         if is_sequence or is_video:
             recordings.append(item)
         elif item.is_dir():
-            images += image_files(item)
+            found = image_files(item)
+            if not found:
+                raise CalibrationError(f"{item}: no images in the folder ({', '.join(sorted(IMAGE_SUFFIXES))}), and no "
+                                       f"{TIMESTAMPS_FILE} of a recording")
+            images += found
         elif item.is_file():
             images.append(item)
         else:

@@ -15,6 +15,7 @@ own calibration tools do), which a config's ``camera.calibration_file`` reads.
 """
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -154,12 +155,12 @@ def calibrate(images: dict[str, np.ndarray], board: CalibrationBoard) -> Calibra
     """Calibrate from named (H, W) uint8 grayscale images of one camera."""
     if not images:
         raise CalibrationError("no images")
-    first = next(iter(images.values()))
-    height, width = first.shape[:2]
+    # one camera's views share one size: the size most of them have (an odd file is named, not the rest)
+    (height, width), _ = collections.Counter(image.shape[:2] for image in images.values()).most_common(1)[0]
     found, rejected = {}, []
     for name, image in images.items():
         if image.shape[:2] != (height, width):
-            rejected.append((name, f"{image.shape[1]}x{image.shape[0]}, not {width}x{height} like the first view"))
+            rejected.append((name, f"{image.shape[1]}x{image.shape[0]}, not {width}x{height} like most views"))
             continue
         result = board.find(image)
         if isinstance(result, str):
