@@ -269,7 +269,24 @@ def test_a_report_that_cannot_be_written_leaves_no_map_and_no_half_report(tmp_pa
                             timeout=300, preexec_fn=small_files_only)
     assert result.returncode == 1, result.stderr
     assert result.stderr.startswith(f"companion survey: cannot write {report / 'survey.png'}: File too large")
-    assert not out.exists() and list(report.iterdir()) == []
+    assert not out.exists() and not report.exists()
+
+
+def test_a_map_that_cannot_be_written_leaves_no_report_of_it(tmp_path, north_walk, monkeypatch, capsys):
+    """The other order of the test above: the report went through, the disk refuses the map (ENOSPC raised where
+    the map is written, after the report: RLIMIT_FSIZE cannot refuse the small map and pass the larger plot)."""
+    from companion import cli
+    from companion.cli import survey as survey_command
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device", str(out))
+
+    monkeypatch.setattr(survey_command, "write_map", full_disk)
+    out, report = tmp_path / "site.yaml", tmp_path / "report"
+    assert cli.main(["survey", str(north_walk), "--camera", str(north_walk / "camera.yaml"), "--anchors",
+                     str(anchors_file(tmp_path / "o.yaml", {"O"})), "--out", str(out), "--report", str(report)]) == 1
+    assert capsys.readouterr().err.endswith(f"companion survey: cannot write {out}: No space left on device\n")
+    assert not out.exists() and not report.exists()
 
 
 def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):
@@ -290,6 +307,9 @@ def test_bad_input_gives_one_line_and_no_map(tmp_path, north_walk):
           words="no markers in the footage (4 frames read)")
     fails(str(north_walk), "--camera", camera, "--anchors", str(anchors_file(tmp_path / "w.yaml", {"W"})),
           words="no anchor of")
+    fails(str(north_walk), "--camera", camera, "--anchors", str(anchors_file(tmp_path / "w.yaml", {"W"})),
+          "--report", str(tmp_path / "new" / "report"), words="no anchor of")
+    assert not (tmp_path / "new").exists()  # the folders made for the report are not left behind
     unknown = tmp_path / "unknown.yaml"
     unknown.write_text(anchors_file(tmp_path / "u.yaml", {"O"}).read_text().replace("symbol: O", "symbol: QQ"))
     fails(str(north_walk), "--camera", camera, "--anchors", str(unknown), words="unknown symbol 'QQ'")

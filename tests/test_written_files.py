@@ -52,7 +52,7 @@ def test_a_simulation_that_does_not_fit_is_removed_and_can_be_run_again(tmp_path
     assert result.returncode == 1, result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"companion simulate: {out / 'frames' / '000000.png'}: "), lines
-    assert list(out.iterdir()) == []
+    assert not out.exists()   # the folder the run made is gone too
     again = run_with_file_limit(args, None)
     assert again.returncode == 0, again.stderr
     assert len(list((out / "frames").glob("*.png"))) == 6 and (out / "sequence.yaml").is_file()
@@ -94,3 +94,21 @@ def test_a_file_written_whole_through_a_link_replaces_what_it_names_and_a_pipe_i
     reader.join(10)
     assert received == [b"through the pipe\n"] and stat.S_ISFIFO(fifo.stat().st_mode)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["camera.yaml", "fifo", "real"]
+
+
+def test_a_marker_whose_sidecar_does_not_fit_leaves_no_png_without_it(tmp_path, monkeypatch, capsys):
+    """A full disk after the PNG (ENOSPC raised where the sidecar is written: a file size limit cannot refuse the
+    1 kB sidecar and pass the larger PNG): no PNG is left without the sidecar that states its print size."""
+    from companion import cli
+    from companion.cli import markers as markers_command
+
+    def sidecar_refused(path, data):
+        if Path(path).suffix == ".json":
+            raise OSError(28, "No space left on device", str(path))
+        write_whole(path, data)
+
+    monkeypatch.setattr(markers_command, "write_whole", sidecar_refused)
+    out = tmp_path / "markers"
+    assert cli.main(["markers", "--symbols", "A", "--out", str(out)]) == 1
+    assert f"{out / 'marker-A-p2.json'}: No space left on device" in capsys.readouterr().err
+    assert not out.exists()

@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.cli.output import output_dir
+from companion.cli.output import output_dir, removed_if_left_empty
 from companion.detect.circles import CIRCLES_RUN_MODES, CircleParams
 from companion.capture.replay import image_files
 from companion.detect.detector import DICTIONARIES, Detector, DetectorParams
@@ -70,26 +70,27 @@ def main(args: argparse.Namespace) -> int:
         print(f"companion detect: --draw {args.draw}: an annotated copy would replace an image it reads "
               f"({overwritten[0]}): give another folder", file=sys.stderr)
         return 2
-    if args.draw:
-        output_dir(args.draw, "--draw")
-    unread, unwritten = len(missing), 0
-    for path in paths:
-        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            print(f"companion detect: {path}: not a readable image, skipped", file=sys.stderr)
-            unread += 1
-            continue
-        start = time.perf_counter_ns()
-        detections = detector.detect(gray)
-        ms = (time.perf_counter_ns() - start) / 1e6
-        print(json_line(path, detections, ms) if args.json else text_line(path, detections, ms), flush=True)
+    with removed_if_left_empty(args.draw):
         if args.draw:
-            try:
-                write_whole(drawn[path], cv2.imencode(".png", draw(gray, detections))[1].tobytes())
-            except OSError as error:
-                print(f"companion detect: --draw {drawn[path]}: cannot write: {error.strerror or error}",
-                      file=sys.stderr)
-                unwritten += 1
+            output_dir(args.draw, "--draw")
+        unread, unwritten = len(missing), 0
+        for path in paths:
+            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            if gray is None:
+                print(f"companion detect: {path}: not a readable image, skipped", file=sys.stderr)
+                unread += 1
+                continue
+            start = time.perf_counter_ns()
+            detections = detector.detect(gray)
+            ms = (time.perf_counter_ns() - start) / 1e6
+            print(json_line(path, detections, ms) if args.json else text_line(path, detections, ms), flush=True)
+            if args.draw:
+                try:
+                    write_whole(drawn[path], cv2.imencode(".png", draw(gray, detections))[1].tobytes())
+                except OSError as error:
+                    print(f"companion detect: --draw {drawn[path]}: cannot write: {error.strerror or error}",
+                          file=sys.stderr)
+                    unwritten += 1
     images = len(paths) + len(missing)
     if unread:
         print(f"companion detect: {unread} of {images} images could not be read", file=sys.stderr)

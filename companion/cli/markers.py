@@ -116,7 +116,11 @@ def generate(args: argparse.Namespace) -> int:
             png, sidecar = marker_png(marker, args.dpi)
             path = out_dir / f"{marker.file_stem()}.png"
             write_whole(path, png)
-            write_whole(path.with_suffix(".json"), json.dumps(sidecar, indent=2) + "\n")
+            try:
+                write_whole(path.with_suffix(".json"), json.dumps(sidecar, indent=2) + "\n")
+            except BaseException:
+                path.unlink(missing_ok=True)  # a PNG is printed at the size its sidecar states: both or neither
+                raise
             width, height = sidecar["image_px"]
             print(f"{path}: {marker.symbol} id {marker.marker_id}, {width}x{height} px, inner square "
                   f"{sidecar['inner_px']} px = {sidecar['size_mm']:.3f} mm at {sidecar['dpi']:.4f} dpi")

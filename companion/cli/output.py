@@ -32,16 +32,16 @@ def output_dir(path: Path, option: str) -> Path:
 
 @contextlib.contextmanager
 def removed_if_left_empty(folder: Path | None):
-    """A folder this block creates (``output_dir``), removed again when the block fails or is interrupted before
-    anything was written in it: a refused or interrupted command leaves no empty folder behind."""
-    existed = folder is None or Path(folder).exists()
+    """A folder this block creates (``output_dir``, with any parents it makes), removed again if the block
+    leaves it empty: a refused, failed or interrupted command, or one that had nothing to write, leaves no
+    empty folder behind."""
+    made = [] if folder is None else [p for p in (Path(folder), *Path(folder).parents) if not p.exists()]
     try:
         yield
-    except BaseException:
-        if not existed:
+    finally:
+        for path in made:  # the deepest first; each only if empty
             with contextlib.suppress(OSError):
-                Path(folder).rmdir()  # only if empty
-        raise
+                path.rmdir()
 
 
 def output_file(path: Path, option: str) -> Path:

@@ -10,7 +10,7 @@ import threading
 
 import numpy as np
 
-from companion.cli.output import output_dir
+from companion.cli.output import output_dir, removed_if_left_empty
 from companion.geometry.camera import CameraModel, load_camera
 from companion.geometry.facility_map import FacilityMap, load_map
 from companion.sim import trajectory as trajectories
@@ -276,8 +276,8 @@ def main(args) -> int:
             simulator = Simulator(world, camera, traj, degradations, args.seed, args.supersample, args.occluders)
         options = {k: v for k, v in vars(args).items() if k not in ("command", "out") and not callable(v)}
         frame_count = len(frame_times_ns(traj.duration_s, args.fps))
-        output_dir(args.out, "OUT")
-        with sigterm_interrupts():
+        with removed_if_left_empty(args.out), sigterm_interrupts():
+            output_dir(args.out, "OUT")
             out = write_sequence(args.out, simulator, args.fps, args.map, args.video, args.progress,
                                  {"options": options}, args.codec, attitude)
     except ValueError as error:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from companion.capture.source import SourceError
-from companion.cli.output import OutputError, output_dir, output_file, write_failed
+from companion.cli.output import OutputError, output_dir, output_file, removed_if_left_empty, write_failed
 from companion.geometry.camera import CameraError
 from companion.geometry.facility_map import MAX_MARKER_SIZE_M, MapError, load_map, write_map
 from companion.survey.observations import SurveyError, check_footage, footage_camera
@@ -49,17 +49,25 @@ def main(args) -> int:
         camera = footage_camera([Path(s) for s in args.sequences], args.camera)
         # where the results go, before minutes of survey work
         output_file(Path(args.out), "--out")
-        if args.report:
-            output_dir(Path(args.report), "--report")
-        options = SurveyOptions(size_m=args.size_m, fps=args.fps, progress=progress)
-        result = survey([Path(s) for s in args.sequences], camera, anchors, options, extend=args.existing is not None)
-        if args.report:  # first: the map is written last, once everything else worked
-            from companion.survey.report import write_report
+        with removed_if_left_empty(args.report):
+            if args.report:
+                output_dir(Path(args.report), "--report")
+            options = SurveyOptions(size_m=args.size_m, fps=args.fps, progress=progress)
+            result = survey([Path(s) for s in args.sequences], camera, anchors, options,
+                            extend=args.existing is not None)
+            report = ()
+            if args.report:  # first: the map is written last, once everything else worked
+                from companion.survey.report import write_report
 
-            writing = args.report
-            write_report(result, args.report)
-            writing = args.out
-        _write_map(result, args)
+                writing = args.report
+                report = write_report(result, args.report)
+                writing = args.out
+            try:
+                _write_map(result, args)
+            except BaseException:
+                for path in report:  # no report of a map that was not written
+                    path.unlink(missing_ok=True)
+                raise
     except (SurveyError, MapError, CameraError, SourceError, OutputError) as error:
         print(f"companion survey: {error}", file=sys.stderr)
         return 2
