@@ -625,6 +625,39 @@ def test_a_write_to_a_vanished_serial_device_is_an_error_not_a_line_on_stdout(ca
     assert capsys.readouterr().out == ""
 
 
+def test_a_flight_controller_that_takes_no_bytes_fails_the_write_it_does_not_hold_it(links):
+    """A hung FC on USB (or flow control held) stops reading: the tty's buffer fills and a write waited for
+    room for ever, on the pipeline's thread (the daemon froze, blamed the camera and ignored SIGTERM). Now the
+    write fails after SERIAL_WRITE_TIMEOUT_S and the link is lost, saying why."""
+    import os
+    import tty
+    master, slave = os.openpty()   # nobody reads the master side: the FC takes no bytes
+    tty.setraw(slave)
+    link = MavlinkLink(LinkParams(connection=f"{os.ttyname(slave)},921600"))
+    connection = link._open_connection()
+    outcome = []
+
+    def fill():
+        try:
+            for _ in range(10_000):   # 40 MB: far more than any tty buffers
+                connection.write(b"\xfd" * 4096)
+            outcome.append("all written")
+        except OSError as error:
+            outcome.append(error)
+
+    writer = threading.Thread(target=fill, daemon=True)
+    writer.start()
+    writer.join(30)
+    try:
+        assert not writer.is_alive(), "the write is still waiting for room"
+        assert isinstance(outcome[0], TimeoutError), outcome
+        assert "took no bytes for 0.25 s (the flight controller does not read)" in str(outcome[0])
+    finally:
+        os.close(master)
+        connection.close()
+        os.close(slave)
+
+
 def test_a_serial_port_another_link_holds_is_not_opened_and_says_why(links):
     """`companion check-fc` on the UART of a running service: two readers split the tty's bytes, and both saw
     a flight controller going silent and parameters not reported. The second opener now stays out, saying why;

@@ -92,6 +92,7 @@ from typing import Callable, Protocol
 
 from companion.mavlink import messages as mm  # sets MAVLINK20 before pymavlink loads
 from pymavlink import mavutil  # noqa: E402  (after mavlink_messages on purpose)
+import serial  # noqa: E402  (pyserial, which pymavlink opens serial ports with)
 
 from companion.mavlink import fc_params
 from companion.mavlink.attitude import ATTITUDE_MESSAGES, AttitudeStream, restarted
@@ -111,6 +112,10 @@ NETWORK_PREFIXES = ("udpout:", "udpin:", "udp:", "tcp:", "tcpin:")
 SERIAL_PREFIXES = ("/", "COM")   # any absolute path: /dev/ttyAMA0, a udev link, a pty made by socat anywhere
 PARAMETER_ATTEMPTS = 3  # PARAM_REQUEST_READ sent this many times before a parameter counts as absent
 STATUSTEXT_QUEUE = 16   # STATUSTEXTs waiting for their turn; the least urgent is dropped beyond
+# a serial write that waits this long for room is a flight controller that does not read (a hung FC on USB, flow
+# control held): the link is lost, as for a write error, not the pipeline thread blocked inside the write (a
+# 300-byte burst of vision messages takes 52 ms at 57600 baud; the tty's buffer takes several)
+SERIAL_WRITE_TIMEOUT_S = 0.25
 ARDUPILOT = mm.mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
 PX4 = mm.mavlink2.MAV_AUTOPILOT_PX4
 
@@ -219,6 +224,15 @@ def _claim_serial_port(connection, device: str) -> None:
         connection.close()
         raise OSError(f"{device} is in use by another program (the companion service, companion check-fc or a "
                       "ground station: two readers split the flight controller's bytes; stop one)") from None
+
+
+def _serial_write(port, device: str, data: bytes) -> None:
+    """pyserial's write; its timeout (``SERIAL_WRITE_TIMEOUT_S``) an OSError that says what it means."""
+    try:
+        port.write(data)
+    except serial.SerialTimeoutException:
+        raise TimeoutError(f"{device} took no bytes for {SERIAL_WRITE_TIMEOUT_S:g} s (the flight controller does "
+                           "not read)") from None
 
 
 def parse_connection(text: str) -> tuple[str, int | None]:
@@ -508,7 +522,8 @@ class MavlinkLink:
             _claim_serial_port(connection, device)
             # pymavlink's serial write prints "Device ... is dead" on stdout (the status line's stream) and
             # returns -1: let pyserial's error (an OSError) through, to be handled as a lost transport
-            connection.write = lambda buf, port=connection.port: port.write(bytes(buf))
+            connection.port.write_timeout = SERIAL_WRITE_TIMEOUT_S
+            connection.write = lambda buf, port=connection.port: _serial_write(port, device, bytes(buf))
         # pymavlink's TCP/serial classes only print on EOF; make it an error we handle.
         connection.handle_eof = connection.handle_disconnect = self._raise_transport_lost
         return connection
