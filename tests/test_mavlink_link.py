@@ -658,6 +658,30 @@ def test_a_flight_controller_that_takes_no_bytes_fails_the_write_it_does_not_hol
         os.close(slave)
 
 
+def test_a_link_whose_flight_controller_takes_no_bytes_is_lost_saying_so_and_vision_does_not_wait(links):
+    import os
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = links(connection=f"{os.ttyname(slave)},921600", heartbeat_interval_s=0.1, origin_wait_s=0,
+                 duplicate_listen_s=0, reconnect_initial_s=0.05, reconnect_max_s=0.1)
+    fc = mm.mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+    sender = Publisher(link, rate_hz=200.0)   # on its own thread, as the pipeline sends
+    try:
+        deadline = time.monotonic() + 30
+        while "took no bytes" not in str(link.down_reason) and time.monotonic() < deadline:
+            os.write(master, mm.mavlink2.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3).pack(fc))  # heard, never read
+            time.sleep(0.05)
+        assert "lost: send failed: " in str(link.down_reason)
+        assert "took no bytes for 0.25 s (the flight controller does not read)" in str(link.down_reason)
+    finally:
+        sender._stop.set()
+        sender._thread.join(5)
+        os.close(master)
+        os.close(slave)
+    assert not sender._thread.is_alive()   # the publishing thread is not held in a write
+
+
 def test_a_serial_port_another_link_holds_is_not_opened_and_says_why(links):
     """`companion check-fc` on the UART of a running service: two readers split the tty's bytes, and both saw
     a flight controller going silent and parameters not reported. The second opener now stays out, saying why;

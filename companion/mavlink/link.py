@@ -338,6 +338,7 @@ class MavlinkLink:
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._transport_broken = threading.Event()
+        self._send_error: str | None = None   # why the last send failed (the link's down reason)
         self._statustexts: list[QueuedText] = []  # sorted, most urgent first
         self._statustext_lock = threading.Lock()
         self._statustext_sequence = itertools.count()
@@ -494,6 +495,7 @@ class MavlinkLink:
             except OSError as error:
                 log.warning("link: send failed: %s", error)
                 self.counters.transport_errors += 1
+                self._send_error = str(error)
                 self._transport_broken.set()
                 return False
             self.counters.sent[message.get_type()] += 1
@@ -563,6 +565,7 @@ class MavlinkLink:
                 self._connection = connection
             self.counters.connects += 1
             self._transport_broken.clear()
+            self._send_error = None
             log.info("link %s: open", self.params.connection)
             self._begin_handshake()
             try:
@@ -594,7 +597,7 @@ class MavlinkLink:
         while not self._stop.is_set():
             # pymavlink's serial class swallows write errors and only marks the port dead.
             if self._transport_broken.is_set() or getattr(connection, "portdead", False):
-                raise _TransportLost("send failed")
+                raise _TransportLost(f"send failed: {self._send_error}" if self._send_error else "send failed")
             message = connection.recv_match(blocking=True, timeout=0.05)
             if message is not None and message.get_type() != "BAD_DATA":
                 self._handle(message)
