@@ -95,6 +95,24 @@ def test_replay_option_replaces_the_source_and_takes_its_frame_rate(site):
     assert load_config(write(site, data), replay=images).source.fps is None  # not the camera's 30
 
 
+def test_a_replay_without_a_config_is_flown_on_the_map_it_names_not_the_bundled_flights(site):
+    # the site's own map: the bundled warehouse with every marker 5 m along x
+    moved = yaml.safe_load((site / "maps" / "warehouse.yaml").read_text())
+    for marker in moved["markers"]:
+        marker["position_m"][0] += 5.0
+    (site / "maps" / "site.yaml").write_text(yaml.safe_dump(moved))
+    sequence = site / "tests" / "data" / "seq"
+    info = yaml.safe_load((sequence / "sequence.yaml").read_text())
+    (sequence / "sequence.yaml").write_text(yaml.safe_dump({**info, "map": "maps/site.yaml"}))
+    config = load_config(replay=sequence)
+    assert Path(config.facility_map.path).resolve() == (site / "maps" / "site.yaml").resolve()
+    # the embedded default says the bundled map is exact; of a recording's own map, a surveyed map's accuracy
+    assert (config.pose.map_sd_m, config.pose.map_sd_deg) == (PoseParams().map_sd_m, PoseParams().map_sd_deg)
+    # a config of the user's own says which map: it stays
+    assert Path(load_config(write(site, base_config()), replay=sequence).facility_map.path).resolve() == \
+        (site / "maps" / "warehouse.yaml").resolve()
+
+
 def test_explicit_origin_overrides_the_map(site):
     data = base_config()
     data["mavlink"]["origin"] = {"latitude_deg": -33.5, "longitude_deg": 151.25, "altitude_m": 12.0}

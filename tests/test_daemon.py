@@ -9,6 +9,7 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -744,6 +745,24 @@ def test_a_config_camera_that_did_not_take_the_replayed_frames_is_named_at_the_s
     assert "WARNING" in warnings[0] and f"{HOVER / 'sequence.yaml'}" in warnings[0]
     fx = recorded["fx_px"]
     assert f"fx {0.8 * fx:.1f} -> {fx:.1f} px" in warnings[0] and "mount turned by 10.0 deg" in warnings[0]
+
+
+def test_a_config_map_that_is_not_the_recordings_is_named_at_the_start(tmp_path):
+    """--replay of a recording under a config with another map: the frames are posed on the config's map. The
+    start says so, naming the markers that differ from the map the recording names (its own copy, map.yaml)."""
+    recording = tmp_path / "recording"
+    shutil.copytree(HOVER, recording)
+    site = yaml.safe_load(MAP.read_text())
+    moved = site["markers"][0]
+    moved["position_m"][0] += 0.5
+    (recording / "map.yaml").write_text(yaml.safe_dump(site))
+    info = yaml.safe_load((recording / "sequence.yaml").read_text())
+    (recording / "sequence.yaml").write_text(yaml.safe_dump({**info, "map": "map.yaml"}))
+    code, _, stderr = finish(start_daemon(write_config(tmp_path, recording, free_port())))
+    warnings = [line for line in stderr.splitlines() if "is not the one" in line]
+    assert code == 0 and len(warnings) == 1, stderr
+    assert f"the config's map ({MAP}) is not the one {recording / 'sequence.yaml'} names" in warnings[0]
+    assert f"moved or resized: {moved['symbol']}" in warnings[0]
 
 
 def test_a_parameter_that_blocks_vision_is_logged_and_told(tmp_path, peers):

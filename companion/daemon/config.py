@@ -152,8 +152,18 @@ def load_config(path=None, replay=None, replay_fps: float | None = None) -> Conf
         raise ConfigError(f"--replay {replay}: which camera took it? {config_name} has no camera section, and the "
                           f"replay no {SEQUENCE_FILE} naming one (as companion run --record and simulate write): give "
                           "--config FILE with your camera's calibration (camera: calibration_file: ...)")
+    if path == default_config_path() and "map" in _replay_info(Path(replay)):
+        data = _without_the_bundled_map(data)
     config = config_from_dict({**data, "source": {"kind": "replay", "path": str(Path(replay).resolve())}}, path)
     return dataclasses.replace(config, source=ReplayConfig(path=config.source.path, fps=replay_fps, fps_option="--fps"))
+
+
+def _without_the_bundled_map(data: dict) -> dict:
+    """The embedded default config for a recording that names its own map (``--replay`` without ``--config``):
+    the recording's map is the one its markers hang on, not the bundled flight's, and what the default states
+    of the bundled map (exact: the flight was rendered from it) is not said of it: a surveyed map's accuracy."""
+    pose = {key: value for key, value in (data.get("pose") or {}).items() if key not in ("map_sd_m", "map_sd_deg")}
+    return {**{key: value for key, value in data.items() if key != "map"}, "pose": pose}
 
 
 def config_from_dict(data, path) -> Config:

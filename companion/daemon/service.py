@@ -46,6 +46,7 @@ from companion.detect.detector import Detector, DetectorParams
 from companion.fusion import PoseFilter
 from companion.geometry.attitude import AttitudeHistory, AttitudeLookup
 from companion.geometry.camera import CameraError, CameraModel
+from companion.geometry.facility_map import load_map
 from companion.mavlink import fc_params
 from companion.mavlink.attitude import AttitudeStream
 from companion.mavlink.link import LinkState, MavlinkLink
@@ -58,7 +59,7 @@ from companion.daemon.record import GROUNDTRUTH_FILE, Recorder
 from companion.daemon.web import LiveView
 from companion.daemon.status import DaemonStatus, fit_to_terminal, recent_activity
 from companion.geometry.pose import PoseSolver
-from companion.capture.replay import SEQUENCE_FILE, replay_source, sequence_camera
+from companion.capture.replay import SEQUENCE_FILE, replay_source, sequence_camera, sequence_map_path
 from companion.capture.simulated import SimulatedCamera
 from companion.capture.source import FrameSource
 from companion.capture.v4l2 import opencv_warnings, v4l2_source
@@ -203,6 +204,23 @@ class Daemon:
                         "the config's is used, and poses are only right if it is the camera that took them",
                         self.config.path, source.path / SEQUENCE_FILE, "; ".join(differences))
 
+    def _compare_replay_map(self) -> None:
+        """A replayed recording names the map its markers hung on (sequence.yaml: ``companion run --record``
+        keeps a copy); the config's map, which is the one used, differing from it poses the frames wrong where
+        they differ: said once at the start, with the markers that differ."""
+        source = self.config.source
+        if not isinstance(source, ReplayConfig) or not source.path.is_dir():
+            return
+        try:
+            recorded = sequence_map_path(source.path)
+            differences = self.config.facility_map.differences(load_map(recorded)) if recorded else []
+        except ValueError:
+            return  # the config's own map is used; a broken sequence.yaml map is not ours to judge
+        if differences:
+            log.warning("the config's map (%s) is not the one %s names (%s): %s; the config's is used, and poses "
+                        "are only right where it is the map of the recorded site", self.config.facility_map.path,
+                        source.path / SEQUENCE_FILE, recorded, "; ".join(differences))
+
     def run(self) -> int:
         """Run until ``stop_event`` is set (signal, end of replay); returns the exit code."""
         self.link.start()
@@ -219,6 +237,7 @@ class Daemon:
                  self.config.facility_map.path, self.config.mavlink.connection)
         log.info("attitude: %s", self._attitude_text)
         self._compare_replay_camera()
+        self._compare_replay_map()
         try:
             self._supervise()
         finally:

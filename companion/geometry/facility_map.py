@@ -159,6 +159,29 @@ class FacilityMap:
                 return marker
         raise KeyError(f"no marker {symbol!r} in map {self.path}")
 
+    def differences(self, other: "FacilityMap") -> list[str]:
+        """What ``other`` has otherwise (a millimetre, a tenth of a degree: below that a marker is where it was),
+        as phrases naming the markers; [] for the same markers in the same places (a map and its copy)."""
+        found = []
+        if (self.dictionary, self.parity) != (other.dictionary, other.parity):
+            found.append(f"markers {self.dictionary} p{self.parity} -> {other.dictionary} p{other.parity}")
+        if (self.frame.x_bearing_deg, self.frame.geodetic_origin) != (other.frame.x_bearing_deg,
+                                                                       other.frame.geodetic_origin):
+            found.append("frame (bearing or geodetic origin)")
+        moved = [m.symbol for i, m in self.markers.items() if i in other.markers and not _same_place(m, other.markers[i])]
+        for what, symbols in (("moved or resized", moved),
+                              ("only in this one", [m.symbol for i, m in self.markers.items() if i not in other.markers]),
+                              ("only in the other", [m.symbol for i, m in other.markers.items() if i not in self.markers])):
+            if symbols:
+                found.append(f"{what}: {', '.join(symbols)}")
+        return found
+
+
+def _same_place(a: MapMarker, b: MapMarker) -> bool:
+    return (abs(a.size_m - b.size_m) < 1e-3
+            and float(np.linalg.norm(a.T_map_marker[:3, 3] - b.T_map_marker[:3, 3])) < 1e-3
+            and math.degrees(frames.rotation_angle_rad(a.T_map_marker[:3, :3], b.T_map_marker[:3, :3])) < 0.1)
+
 
 # ----------------------------------------------------------------- loading
 
