@@ -682,6 +682,16 @@ def test_a_link_whose_flight_controller_takes_no_bytes_is_lost_saying_so_and_vis
     assert not sender._thread.is_alive()   # the publishing thread is not held in a write
 
 
+def test_a_udpout_host_that_does_not_resolve_is_a_link_that_cannot_open_not_an_open_one(links):
+    # pymavlink resolves the name at every send and drops the error: the link said open and streaming
+    link = links(connection="udpout:nosuch.invalid:14550", reconnect_initial_s=0.05, reconnect_max_s=0.1)
+    deadline = time.monotonic() + 20
+    while link.down_reason is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (link.down_reason or "").startswith("cannot open: cannot resolve nosuch.invalid: "), link.down_reason
+    assert link.counters.connects == 0 and link.state is LinkState.CONNECTING
+
+
 def test_a_serial_port_another_link_holds_is_not_opened_and_says_why(links):
     """`companion check-fc` on the UART of a running service: two readers split the tty's bytes, and both saw
     a flight controller going silent and parameters not reported. The second opener now stays out, saying why;

@@ -85,6 +85,7 @@ import fcntl
 import itertools
 import logging
 import math
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -224,6 +225,16 @@ def _claim_serial_port(connection, device: str) -> None:
         connection.close()
         raise OSError(f"{device} is in use by another program (the companion service, companion check-fc or a "
                       "ground station: two readers split the flight controller's bytes; stop one)") from None
+
+
+def _resolve(device: str) -> None:
+    """OSError unless the host of ``udpout:HOST:PORT`` resolves: pymavlink resolves it at every send and drops
+    the error, so a name that does not resolve would be an open link that sends nothing."""
+    host = device.split(":")[1]
+    try:
+        socket.getaddrinfo(host, None, type=socket.SOCK_DGRAM)
+    except socket.gaierror as error:
+        raise OSError(f"cannot resolve {host}: {error.strerror}") from None
 
 
 def _serial_write(port, device: str, data: bytes) -> None:
@@ -519,6 +530,8 @@ class MavlinkLink:
             kwargs["baud"] = baud
         if device.startswith(("tcp:", "tcpin:")):
             kwargs["retries"] = 0
+        if device.startswith("udpout:"):
+            _resolve(device)
         connection = mavutil.mavlink_connection(device, **kwargs)
         if baud is not None:
             _claim_serial_port(connection, device)
