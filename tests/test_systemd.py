@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import configparser
+import logging
 import os
 import shutil
 import socket
@@ -86,6 +87,15 @@ def test_notifier_sends_the_protocol_datagrams(tmp_path, abstract):
     notifier.close()
     assert receive_all(sock) == ["READY=1\nSTATUS=running", "WATCHDOG=1", "STATUS=30 fps", "STOPPING=1"]
     sock.close()
+
+
+def test_a_notify_socket_that_fails_is_said_once_not_at_every_send(tmp_path, caplog):
+    notifier = Notifier({"NOTIFY_SOCKET": str(tmp_path / "gone.sock")})   # no such socket
+    with caplog.at_level(logging.WARNING, logger="companion.daemon.notify"):
+        assert not any([notifier.watchdog() for _ in range(50)])
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(warnings) == 1 and "sd_notify to " in warnings[0] and "failed" in warnings[0], warnings
+    notifier.close()
 
 
 def test_notifier_outside_systemd_does_nothing():

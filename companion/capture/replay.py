@@ -18,7 +18,8 @@ import cv2
 import numpy as np
 
 from companion.capture.attitude_csv import AttitudeFileError, sequence_attitude
-from companion.capture.source import Backoff, LogThrottle, SourceError, ThreadedSource, to_gray
+from companion.capture.source import Backoff, SourceError, ThreadedSource, to_gray
+from companion.log_throttle import LogThrottle
 from companion.geometry.attitude import DEFAULT_MAX_AGE_S, AttitudeLookup, history_of
 from companion.geometry.camera import CameraModel
 from companion.types import AttitudeSample, Frame

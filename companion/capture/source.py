@@ -23,14 +23,13 @@ is released and reopened with exponential backoff (:class:`Backoff`) while
 the daemon runs on.
 A source that cannot deliver says why in ``lost_reason`` (None while it
 delivers), which the daemon's health report shows; its log messages are
-throttled (:class:`LogThrottle`) so that a fault that repeats every frame
+throttled (``companion.log_throttle.LogThrottle``) so that a fault that repeats every frame
 never floods the log.
 """
 from __future__ import annotations
 
 import logging
 import threading
-import time
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -117,30 +116,6 @@ def to_gray(image: np.ndarray) -> np.ndarray | None:
     if image.ndim == 3 and image.shape[2] == 1:
         return image[:, :, 0]
     return None
-
-
-class LogThrottle:
-    """At most one message per ``interval_s`` at its level; the ones in between go to DEBUG.
-
-    The message that passes says how many were held back since the last one.
-    """
-
-    def __init__(self, logger: logging.Logger, interval_s: float = 5.0):
-        self.logger = logger
-        self.interval_s = interval_s
-        self._last_s = -float("inf")
-        self._held_back = 0
-
-    def log(self, level: int, message: str, *args) -> None:
-        now_s = time.monotonic()
-        if now_s - self._last_s < self.interval_s:
-            self._held_back += 1
-            self.logger.debug(message, *args)
-            return
-        if self._held_back:
-            message += f" ({self._held_back} similar message(s) in the last {now_s - self._last_s:.0f} s)"
-        self.logger.log(level, message, *args)
-        self._last_s, self._held_back = now_s, 0
 
 
 class Backoff:

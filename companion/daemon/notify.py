@@ -10,6 +10,8 @@ import logging
 import os
 import socket
 
+from companion.log_throttle import LogThrottle
+
 log = logging.getLogger(__name__)
 
 
@@ -27,6 +29,7 @@ class Notifier:
             self._socket = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
             self._socket.setblocking(False)
         self.watchdog_interval_s = watchdog_interval_s(env)
+        self._failed_log = LogThrottle(log, interval_s=60.0)   # sent several times a second: a failure repeats
 
     @property
     def enabled(self) -> bool:
@@ -40,7 +43,7 @@ class Notifier:
             self._socket.sendto("\n".join(lines).encode(), self._address)
             return True
         except OSError as error:
-            log.warning("sd_notify to %r failed: %s", self._address, error)
+            self._failed_log.log(logging.WARNING, "sd_notify to %r failed: %s", self._address, error)
             return False
 
     def ready(self, status: str = "") -> bool:
