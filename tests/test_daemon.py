@@ -657,8 +657,23 @@ def test_frames_of_another_aspect_ratio_than_the_calibration_stop_the_daemon(tmp
                                   "mount": {"lever_arm_m": [0.1, 0.0, 0.05], "facing": "forward",
                                             "tilt_down_deg": 20.0}})
     code, _, stderr = finish(start_daemon(config))
-    assert code == 1, stderr
+    assert code == 2, stderr   # a config that cannot work: systemd does not restart it (RestartPreventExitStatus)
     assert "calibrated for 1280x720 frames but gets 640x480" in stderr
+    assert "Traceback" not in stderr
+
+
+def test_a_replay_without_one_readable_frame_is_an_error_not_a_flight(tmp_path):
+    frames = tmp_path / "corrupt"
+    frames.mkdir()
+    for k in range(5):
+        (frames / f"{k:06d}.png").write_bytes(np.random.default_rng(k).integers(0, 256, 5000, np.uint8).tobytes())
+    config = write_config(tmp_path, HOVER, free_port(),
+                          camera=yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"])
+    process = subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(config), "--replay",
+                                str(frames), "--fps", "10"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    code, _, stderr = finish(process)
+    assert code == 2, stderr
+    assert f"replay of {frames} (real time): not one readable frame (5 unreadable); stopping" in stderr
     assert "Traceback" not in stderr
 
 

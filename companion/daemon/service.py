@@ -149,6 +149,9 @@ class Daemon:
         self.notifier = Notifier()
         self.stop_event = threading.Event()
         self.failed = False
+        # the config or its input cannot work (a calibration of another aspect, a replay with no readable
+        # frame): exit status 2, which systemd does not restart (RestartPreventExitStatus=2)
+        self.bad_input = False
         self._frame_shape: tuple[int, int] | None = None   # (height, width) of the first frame, the one in use
         self._resized_frames = 0
         self._sizes_said: set[tuple[int, int]] = set()
@@ -242,8 +245,8 @@ class Daemon:
             self._supervise()
         finally:
             self.shutdown()
-        # Non-zero after a failure, so that systemd's Restart=on-failure restarts us.
-        return 1 if self.failed else 0
+        # Non-zero after a failure, so that systemd's Restart=on-failure restarts us (not for bad input: 2).
+        return 2 if self.bad_input else 1 if self.failed else 0
 
     def shutdown(self) -> None:
         self.stop_event.set()
@@ -268,10 +271,14 @@ class Daemon:
                     if self.source.finished:
                         log.info("source finished")
                         self.failed |= self.source.error is not None
+                        if self._frame_shape is None and self.source.error is None:
+                            log.error("%s: not one readable frame (%d unreadable); stopping",
+                                      describe_source(self.config), self.source.counters.corrupt)
+                            self.bad_input = True
                         break
                     continue
                 if self._frame_shape is None and not self._adopt_frame_size(frame):
-                    self.failed = True
+                    self.failed = self.bad_input = True
                     break
                 if frame.image.shape[:2] != self._frame_shape:
                     self._skip_resized(frame)
