@@ -1,6 +1,6 @@
 """``python -m companion``: the same as the ``companion`` command."""
 import sys
 
-from companion.cli import main
+from companion.cli import program
 
-sys.exit(main())
+sys.exit(program())

@@ -1130,6 +1130,22 @@ def test_a_hangup_leaves_the_daemon_running_and_sigterm_still_stops_it(tmp_path,
     assert "SIGTERM: stopping" in stderr
 
 
+def test_stop_signals_that_keep_coming_while_the_daemon_stops_leave_a_clean_exit(tmp_path):
+    """An impatient stop: SIGTERM after SIGTERM until the process is gone. Those after the summary came when the
+    daemon's handlers were gone and ended a cleanly stopped daemon with 143 (4 runs of 4 by hand)."""
+    process = start_daemon(write_config(tmp_path, HOVER, free_port(), source={"loop": True}))
+    deadline = time.monotonic() + 30
+    while "running: source" not in process.stderr.readline():
+        assert process.poll() is None and time.monotonic() < deadline, "the daemon never ran"
+    stderr_reader = threading.Thread(target=process.stderr.read, daemon=True)   # its pipe must not fill
+    stderr_reader.start()
+    deadline = time.monotonic() + 30
+    while process.poll() is None and time.monotonic() < deadline:
+        process.send_signal(signal.SIGTERM)
+        time.sleep(0.01)
+    assert process.wait(timeout=30) == 0
+
+
 def wait_until_importing(process: subprocess.Popen, timeout_s: float = 20.0) -> None:
     """Until the daemon's modules are importing: numpy is mapped into the process (`companion` and its
     dispatcher load none; `companion run` loads it, OpenCV, SciPy and pymavlink before it has handlers)."""

@@ -107,6 +107,17 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def program() -> int:
+    """The ``companion`` program (its console script, ``python -m companion``): ``main``, after which, for `run`,
+    a stop signal while the process ends (the summary logged, the threads finishing) changes nothing: the
+    second SIGTERM of an impatient stop ended a cleanly stopped daemon with 143."""
+    code = main()
+    if sys.argv[1:2] == ["run"]:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, signal.SIG_IGN)
+    return code
+
+
 def _run(command: str | None, argv: list[str]) -> int:
     """Parse ``argv`` and run ``command``; what a command raises becomes one line and an exit status."""
     try:
@@ -137,5 +148,4 @@ def _run(command: str | None, argv: list[str]) -> int:
         return 1
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(program())
