@@ -175,6 +175,19 @@ def test_statustext_is_rate_limited_and_ordered(peers, links):
     assert min(np.diff([r["t_ns"] for r in rows])) >= 0.25e9
 
 
+def test_a_long_text_reaches_the_ground_station_whole_in_chunks(peers, links):
+    port = free_port()
+    peer = peers(port)
+    link = links(connection=f"udpout:127.0.0.1:{port}", heartbeat_interval_s=0.2, statustext_interval_s=0.3)
+    peer.wait_for("HEARTBEAT")
+    text = "companion: camera lost: camera /dev/video0: cannot open it (no such device); retrying with backoff"
+    link.statustext(text)
+    assert len(text) == 98   # two chunks, the second ended by a NUL
+    rows = [r["fields"] for r in peer.wait_for("STATUSTEXT", count=2)]
+    assert len({r["id"] for r in rows}) == 1 and rows[0]["id"] != 0
+    assert [r["chunk_seq"] for r in rows] == [0, 1] and "".join(r["text"] for r in rows) == text
+
+
 def test_a_health_change_goes_out_before_queued_texts_and_replaces_its_stale_one(peers):
     """Texts queued before the link runs: the health changes (texts with a topic) go first, worst first;
     a newer text of a topic replaces the queued one (the camera came back before 'stalled' went out);

@@ -148,6 +148,19 @@ def test_statustext_is_cut_to_one_chunk():
     assert decoded.text.startswith("companion: markers lost") and len(decoded.text) == 50
 
 
+@pytest.mark.parametrize("length", [51, 100, 149, 249, 400])
+def test_a_text_longer_than_one_statustext_goes_in_chunks_a_ground_station_joins(length):
+    text = ("companion: camera lost: camera /dev/video0: cannot open it " * 8)[:length]
+    chunks = [roundtrip(m)[0] for m in mm.statustext_chunks(4, text, text_id=7)]
+    assert {(c.id, c.severity) for c in chunks} == {(7, 4)}
+    assert [c.chunk_seq for c in chunks] == list(range(len(chunks)))
+    assert all(len(c.text) == 50 for c in chunks[:-1]) and len(chunks[-1].text) < 50   # the last ends with a NUL
+    joined = "".join(c.text for c in chunks)
+    assert joined == text[:mm.STATUSTEXT_MAX_CHUNKS * 50 - 1]
+    assert [c.text for c in map(lambda m: roundtrip(m)[0], mm.statustext_chunks(4, text[:50], 8))] == [text[:50]]
+    assert roundtrip(mm.statustext_chunks(4, text[:50], 8)[0])[0].id == 0   # one that fits is no chunk
+
+
 def test_timesync_reply_mirrors_ts1_and_is_not_a_request():
     reply = mm.timesync_reply(request_ts1=111_222_333, now_ns=999_000_000_000)
     decoded, _ = roundtrip(reply)

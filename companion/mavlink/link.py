@@ -353,6 +353,7 @@ class MavlinkLink:
         self._statustexts: list[QueuedText] = []  # sorted, most urgent first
         self._statustext_lock = threading.Lock()
         self._statustext_sequence = itertools.count()
+        self._statustext_ids = itertools.count()   # of texts sent in chunks
         # (wall time s, severity, text) of the latest STATUSTEXTs, for the live view
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
@@ -398,7 +399,7 @@ class MavlinkLink:
             if last_words is not None:
                 final.append((SEVERITY_WARNING, last_words))
             for severity, text in final:   # while the link's thread keeps the connection open
-                self._send(mm.statustext(severity, text))
+                self._send_text(severity, text)
         self._stop.set()
         for thread in self._threads:
             if thread.is_alive():
@@ -511,6 +512,11 @@ class MavlinkLink:
                 return False
             self.counters.sent[message.get_type()] += 1
         return True
+
+    def _send_text(self, severity: int, text: str) -> bool:
+        """One text as STATUSTEXT, in chunks when longer than one holds (their id: 1-65535 in turn)."""
+        text_id = next(self._statustext_ids) % 65535 + 1
+        return all([self._send(message) for message in mm.statustext_chunks(severity, text, text_id)])
 
     def _run_heartbeat(self) -> None:
         # The first beat goes out as soon as the connection is open: a FC that has
@@ -875,7 +881,7 @@ class MavlinkLink:
         """The most urgent queued STATUSTEXT; it stays queued if it could not be sent."""
         with self._statustext_lock:
             queued = self._statustexts[0] if self._statustexts else None
-        if queued is None or not self._send(mm.statustext(queued.severity, queued.text)):
+        if queued is None or not self._send_text(queued.severity, queued.text):
             return
         self._last_statustext_s = now_s
         with self._statustext_lock:

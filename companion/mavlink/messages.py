@@ -29,6 +29,7 @@ from companion.geometry import frames  # noqa: E402
 from companion.types import Estimate  # noqa: E402
 
 STATUSTEXT_MAX_CHARS = 50
+STATUSTEXT_MAX_CHUNKS = 5   # a text of more than 249 characters is cut: a STATUSTEXT is a line on a ground station
 # Indices of the upper triangle of a 6x6 matrix, row by row (MAVLink's layout).
 UPPER_TRIANGLE_6 = np.triu_indices(6)
 # ODOMETRY.quality is 0 at this position standard deviation and 100 at zero.
@@ -243,6 +244,18 @@ def statustext(severity: int, text: str) -> Message:
     """STATUSTEXT (253), ASCII, cut to the 50 characters of one chunk."""
     data = text.encode("ascii", "replace")[:STATUSTEXT_MAX_CHARS]
     return mavlink2.MAVLink_statustext_message(severity=severity, text=data, id=0, chunk_seq=0)
+
+
+def statustext_chunks(severity: int, text: str, text_id: int) -> list[Message]:
+    """The STATUSTEXTs of one text: itself (id 0) if it fits the 50 characters of one, else chunks of 50 that
+    ground stations join by their ``id`` (``text_id``, 1-65535) and ``chunk_seq``, the last one ended by a NUL
+    (an empty chunk after a text of whole chunks), at most ``STATUSTEXT_MAX_CHUNKS`` of them (the rest cut)."""
+    data = text.encode("ascii", "replace")[:STATUSTEXT_MAX_CHUNKS * STATUSTEXT_MAX_CHARS - 1]
+    if len(data) <= STATUSTEXT_MAX_CHARS:
+        return [statustext(severity, text)]
+    pieces = [data[start:start + STATUSTEXT_MAX_CHARS] for start in range(0, len(data) + 1, STATUSTEXT_MAX_CHARS)]
+    return [mavlink2.MAVLink_statustext_message(severity=severity, text=piece, id=text_id, chunk_seq=seq)
+            for seq, piece in enumerate(pieces)]
 
 
 def timesync_reply(request_ts1: int, now_ns: int) -> Message:
