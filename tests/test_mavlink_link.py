@@ -175,6 +175,26 @@ def test_statustext_is_rate_limited_and_ordered(peers, links):
     assert min(np.diff([r["t_ns"] for r in rows])) >= 0.25e9
 
 
+def test_a_no_fc_heard_still_queued_when_the_fc_is_heard_is_not_sent(peers, links):
+    """A FC that connects just after the start order gave up waiting for it: the 'no FC heard' queued behind
+    another text went out seconds after the FC was heard (a TCP link, by hand)."""
+    port = free_port()
+    link = links(connection=f"udpout:127.0.0.1:{port}", origin=ORIGIN, origin_wait_s=0.3,
+                 heartbeat_interval_s=0.2, statustext_interval_s=4.0)
+    link.statustext("companion: camera stalled", mm.SEVERITY_CRITICAL, topic="camera")   # takes the first turn
+    deadline = time.monotonic() + 10
+    while link.counters.origin_timeouts == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert link.counters.origin_timeouts == 1   # "no FC heard" is queued, its turn seconds away
+    peer = peers(port)                          # the FC comes
+    deadline = time.monotonic() + 10
+    while not link.fc_seen and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert link.fc_seen
+    time.sleep(5.0)   # past the text's turn
+    assert "companion: no FC heard" not in [r["fields"]["text"] for r in peer.records("STATUSTEXT")]
+
+
 def test_a_long_text_reaches_the_ground_station_whole_in_chunks(peers, links):
     port = free_port()
     peer = peers(port)

@@ -60,10 +60,11 @@ stops (a restarted FC forgets what it was asked to stream).
 
 STATUSTEXT (``statustext``): one at most per ``statustext_interval_s`` (nothing
 floods the FC nor the ground station), from a queue ordered by urgency:
-a health change (a text with a topic: "camera", "attitude", "tracking") before
+a health change (a text with a topic: "camera", "attitude", "tracking", "fc") before
 anything else, then by severity, then in order. A queued text is replaced by a newer
 one of its topic (what it said is no longer true; the log keeps both), so a
-fault reaches the operator within ``statustext_interval_s`` whatever waits.
+fault reaches the operator within ``statustext_interval_s`` whatever waits; a
+"no FC heard" still queued is dropped when the FC is heard.
 
 Parameters: when a FC appears, the few parameters that decide whether it
 fuses vision (``companion.mavlink.fc_params``) are read with
@@ -468,7 +469,7 @@ class MavlinkLink:
     def statustext(self, text: str, severity: int = SEVERITY_INFO, topic: str | None = None) -> None:
         """Queue a STATUSTEXT; sent at most once per ``statustext_interval_s``, the most urgent first.
 
-        topic: what a health change is about ("camera", "attitude", "tracking"): it goes before any text without
+        topic: what a health change is about ("camera", "attitude", "tracking", "fc"): it goes before any text without
         one and replaces a queued text of the same topic (see the module docstring).
         """
         queued = QueuedText(topic is None, severity, next(self._statustext_sequence), text, topic)
@@ -483,6 +484,11 @@ class MavlinkLink:
         for q in dropped:
             log.warning("link: STATUSTEXT queue full: %r not sent", q.text)
         self.statustext_history.append((time.time(), severity, text))
+
+    def _withdraw_statustext(self, topic: str) -> None:
+        """Drop the queued text of ``topic``, if one has not gone out yet."""
+        with self._statustext_lock:
+            self._statustexts = [q for q in self._statustexts if q.topic != topic]
 
     def set_critical(self, critical: bool) -> None:
         """HEARTBEAT system_status CRITICAL while ``critical`` (the daemon's health: camera stalled or lost)."""
@@ -667,6 +673,7 @@ class MavlinkLink:
             self.fc_autopilot = message.autopilot
             log.info("link: flight controller %d/%d seen (autopilot %d, type %d)",
                      self.fc_system_id, self.fc_component_id, message.autopilot, message.type)
+            self._withdraw_statustext("fc")   # a "no FC heard" still queued is stale now
             if self.fc_system_id != self.params.system_id:
                 log.warning("link: flight controller has system id %d but we send as %d",
                             self.fc_system_id, self.params.system_id)
@@ -899,7 +906,7 @@ class MavlinkLink:
         elif not self._told_unheard and self.params.origin is None and self.stream:
             self._told_unheard = True
             log.warning("link: no flight controller heard for %.1f s; vision goes on", unheard_s)
-            self.statustext("companion: no FC heard", SEVERITY_WARNING)
+            self.statustext("companion: no FC heard", SEVERITY_WARNING, topic="fc")
 
     def _fc_went_silent(self) -> bool:
         """True when a FC seen since the last handshake began has stopped sending heartbeats."""
@@ -911,7 +918,7 @@ class MavlinkLink:
         if not self.fc_seen:
             if now_s - self._handshake_started_s > self.params.origin_wait_s:
                 self._give_up(f"no flight controller seen after {self.params.origin_wait_s:.1f} s",
-                              "companion: no FC heard")
+                              "companion: no FC heard", topic="fc")
             return
         if self._fc_seen_in_handshake_s is None:
             self._fc_seen_in_handshake_s = now_s
@@ -950,10 +957,10 @@ class MavlinkLink:
             self._give_up(f"origin not confirmed after {self.params.origin_wait_s:.1f} s",
                           "companion: origin unconfirmed")
 
-    def _give_up(self, what: str, text: str) -> None:
+    def _give_up(self, what: str, text: str, topic: str | None = None) -> None:
         self.counters.origin_timeouts += 1
         log.warning("link: %s; streaming vision anyway", what)
-        self.statustext(text, SEVERITY_WARNING)
+        self.statustext(text, SEVERITY_WARNING, topic)
         self._start_streaming()
 
     def _home_step(self, now_s: float) -> None:
