@@ -665,7 +665,7 @@ def test_frames_of_another_aspect_ratio_than_the_calibration_stop_the_daemon(tmp
 def test_a_replay_without_one_readable_frame_is_an_error_not_a_flight(tmp_path):
     frames = tmp_path / "corrupt"
     frames.mkdir()
-    for k in range(5):
+    for k in range(15):   # 1.5 s at 10 fps: the replay is lost (nothing readable for 1 s) before its end
         (frames / f"{k:06d}.png").write_bytes(np.random.default_rng(k).integers(0, 256, 5000, np.uint8).tobytes())
     config = write_config(tmp_path, HOVER, free_port(),
                           camera=yaml.safe_load((HOVER / "sequence.yaml").read_text())["camera"])
@@ -673,7 +673,8 @@ def test_a_replay_without_one_readable_frame_is_an_error_not_a_flight(tmp_path):
                                 str(frames), "--fps", "10"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     code, _, stderr = finish(process)
     assert code == 2, stderr
-    assert f"replay of {frames} (real time): not one readable frame (5 unreadable); stopping" in stderr
+    assert f"replay of {frames} (real time): not one readable frame (15 unreadable); stopping" in stderr
+    assert "nothing readable for 1.0 s of recording (" in stderr and "); reading on to its end" in stderr
     assert "Traceback" not in stderr
 
 

@@ -328,8 +328,9 @@ class ReplaySource(ThreadedSource):
         if self._unreadable_run * self.recording.period_ns >= LOST_AFTER_S * 1e9:
             self.lost_reason = (f"{path.name} missing ({path.parent})" if not path.exists() else
                                 f"{self._unreadable_run} unreadable frames (the last: {where})")
-            log.warning("replay: nothing readable for %.1f s of recording (%s); retrying, with a pause "
-                        "after each loop that reads nothing", LOST_AFTER_S, self.lost_reason)
+            log.warning("replay: nothing readable for %.1f s of recording (%s); %s", LOST_AFTER_S, self.lost_reason,
+                        "retrying, with a pause after each loop that reads nothing" if self.loop else
+                        "reading on to its end")
 
     def _readable_again(self) -> None:
         if self.lost_reason is not None:

@@ -11,6 +11,7 @@ from pathlib import Path
 from companion.daemon.config import (Config, ConfigError, ReplayConfig, V4L2Config, default_config_path,
                                      http_address, load_config)
 from companion.daemon.record import RecordError, RecordParams
+from companion.daemon.web import WebError
 from companion.yaml_input import Where
 from companion.daemon.service import LOG_LEVELS, Daemon, setup_logging
 from companion.cli import discard_stdout, start_signals
@@ -50,6 +51,9 @@ def main(args) -> int:
         daemon = Daemon(config, status_stream=sys.stdout)
     except RecordError as error:   # the folder named by the key or option that gave it
         log.error("%s: %s", "--record" if args.record is not None else f"{config.path}: record.path", error.problem)
+        return 2
+    except WebError as error:      # the address, the same way
+        log.error("%s: %s", "--http" if args.http is not None else f"{config.path}: status.http", error.problem)
         return 2
     except (ConfigError, ValueError) as error:
         log.error("%s", error)

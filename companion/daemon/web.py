@@ -72,7 +72,13 @@ STREAM_CHECK_S = 1.0
 
 
 class WebError(ValueError):
-    """The live view cannot start (address in use, bad host): names the address."""
+    """The live view cannot start (address in use, bad host): ``problem`` names the address; the message puts
+    the key that gives it first (``status.http: ...``; ``companion run`` names ``--http`` instead when that
+    gave it)."""
+
+    def __init__(self, problem: str):
+        super().__init__(f"status.http: {problem}")
+        self.problem = problem
 
 
 @dataclasses.dataclass
@@ -120,7 +126,7 @@ class LiveView:
         try:
             self.server = _Server((host, port), _handler_for(self))
         except OSError as error:
-            raise WebError(f"status.http: cannot listen on {host}:{port}: {error.strerror or error}") from None
+            raise WebError(f"cannot listen on {host}:{port}: {error.strerror or error}") from None
         self._threads = [threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.2},
                                           name="http", daemon=True),
                          threading.Thread(target=self._encode_loop, name="encoder", daemon=True)]
