@@ -168,8 +168,11 @@ def test_marker_errors_name_file_marker_and_key(tmp_path, marker, key, words):
 
 
 def test_duplicate_marker(tmp_path):
-    path = write_map(tmp_path, one() + one(symbol=None, id=0, position_m=[5, 5, 1]))
+    path = write_map(tmp_path, one() + one(position_m=[5, 5, 1]))
     with pytest.raises(MapError, match=r"markers entry 2 \(A\): key 'symbol': duplicate marker 'A'"):
+        load_map(path)
+    path = write_map(tmp_path, one() + one(symbol=None, id=0, position_m=[5, 5, 1]))   # the key it was given by
+    with pytest.raises(MapError, match=r"markers entry 2 \(A\): key 'id': duplicate marker 'A' \(id 0\)"):
         load_map(path)
 
 

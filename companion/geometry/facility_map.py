@@ -309,7 +309,8 @@ def _markers(section, where: Where, dictionary, default_size_m) -> dict[int, Map
         marker = _marker(entry, where, index, dictionary, default_size_m)
         if marker.id in markers:
             raise where.sub(_label(index, marker.symbol)).error(
-                f"duplicate marker {marker.symbol!r} (id {marker.id}), already listed", "symbol"
+                f"duplicate marker {marker.symbol!r} (id {marker.id}), already listed",
+                "symbol" if "symbol" in entry else "id"
             )
         markers[marker.id] = marker
     return markers
