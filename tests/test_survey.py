@@ -387,7 +387,8 @@ def test_an_anchor_no_frame_ties_to_the_others_is_said_to_be_unchecked(tmp_path,
     # two walks no view links (the north wall; rack R1's south face from aisle 0), an anchor in each, and a
     # second one on the north wall: O and UP are checked against each other, Q against nothing
     aisle0 = render(tmp_path / "aisle0", [(5.0, 1.0, 1.3, 90.0), (8.0, 1.0, 1.3, 90.0)], seed=6)
-    anchors = anchors_file(tmp_path / "a.yaml", {"O", "UP", "Q"}, survey={"sizes_m": {s: 0.18 for s in "PQRYZ"}})
+    # (Q is an anchor: its size is its entry's, not one of survey.sizes_m)
+    anchors = anchors_file(tmp_path / "a.yaml", {"O", "UP", "Q"}, survey={"sizes_m": {s: 0.18 for s in "PRYZ"}})
     out, report = tmp_path / "site.yaml", tmp_path / "report"
     result = run("survey", str(north_walk), str(aisle0), "--camera", str(north_walk / "camera.yaml"),
                  "--anchors", str(anchors), "--out", str(out), "--report", str(report))
