@@ -226,6 +226,9 @@ def test_the_status_line_says_for_how_long_no_flight_controller_is_heard():
     assert "| tracking | link streaming, no FC heard 12 s | sent 274 " in unheard.line()
     assert "| link handshake, no FC heard 12 s |" in dataclasses.replace(unheard, link_state="handshake").line()
     assert "no FC" not in dataclasses.replace(unheard, link_state="connecting", link_down="lost: x").line()
+    garbled = dataclasses.replace(unheard, fc_unheard_why="undecodable bytes: a wrong baud rate, or not MAVLink?")
+    assert "| link streaming, no FC heard 12 s (undecodable bytes: a wrong baud rate, or not MAVLink?) |" in \
+        garbled.line()
 
 
 # ---------------------------------------------------------------- parameters

@@ -725,6 +725,34 @@ def test_a_udpout_host_that_does_not_resolve_is_a_link_that_cannot_open_not_an_o
     assert link.counters.connects == 0 and link.state is LinkState.CONNECTING
 
 
+def test_a_flight_controller_at_another_baud_rate_is_said_to_send_undecodable_bytes(links, caplog):
+    """A wrong baud rate (the commonest set-up fault on a UART): the FC's bytes arrive garbled. Said beside
+    'no FC heard', in the log, the STATUSTEXT and the status line (``fc_unheard_why``), not just 'no FC heard'."""
+    import os
+    import tty
+    caplog.set_level(logging.INFO, logger="companion.mavlink.link")
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = links(connection=f"{os.ttyname(slave)},921600", fc_timeout_s=1.5, heartbeat_interval_s=0.2,
+                 statustext_interval_s=0.1)
+    garbage = np.random.default_rng(3).integers(0, 256, 200, np.uint8).tobytes().replace(b"\xfd", b"\x00")
+    try:
+        deadline = time.monotonic() + 15
+        while not link.statustext_history and time.monotonic() < deadline:
+            os.write(master, garbage)   # what a FC's frames look like read at the wrong baud rate
+            while select.select([master], [], [], 0)[0]:
+                os.read(master, 4096)   # the link's own bytes, read so its writes never wait
+            time.sleep(0.05)
+        assert link.counters.undecodable_bytes > 0 and not link.fc_seen
+        assert link.fc_unheard_why == "undecodable bytes: a wrong baud rate, or not MAVLink?"
+        assert [text for _, _, text in link.statustext_history] == ["companion: no FC heard, bytes garbled (baud?)"]
+        assert any("no flight controller heard for 1." in r.getMessage() and "undecodable bytes" in r.getMessage()
+                   for r in caplog.records)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 def test_a_serial_port_another_link_holds_is_not_opened_and_says_why(links):
     """`companion check-fc` on the UART of a running service: two readers split the tty's bytes, and both saw
     a flight controller going silent and parameters not reported. The second opener now stays out, saying why;

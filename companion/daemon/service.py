@@ -447,7 +447,7 @@ class Daemon:
                             link_state=self.link.state.value, frames=self.pipeline.stats.frames,
                             sent=self.pipeline.stats.sent, rejected=counters.rejected, resets=counters.resets,
                             attitude=health.attitude, link_down=self.link.down_reason,
-                            fc_unheard_s=self.link.fc_unheard_s,
+                            fc_unheard_s=self.link.fc_unheard_s, fc_unheard_why=self.link.fc_unheard_why,
                             render_ms=self.source.render_ms() if isinstance(self.source, SimulatedCamera) else None)
 
     def status_line(self) -> str:

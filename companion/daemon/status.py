@@ -40,7 +40,8 @@ class DaemonStatus:
     real camera, and then not shown); fc_unheard_s: how long no flight
     controller has been heard on the open link (``MavlinkLink.fc_unheard_s``;
     None: one is heard, or the link is down), shown beside the link's state
-    (``link streaming, no FC heard 12 s``) for as long as it lasts.
+    (``link streaming, no FC heard 12 s``) for as long as it lasts, with
+    ``fc_unheard_why`` (``MavlinkLink.fc_unheard_why``) when there is a clue.
     """
 
     fps: float
@@ -61,6 +62,7 @@ class DaemonStatus:
     render_ms: float | None = None
     link_down: str | None = None
     fc_unheard_s: float | None = None
+    fc_unheard_why: str | None = None
 
     def state_text(self) -> str:
         """``camera stalled 3.2 s: no frame for 3.2 s``; the bare state when all is well."""
@@ -80,7 +82,7 @@ class DaemonStatus:
         attitude = "" if self.attitude == "off" else f"attitude {self.attitude} | "
         link = self.link_state + (f" ({self.link_down})" if self.link_down and self.link_state == "connecting" else "")
         if self.fc_unheard_s is not None and self.link_state != "connecting":
-            link += f", no FC heard {self.fc_unheard_s:.0f} s"
+            link += f", no FC heard {self.fc_unheard_s:.0f} s" + (f" ({self.fc_unheard_why})" if self.fc_unheard_why else "")
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
                 f"{self.state_text()} | {attitude}link {link} | "
                 f"sent {self.sent} rejected {self.rejected} resets {self.resets}"

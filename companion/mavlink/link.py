@@ -297,6 +297,7 @@ class LinkCounters:
     origin_confirmed: int = 0
     origin_timeouts: int = 0
     ekf_timeouts: int = 0
+    undecodable_bytes: int = 0    # bytes that were no MAVLink message (a wrong baud rate, another protocol)
 
 
 class _TransportLost(ConnectionError):
@@ -359,6 +360,7 @@ class MavlinkLink:
         self.statustext_history: collections.deque = collections.deque(maxlen=20)
         self._last_statustext_s = -math.inf
         self._last_fc_heartbeat_s = -math.inf
+        self._last_undecodable_s = -math.inf   # when bytes that were no MAVLink message last came
         self._told_unheard = False  # "no flight controller heard" said for this silence (_watch_fc_heard)
         self._fc_boot_ms: int | None = None   # the FC's newest time_boot_ms: going back, it restarted
         self._boot_time_request = StreamRequest(mm.mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME, BOOT_TIME_REQUEST_RATE_HZ, BOOT_TIME_REQUEST_RETRY_S)
@@ -426,6 +428,15 @@ class MavlinkLink:
             return None
         unheard_s = time.monotonic() - max(self._last_fc_heartbeat_s, self._connected_s)
         return unheard_s if unheard_s >= self.params.fc_timeout_s else None
+
+    @property
+    def fc_unheard_why(self) -> str | None:
+        """While no FC is heard (``fc_unheard_s``): "undecodable bytes" when bytes that are no MAVLink message
+        keep coming (the FC is there, but at another baud rate, or its port speaks another protocol); None
+        otherwise."""
+        if self.fc_unheard_s is None or time.monotonic() - self._last_undecodable_s >= self.params.fc_timeout_s:
+            return None
+        return "undecodable bytes: a wrong baud rate, or not MAVLink?"
 
     def subscribe(self, subscriber: Subscriber) -> None:
         """Hand ``subscriber`` the flight controller's messages of its types; call before ``start``."""
@@ -624,7 +635,10 @@ class MavlinkLink:
             if self._transport_broken.is_set() or getattr(connection, "portdead", False):
                 raise _TransportLost(f"send failed: {self._send_error}" if self._send_error else "send failed")
             message = connection.recv_match(blocking=True, timeout=0.05)
-            if message is not None and message.get_type() != "BAD_DATA":
+            if message is not None and message.get_type() == "BAD_DATA":
+                self.counters.undecodable_bytes += len(message.data)
+                self._last_undecodable_s = time.monotonic()
+            elif message is not None:
                 self._handle(message)
                 self._deliver(message)
             self._tick()
@@ -905,8 +919,11 @@ class MavlinkLink:
             self._told_unheard = False
         elif not self._told_unheard and self.params.origin is None and self.stream:
             self._told_unheard = True
-            log.warning("link: no flight controller heard for %.1f s; vision goes on", unheard_s)
-            self.statustext("companion: no FC heard", SEVERITY_WARNING, topic="fc")
+            why = self.fc_unheard_why
+            log.warning("link: no flight controller heard for %.1f s%s; vision goes on", unheard_s,
+                        f" ({why} {self.counters.undecodable_bytes} so far)" if why else "")
+            self.statustext("companion: no FC heard, bytes garbled (baud?)" if why else "companion: no FC heard",
+                            SEVERITY_WARNING, topic="fc")
 
     def _fc_went_silent(self) -> bool:
         """True when a FC seen since the last handshake began has stopped sending heartbeats."""
