@@ -753,6 +753,31 @@ def test_a_flight_controller_at_another_baud_rate_is_said_to_send_undecodable_by
         os.close(slave)
 
 
+def test_the_start_order_giving_up_on_a_flight_controller_at_another_baud_rate_says_why(links, caplog):
+    import os
+    import tty
+    caplog.set_level(logging.INFO, logger="companion.mavlink.link")
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = links(connection=f"{os.ttyname(slave)},921600", origin=ORIGIN, origin_wait_s=2.0,
+                 heartbeat_interval_s=0.2, statustext_interval_s=0.1)
+    garbage = np.random.default_rng(4).integers(0, 256, 200, np.uint8).tobytes().replace(b"\xfd", b"\x00")
+    try:
+        deadline = time.monotonic() + 15
+        while link.counters.origin_timeouts == 0 and time.monotonic() < deadline:
+            os.write(master, garbage)
+            while select.select([master], [], [], 0)[0]:
+                os.read(master, 4096)
+            time.sleep(0.05)
+        assert link.counters.origin_timeouts == 1
+        assert any("no flight controller seen after 2.0 s (undecodable bytes: a wrong baud rate, or not MAVLink? "
+                   in r.getMessage() for r in caplog.records), [r.getMessage() for r in caplog.records]
+        assert [text for _, _, text in link.statustext_history] == ["companion: no FC heard, bytes garbled (baud?)"]
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
 def test_a_serial_port_another_link_holds_is_not_opened_and_says_why(links):
     """`companion check-fc` on the UART of a running service: two readers split the tty's bytes, and both saw
     a flight controller going silent and parameters not reported. The second opener now stays out, saying why;

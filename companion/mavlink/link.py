@@ -431,10 +431,11 @@ class MavlinkLink:
 
     @property
     def fc_unheard_why(self) -> str | None:
-        """While no FC is heard (``fc_unheard_s``): "undecodable bytes" when bytes that are no MAVLink message
+        """While the open connection hears no FC: "undecodable bytes" when bytes that are no MAVLink message
         keep coming (the FC is there, but at another baud rate, or its port speaks another protocol); None
         otherwise."""
-        if self.fc_unheard_s is None or time.monotonic() - self._last_undecodable_s >= self.params.fc_timeout_s:
+        if (self._connection is None or self.fc_seen
+                or time.monotonic() - self._last_undecodable_s >= self.params.fc_timeout_s):
             return None
         return "undecodable bytes: a wrong baud rate, or not MAVLink?"
 
@@ -919,11 +920,16 @@ class MavlinkLink:
             self._told_unheard = False
         elif not self._told_unheard and self.params.origin is None and self.stream:
             self._told_unheard = True
-            why = self.fc_unheard_why
-            log.warning("link: no flight controller heard for %.1f s%s; vision goes on", unheard_s,
-                        f" ({why} {self.counters.undecodable_bytes} so far)" if why else "")
-            self.statustext("companion: no FC heard, bytes garbled (baud?)" if why else "companion: no FC heard",
-                            SEVERITY_WARNING, topic="fc")
+            clue, text = self._unheard_clue()
+            log.warning("link: no flight controller heard for %.1f s%s; vision goes on", unheard_s, clue)
+            self.statustext(text, SEVERITY_WARNING, topic="fc")
+
+    def _unheard_clue(self) -> tuple[str, str]:
+        """(what to add to the log line, the STATUSTEXT) of a flight controller not heard."""
+        why = self.fc_unheard_why
+        if why is None:
+            return "", "companion: no FC heard"
+        return f" ({why} {self.counters.undecodable_bytes} so far)", "companion: no FC heard, bytes garbled (baud?)"
 
     def _fc_went_silent(self) -> bool:
         """True when a FC seen since the last handshake began has stopped sending heartbeats."""
@@ -934,8 +940,9 @@ class MavlinkLink:
         """FC, then (ArduPilot) its EKF, then the origin confirmed: each wait bounded, then stream anyway."""
         if not self.fc_seen:
             if now_s - self._handshake_started_s > self.params.origin_wait_s:
-                self._give_up(f"no flight controller seen after {self.params.origin_wait_s:.1f} s",
-                              "companion: no FC heard", topic="fc")
+                clue, text = self._unheard_clue()
+                self._give_up(f"no flight controller seen after {self.params.origin_wait_s:.1f} s{clue}", text,
+                              topic="fc")
             return
         if self._fc_seen_in_handshake_s is None:
             self._fc_seen_in_handshake_s = now_s
