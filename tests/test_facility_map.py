@@ -256,3 +256,18 @@ def test_a_survey_size_for_one_of_the_maps_own_markers_must_be_its_entrys(tmp_pa
     with pytest.raises(MapError, match=r"survey.sizes_m: key 'A': 0.2 m, but A is a marker of this map, of size_m 0.15"):
         load_map(write_map(tmp_path, one(), survey={"sizes_m": {"A": 0.2}}))
     assert load_map(write_map(tmp_path, one(), survey={"sizes_m": {"A": 0.15, "B": 0.2}})).survey.sizes_m["B"] == 0.2
+
+
+def test_two_maps_differ_by_the_markers_moved_resized_or_missing_not_by_their_file(tmp_path):
+    document = yaml.safe_load(WAREHOUSE.read_text())
+    (tmp_path / "copy.yaml").write_text(yaml.safe_dump(document))
+    facility = load_map(WAREHOUSE)
+    assert facility.differences(load_map(tmp_path / "copy.yaml")) == []   # a copy (a recording keeps one)
+    document["markers"][0]["position_m"][2] += 0.0005                     # half a millimetre: the same place
+    document["markers"][1]["position_m"][0] += 0.05
+    document["markers"][2]["size_m"] = 0.25
+    gone = document["markers"].pop(3)
+    (tmp_path / "other.yaml").write_text(yaml.safe_dump(document))
+    moved, resized = (str(document["markers"][k]["symbol"]) for k in (1, 2))
+    assert facility.differences(load_map(tmp_path / "other.yaml")) == [
+        f"moved or resized: {moved}, {resized}", f"only in this one: {gone['symbol']}"]

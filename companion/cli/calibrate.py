@@ -22,7 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from companion.capture.replay import IMAGE_SUFFIXES, TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files, open_recording
+from companion.capture.replay import (IMAGE_SUFFIXES, TIMESTAMPS_FILE, VIDEO_SUFFIXES, ReplaySource, image_files,
+                                      open_recording)
 from companion.capture.source import SourceError
 from companion.cli.output import output_dir, output_file, removed_if_left_empty, write_failed
 from companion.files import write_whole

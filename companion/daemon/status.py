@@ -82,7 +82,8 @@ class DaemonStatus:
         attitude = "" if self.attitude == "off" else f"attitude {self.attitude} | "
         link = self.link_state + (f" ({self.link_down})" if self.link_down and self.link_state == "connecting" else "")
         if self.fc_unheard_s is not None and self.link_state != "connecting":
-            link += f", no FC heard {self.fc_unheard_s:.0f} s" + (f" ({self.fc_unheard_why})" if self.fc_unheard_why else "")
+            link += f", no FC heard {self.fc_unheard_s:.0f} s"
+            link += f" ({self.fc_unheard_why})" if self.fc_unheard_why else ""
         return (f"{self.fps:5.1f} fps | markers {self.markers} | {pose} | latency {latency} | "
                 f"{self.state_text()} | {attitude}link {link} | "
                 f"sent {self.sent} rejected {self.rejected} resets {self.resets}"

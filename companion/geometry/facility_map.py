@@ -168,10 +168,11 @@ class FacilityMap:
         if (self.frame.x_bearing_deg, self.frame.geodetic_origin) != (other.frame.x_bearing_deg,
                                                                        other.frame.geodetic_origin):
             found.append("frame (bearing or geodetic origin)")
-        moved = [m.symbol for i, m in self.markers.items() if i in other.markers and not _same_place(m, other.markers[i])]
-        for what, symbols in (("moved or resized", moved),
-                              ("only in this one", [m.symbol for i, m in self.markers.items() if i not in other.markers]),
-                              ("only in the other", [m.symbol for i, m in other.markers.items() if i not in self.markers])):
+        ours, theirs = self.markers, other.markers
+        for what, symbols in (
+                ("moved or resized", [m.symbol for i, m in ours.items() if i in theirs and not _same_place(m, theirs[i])]),
+                ("only in this one", [m.symbol for i, m in ours.items() if i not in theirs]),
+                ("only in the other", [m.symbol for i, m in theirs.items() if i not in ours])):
             if symbols:
                 found.append(f"{what}: {', '.join(symbols)}")
         return found
