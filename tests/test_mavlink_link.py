@@ -691,7 +691,7 @@ def test_a_flight_controller_that_takes_no_bytes_fails_the_write_it_does_not_hol
         os.close(slave)
 
 
-def test_a_link_whose_flight_controller_takes_no_bytes_is_lost_saying_so_and_vision_does_not_wait(links):
+def test_a_link_whose_flight_controller_takes_no_bytes_is_lost_saying_so_and_vision_does_not_wait(links, caplog):
     import os
     import tty
     master, slave = os.openpty()
@@ -707,6 +707,13 @@ def test_a_link_whose_flight_controller_takes_no_bytes_is_lost_saying_so_and_vis
             time.sleep(0.05)
         assert "lost: send failed: " in str(link.down_reason)
         assert "took no bytes for 0.25 s (the flight controller does not read)" in str(link.down_reason)
+        deadline = time.monotonic() + 30
+        while link.counters.connects < 3 and time.monotonic() < deadline:   # reopened, lost again: a few rounds
+            os.write(master, mm.mavlink2.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3).pack(fc))
+            time.sleep(0.05)
+        # one write waits per connection: the sends after it give up at once (not 0.25 s each, nor a line each)
+        failed = [r for r in caplog.records if "link: send failed" in r.getMessage()]
+        assert len(failed) <= link.counters.connects, [r.getMessage() for r in failed]
     finally:
         sender._stop.set()
         sender._thread.join(5)

@@ -518,8 +518,8 @@ class MavlinkLink:
     def _send(self, message) -> bool:
         with self._send_lock:
             connection = self._connection
-            if connection is None:
-                return False
+            if connection is None or self._transport_broken.is_set():
+                return False   # a connection a send failed on is about to be closed: no write waits on it again
             try:
                 connection.mav.send(message)
             except OSError as error:
