@@ -138,6 +138,8 @@ def test_marker_sd_reads_and_round_trips_through_the_writer(tmp_path):
         (dict(size_m=None), "size_m", "missing"),
         (dict(position_m=[1, 2]), "position_m", "3 numbers"),
         (dict(position_m=[1, 2, float("nan")]), "position_m", "finite"),
+        (dict(position_m=[4000, 3500, 1300]), "position_m", "within 1000 m of the map's origin on each axis (metres), "
+                                                           "got [4000.0, 3500.0, 1300.0]: millimetres given?"),
         (dict(facing="sideways"), "facing", "not a direction"),
         (dict(facing=None), "facing", "exactly one"),
         (dict(rpy_deg=[0, 0, 0]), "facing", "exactly one"),

@@ -34,6 +34,9 @@ PARITIES = (2, 4)
 # the largest inner square believed (as `companion markers` prints at most): a larger size was given in
 # centimetres or millimetres, and a survey with it puts markers kilometres away
 MAX_MARKER_SIZE_M = 10.0
+# the farthest a marker is believed from the map's origin: a site a kilometre across; positions in millimetres
+# (a marker 1.3 m up written 1300) lie beyond it
+MAX_POSITION_M = 1000.0
 QUATERNION_NORM_TOLERANCE = 0.01
 
 
@@ -331,6 +334,9 @@ def _marker(entry, top: Where, index: int, dictionary, default_size_m) -> MapMar
     where = top.sub(_label(index, symbol))
     size_m = _size_m(where, entry, "size_m", REQUIRED if default_size_m is None else default_size_m)
     position_m = where.numbers(entry, "position_m", (3,))
+    if np.abs(position_m).max() > MAX_POSITION_M:
+        raise where.error(f"must be within {MAX_POSITION_M:g} m of the map's origin on each axis (metres), got "
+                          f"{np.round(position_m, 3).tolist()}: millimetres given?", "position_m")
     R_map_marker = _orientation(entry, where)
     sd_position_m, sd_angle_deg = _sd(entry.get("sd"), where)
     return MapMarker(
