@@ -35,6 +35,7 @@ from companion.geometry.pose import PoseParams, PoseSolution, PoseSolver
 from companion.capture.replay import (ReplaySource, check_recording_path, open_recording, read_sequence_info,
                                       sequence_camera, sequence_map_path)
 from companion.capture.source import SourceError
+from companion.sim.simulate import POSE_COLUMNS
 from companion.types import AttitudeSample
 
 
@@ -105,9 +106,6 @@ def sequence_pose_params(sequence: Path, map_path: str | None, **given) -> PoseP
     return PoseParams(**given, **stated)
 
 
-GROUNDTRUTH_COLUMNS = ("frame", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")
-
-
 def groundtruth(sequence: Path) -> dict[int, np.ndarray] | None:
     """T_map_body (4, 4) by frame number from groundtruth.csv, or None without one."""
     path = sequence / "groundtruth.csv"
@@ -116,15 +114,15 @@ def groundtruth(sequence: Path) -> dict[int, np.ndarray] | None:
     truth = {}
     with open(path, newline="") as handle:
         rows = csv.DictReader(handle)
-        missing = [column for column in GROUNDTRUTH_COLUMNS if column not in (rows.fieldnames or ())]
+        needed = ("frame", *POSE_COLUMNS)
+        missing = [column for column in needed if column not in (rows.fieldnames or ())]
         if missing:
             raise LocalizeError(f"{path}: line 1: no column {', '.join(missing)} (a header of "
-                                f"{', '.join(GROUNDTRUTH_COLUMNS)} is needed)")
+                                f"{', '.join(needed)} is needed)")
         for row in rows:
             try:
-                q = [float(row[k]) for k in ("qw", "qx", "qy", "qz")]
-                p = [float(row[k]) for k in ("x_m", "y_m", "z_m")]
-                truth[int(row["frame"])] = frames.make_transform(frames.rotation_from_quaternion(q), p)
+                pose = [float(row[k]) for k in POSE_COLUMNS]
+                truth[int(row["frame"])] = frames.make_transform(frames.rotation_from_quaternion(pose[3:]), pose[:3])
             except (TypeError, ValueError) as error:  # TypeError: a short row's missing values are None
                 raise LocalizeError(f"{path}: line {rows.line_num}: bad row {row}: {error}") from None
     return truth

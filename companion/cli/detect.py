@@ -73,30 +73,38 @@ def main(args: argparse.Namespace) -> int:
     with removed_if_left_empty(args.draw):
         if args.draw:
             output_dir(args.draw, "--draw")
-        unread, unwritten = len(missing), 0
-        for path in paths:
-            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            if gray is None:
-                print(f"companion detect: {path}: not a readable image, skipped", file=sys.stderr)
-                unread += 1
-                continue
-            start = time.perf_counter_ns()
-            detections = detector.detect(gray)
-            ms = (time.perf_counter_ns() - start) / 1e6
-            print(json_line(path, detections, ms) if args.json else text_line(path, detections, ms), flush=True)
-            if args.draw:
-                try:
-                    write_whole(drawn[path], cv2.imencode(".png", draw(gray, detections))[1].tobytes())
-                except OSError as error:
-                    print(f"companion detect: --draw {drawn[path]}: cannot write: {error.strerror or error}",
-                          file=sys.stderr)
-                    unwritten += 1
+        unread, unwritten = detect_each(detector, paths, drawn, args.json)
+    unread += len(missing)
     images = len(paths) + len(missing)
     if unread:
         print(f"companion detect: {unread} of {images} images could not be read", file=sys.stderr)
     if unwritten:
         print(f"companion detect: {unwritten} of {images} annotated copies could not be written", file=sys.stderr)
     return 1 if unread or unwritten else 0
+
+
+def detect_each(detector: Detector, paths: list[Path], drawn: dict[Path, Path], as_json: bool) -> tuple[int, int]:
+    """Detect in each image, print its line, write its annotated copy where ``drawn`` names one; (images that
+    could not be read, copies that could not be written), each said as it happens."""
+    unread = unwritten = 0
+    for path in paths:
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            print(f"companion detect: {path}: not a readable image, skipped", file=sys.stderr)
+            unread += 1
+            continue
+        start = time.perf_counter_ns()
+        detections = detector.detect(gray)
+        ms = (time.perf_counter_ns() - start) / 1e6
+        print(json_line(path, detections, ms) if as_json else text_line(path, detections, ms), flush=True)
+        if path in drawn:
+            try:
+                write_whole(drawn[path], cv2.imencode(".png", draw(gray, detections))[1].tobytes())
+            except OSError as error:
+                print(f"companion detect: --draw {drawn[path]}: cannot write: {error.strerror or error}",
+                      file=sys.stderr)
+                unwritten += 1
+    return unread, unwritten
 
 
 def expand_images(inputs: list[Path]) -> tuple[list[Path], list[Path]]:

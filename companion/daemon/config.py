@@ -147,12 +147,13 @@ def load_config(path=None, replay=None, replay_fps: float | None = None) -> Conf
         raise ConfigError(f"--fps: --replay {replay} has its {TIMESTAMPS_FILE}, which gives every frame's time")
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: the config must be a mapping of sections")
-    if "camera" not in data and "camera" not in _replay_info(Path(replay)):
+    recorded = _replay_info(Path(replay))
+    if "camera" not in data and "camera" not in recorded:
         config_name = "the embedded default config" if path == default_config_path() else str(path)
         raise ConfigError(f"--replay {replay}: which camera took it? {config_name} has no camera section, and the "
                           f"replay no {SEQUENCE_FILE} naming one (as companion run --record and simulate write): give "
                           "--config FILE with your camera's calibration (camera: calibration_file: ...)")
-    if path == default_config_path() and "map" in _replay_info(Path(replay)):
+    if path == default_config_path() and "map" in recorded:
         data = _without_the_bundled_map(data)
     config = config_from_dict({**data, "source": {"kind": "replay", "path": str(Path(replay).resolve())}}, path)
     return dataclasses.replace(config, source=ReplayConfig(path=config.source.path, fps=replay_fps, fps_option="--fps"))

@@ -182,47 +182,50 @@ class Daemon:
                 self.attitude_stream.on_sample = recorder.attitude
         return recorder, live_view
 
-    def _compare_replay_camera(self) -> None:
-        """A replayed recording names the camera that took it (sequence.yaml); the config's camera, which is
-        the one used, differing from it poses every frame wrong (rejected poses, 'markers lost' with markers
-        in view, a mount warning): said once at the start, with what differs."""
+    def _compare_with_recording(self) -> None:
+        """A replayed recording names the camera that took it and the map its markers hung on (sequence.yaml;
+        ``companion run --record`` keeps a copy of the map). The config's, which are the ones used, differing
+        from them pose the frames wrong (rejected poses, 'markers lost' with markers in view, a mount warning):
+        said once at the start, with what differs."""
         source = self.config.source
         if not isinstance(source, ReplayConfig) or not source.path.is_dir():
             return
+        named = source.path / SEQUENCE_FILE
+        differences = self._camera_differences(source.path)
+        if differences:
+            log.warning("the config's camera (%s) is not the one %s names, which took the replayed frames: %s; "
+                        "the config's is used, and poses are only right if it is the camera that took them",
+                        self.config.path, named, "; ".join(differences))
+        recorded_map, differences = self._map_differences(source.path)
+        if differences:
+            log.warning("the config's map (%s) is not the one %s names (%s): %s; the config's is used, and poses "
+                        "are only right where it is the map of the recorded site", self.config.facility_map.path,
+                        named, recorded_map, "; ".join(differences))
+
+    def _camera_differences(self, folder: Path) -> list[str]:
+        """What the config's camera has otherwise than the recording's ([] when it names none, or a broken one:
+        not ours to judge)."""
         try:
-            recorded = sequence_camera(source.path)
+            recorded = sequence_camera(folder)
         except ValueError:
-            return  # the config's own camera is used; a broken sequence.yaml camera is not ours to judge
+            return []
         if recorded is None:
-            return
+            return []
         ours = self.config.camera
         if (ours.width, ours.height) != (recorded.width, recorded.height):
             try:  # the pipeline scales a camera to frames of another size and the same aspect
                 ours = ours.scaled_to(recorded.width, recorded.height)
             except CameraError:
                 pass
-        differences = ours.differences(recorded)
-        if differences:
-            log.warning("the config's camera (%s) is not the one %s names, which took the replayed frames: %s; "
-                        "the config's is used, and poses are only right if it is the camera that took them",
-                        self.config.path, source.path / SEQUENCE_FILE, "; ".join(differences))
+        return ours.differences(recorded)
 
-    def _compare_replay_map(self) -> None:
-        """A replayed recording names the map its markers hung on (sequence.yaml: ``companion run --record``
-        keeps a copy); the config's map, which is the one used, differing from it poses the frames wrong where
-        they differ: said once at the start, with the markers that differ."""
-        source = self.config.source
-        if not isinstance(source, ReplayConfig) or not source.path.is_dir():
-            return
+    def _map_differences(self, folder: Path) -> tuple[Path | None, list[str]]:
+        """(the recording's map, what the config's map has otherwise); [] as for the camera."""
         try:
-            recorded = sequence_map_path(source.path)
-            differences = self.config.facility_map.differences(load_map(recorded)) if recorded else []
+            recorded = sequence_map_path(folder)
+            return recorded, self.config.facility_map.differences(load_map(recorded)) if recorded else []
         except ValueError:
-            return  # the config's own map is used; a broken sequence.yaml map is not ours to judge
-        if differences:
-            log.warning("the config's map (%s) is not the one %s names (%s): %s; the config's is used, and poses "
-                        "are only right where it is the map of the recorded site", self.config.facility_map.path,
-                        source.path / SEQUENCE_FILE, recorded, "; ".join(differences))
+            return None, []
 
     def run(self) -> int:
         """Run until ``stop_event`` is set (signal, end of replay); returns the exit code."""
@@ -239,8 +242,7 @@ class Daemon:
         log.info("running: source %s, map %s, MAVLink %s", describe_source(self.config),
                  self.config.facility_map.path, self.config.mavlink.connection)
         log.info("attitude: %s", self._attitude_text)
-        self._compare_replay_camera()
-        self._compare_replay_map()
+        self._compare_with_recording()
         try:
             self._supervise()
         finally:

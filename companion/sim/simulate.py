@@ -57,8 +57,9 @@ DEFAULT_CAMERA = {"width": 640, "height": 480, "hfov_deg": 70.0,
 # a realistic small camera: motion blur over the exposure, a little optics blur, vignetting, sensor noise
 DEFAULT_DEGRADATIONS = Degradations(motion_blur=True, optics_blur_sigma_px=0.6, vignette_strength=0.15,
                                     read_noise_dn=1.5, shot_noise_gain=0.03)
-GROUNDTRUTH_COLUMNS = ("frame", "t_ns", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz",
-                       "north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "yaw_rad")
+# T_map_body as groundtruth.csv gives it: position, then the unit quaternion w, x, y, z
+POSE_COLUMNS = ("x_m", "y_m", "z_m", "qw", "qx", "qy", "qz")
+GROUNDTRUTH_COLUMNS = ("frame", "t_ns", *POSE_COLUMNS, "north_m", "east_m", "down_m", "roll_rad", "pitch_rad", "yaw_rad")
 MARKERS_COLUMNS = ("frame", "t_ns", "marker_id", "tl_x", "tl_y", "tr_x", "tr_y", "br_x", "br_y", "bl_x", "bl_y",
                    "corners_visible", "visible_fraction", "inner_px")
 PX_PER_CELL = 16
