@@ -108,6 +108,13 @@ def test_a_replay_without_a_config_is_flown_on_the_map_it_names_not_the_bundled_
     assert Path(config.facility_map.path).resolve() == (site / "maps" / "site.yaml").resolve()
     # the embedded default says the bundled map is exact; of a recording's own map, a surveyed map's accuracy
     assert (config.pose.map_sd_m, config.pose.map_sd_deg) == (PoseParams().map_sd_m, PoseParams().map_sd_deg)
+    # a map it names that is nowhere: an error that says how `run` is given one (it has no --map)
+    (sequence / "sequence.yaml").write_text(yaml.safe_dump({**info, "map": "maps/gone.yaml"}))
+    with pytest.raises(ConfigError, match=r"sequence.yaml: map: maps/gone.yaml is found neither beside the sequence "
+                                          r"nor in a folder above it; give the map \(map: in a config given with "
+                                          r"--config\)"):
+        load_config(replay=sequence)
+    (sequence / "sequence.yaml").write_text(yaml.safe_dump({**info, "map": "maps/site.yaml"}))
     # a config of the user's own says which map: it stays
     assert Path(load_config(write(site, base_config()), replay=sequence).facility_map.path).resolve() == \
         (site / "maps" / "warehouse.yaml").resolve()

@@ -169,14 +169,14 @@ def sequence_camera(folder, info: dict | None = None) -> CameraModel | None:
     return CameraModel.from_config(info["camera"], str(Path(folder) / SEQUENCE_FILE))
 
 
-def sequence_map_path(folder, info: dict | None = None) -> Path | None:
+def sequence_map_path(folder, info: dict | None = None, way_out: str = "--map, or map: in a config") -> Path | None:
     """The facility map a sequence folder's ``sequence.yaml`` names, or None when it names none.
 
     The map is relative to the folder: ``companion simulate`` puts a copy in it
     (``map.yaml``), so a copied folder keeps its map. Older sequences named it
     relative to the repository they were made in (``../../maps/x.yaml``): it is
     looked for there too, and in the folders above. SourceError when named but
-    found nowhere, naming sequence.yaml and the way out (``--map``, ``map:``).
+    found nowhere, naming sequence.yaml and the way out (``way_out``: how the command is given a map).
     """
     folder = Path(folder)
     info = read_sequence_info(folder) if info is None else info
@@ -199,7 +199,7 @@ def sequence_map_path(folder, info: dict | None = None) -> Path | None:
             if (base / tail).is_file():
                 return base / tail
     raise SourceError(f"{folder / SEQUENCE_FILE}: map: {name} is found neither beside the sequence nor in a folder "
-                      "above it; give the map (--map, or map: in a config)")
+                      f"above it; give the map ({way_out})")
 
 
 class ReplaySource(ThreadedSource):

@@ -362,7 +362,7 @@ def _map(data: dict, where: Where, sequence) -> FacilityMap:
         map_path = where.path(data, "map")
     elif sequence is not None and "map" in sequence[0]:
         try:
-            map_path = sequence_map_path(sequence[1].parent, sequence[0])
+            map_path = sequence_map_path(sequence[1].parent, sequence[0], "map: in a config given with --config")
         except ValueError as error:
             raise ConfigError(str(error)) from None
     else:
